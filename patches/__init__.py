@@ -1,0 +1,3 @@
+"""Backbone patch modules, installed as ``raytun3r_plugin.patches``; each registers itself."""
+
+from raytun3r_plugin.patches import da3  # noqa: F401

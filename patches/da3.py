@@ -1,0 +1,241 @@
+"""Depth Anything 3 (PyPI ``depth-anything-3`` 0.1.1 = GitHub main at 2c21ea8).
+
+Hook map (UPSTREAM.md section 2), all patched per instance on the ``DepthAnything3Net``:
+
+* PE: ``backbone.pretrained.interpolate_pos_encoding(x, w, h)`` (``w`` is the image height);
+* RoPE: ``backbone.pretrained._prepare_rope(B, S, H, W, device)`` gives the frame blocks the
+  (y+1, x+1) grid and the global blocks (1, 1) everywhere; only the former carries image position,
+  so only it is displaced. The shared ``RotaryPositionEmbedding2D.forward`` is replaced by the
+  continuous-angle version;
+* patch tokenisation: ``backbone.pretrained.patch_embed.forward(x)``;
+* prediction grid: ``head._add_pos_embed(x, W, H, ratio)`` (DualDPT; also DPT / GSDPT).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from raytun3r_plugin import hooks
+from raytun3r_plugin.errors import InputError, MissingDependencyError, WeightsError
+from raytun3r_plugin.prediction import Prediction, as_batched_images, imagenet_normalise, to_homogeneous
+from raytun3r_plugin.registry import BackboneInfo, BackboneSpec, PatchTarget, register
+from raytun3r_plugin.weights import load_into, read_state_dict, strip_prefix
+
+FAMILY = "da3"
+UPSTREAM_MODULE = "depth_anything_3"
+
+# (embed_dim, depth, RoPE) -> name, for the official configs (UPSTREAM.md section 2.6).
+_KNOWN = {
+    (384, 12, True): "da3-small",
+    (768, 12, True): "da3-base",
+    (1024, 24, True): "da3-large",
+    (1536, 40, True): "da3-giant",
+    (1024, 24, False): "da3mono-large",
+}
+_INSTALL_HINT = "pip install --no-deps depth-anything-3 && pip install omegaconf addict einops"
+
+
+def recognise(model: nn.Module) -> nn.Module | None:
+    def is_net(module) -> bool:
+        return type(module).__name__ == "DepthAnything3Net" and type(module).__module__.startswith(UPSTREAM_MODULE)
+
+    if is_net(model):
+        return model
+    inner = getattr(model, "model", None)  # the depth_anything_3.api.DepthAnything3 wrapper
+    if type(model).__module__.startswith(UPSTREAM_MODULE) and inner is not None and is_net(inner):
+        return inner
+    return None
+
+
+def describe(root: nn.Module) -> BackboneInfo:
+    vit = root.backbone.pretrained
+    has_rope = getattr(vit, "rope", None) is not None
+    key = (vit.embed_dim, len(vit.blocks), has_rope)
+    name = getattr(root, "raytun3r_name", None) or _KNOWN.get(key) or f"da3-custom-e{vit.embed_dim}-d{len(vit.blocks)}"
+    return BackboneInfo(
+        name=name,
+        embed_dim=vit.embed_dim,
+        patch_size=vit.patch_size,
+        has_rope=has_rope,
+        pos_embed=vit.pos_embed,
+        has_grid=bool(getattr(root.head, "pos_embed", False)),
+    )
+
+
+def _prepare_rope(original, owner, state):
+    """Displace the frame-attention positions; the global blocks' constant (1, 1) stays."""
+
+    def prepare_rope(B, S, H, W, device):
+        pos, pos_nodiff = original(B, S, H, W, device)
+        if pos is None or not state.uses("rope"):
+            return pos, pos_nodiff
+        return hooks.displaced_rope_positions(pos, owner.patch_start_idx, state, H, W), pos_nodiff
+
+    return prepare_rope
+
+
+TARGETS = (
+    PatchTarget(
+        name="pe_interpolation",
+        hook="pe",
+        owners=("backbone.pretrained",),
+        attribute="interpolate_pos_encoding",
+        signature=("x", "w", "h"),
+        owner_classes=("DinoVisionTransformer",),
+        build=hooks.pe_interpolation,
+    ),
+    PatchTarget(
+        name="rope_positions",
+        hook="rope",
+        owners=("backbone.pretrained",),
+        attribute="_prepare_rope",
+        signature=("B", "S", "H", "W", "device"),
+        owner_classes=("DinoVisionTransformer",),
+        build=_prepare_rope,
+    ),
+    PatchTarget(
+        name="rope_angles",
+        hook="rope",
+        owners=("backbone.pretrained.rope",),
+        attribute="forward",
+        signature=("tokens", "positions"),
+        owner_classes=("RotaryPositionEmbedding2D",),
+        build=hooks.continuous_rope,
+        optional=True,  # mono / metric models have no RoPE
+    ),
+    PatchTarget(
+        name="patch_embedding",
+        hook="patch_embed",
+        owners=("backbone.pretrained.patch_embed",),
+        attribute="forward",
+        signature=("x",),
+        owner_classes=("PatchEmbed",),
+        build=hooks.patch_embedding,
+    ),
+    PatchTarget(
+        name="prediction_grid",
+        hook="grid",
+        owners=("head",),
+        attribute="_add_pos_embed",
+        signature=("x", "W", "H", "ratio"),
+        owner_classes=("DualDPT", "DPT"),
+        build=hooks.uv_grid_embedding,
+    ),
+)
+
+
+def predict(root: nn.Module, images: torch.Tensor, **kwargs) -> Prediction:
+    """Run a DA3 network on images in [0, 1]; DA3 itself wants ImageNet-normalised input."""
+    images = as_batched_images(images, root.backbone.pretrained.patch_size)
+    output = root(imagenet_normalise(images), **kwargs)
+    extras = {key: output[key] for key in ("intrinsics",) if key in output}
+    if "extrinsics" not in output:
+        raise InputError("this DA3 network has no camera decoder: it predicts no pose")
+    return Prediction(
+        depth=output["depth"],
+        cam_from_world=to_homogeneous(output["extrinsics"]),
+        confidence=output.get("depth_conf"),
+        extras=extras,
+    )
+
+
+def _import_upstream():
+    try:
+        from depth_anything_3.cfg import create_object, load_config
+        from depth_anything_3.registry import MODEL_REGISTRY
+    except ImportError as error:
+        raise MissingDependencyError(f"Depth Anything 3 is not importable ({error}); install it with: {_INSTALL_HINT}") from error
+    return create_object, load_config, MODEL_REGISTRY
+
+
+def build_network(name: str) -> nn.Module:
+    """A randomly initialised ``DepthAnything3Net`` from the package's own config ``name``."""
+    create_object, load_config, registry = _import_upstream()
+    if name not in registry:
+        raise WeightsError(f"depth_anything_3 defines no config {name!r}; it has {sorted(registry)}")
+    return create_object(load_config(registry[name]))
+
+
+def load_weights(model: nn.Module, path) -> nn.Module:
+    """Load an official DA3 checkpoint (keys prefixed ``model.``) or a plain state dict."""
+    state = strip_prefix(read_state_dict(path), "model.")
+    return load_into(model, state, str(path))
+
+
+def _builder(name: str):
+    def build(path=None) -> nn.Module:
+        if path is None:
+            raise WeightsError(f"{name} needs a local weight file (.safetensors or .pt); raytun3r never downloads")
+        return load_weights(build_network(name), path)
+
+    return build
+
+
+def build_tiny_network(
+    embed_dim: int = 64,
+    depth: int = 6,
+    num_heads: int = 2,
+    alt_start: int = 2,
+    out_layers: tuple[int, ...] = (2, 3, 4, 5),
+    head_features: int = 32,
+    head_channels: tuple[int, ...] = (16, 32, 64, 64),
+    camera_decoder: bool = True,
+    seed: int | None = 0,
+) -> nn.Module:
+    """A small ``DepthAnything3Net`` made of DA3's own classes (for tests and CPU training).
+
+    Same structure as the official configs: DINOv2 ViT with a 37x37 absolute PE table trained at
+    518 px, q/k-norm, RoPE and alternating frame/global attention from ``alt_start``, DualDPT head,
+    camera decoder and encoder. Unlike DA3's own constructor (which leaves ``pos_embed`` and
+    ``cls_token`` at zero), the PE table gets a trunc-normal init so the PE hook is exercised.
+    """
+    _import_upstream()
+    from depth_anything_3.model.cam_dec import CameraDec
+    from depth_anything_3.model.cam_enc import CameraEnc
+    from depth_anything_3.model.da3 import DepthAnything3Net
+    from depth_anything_3.model.dinov2.dinov2 import DinoV2
+    from depth_anything_3.model.dinov2.vision_transformer import DinoVisionTransformer
+    from depth_anything_3.model.dualdpt import DualDPT
+
+    generator_state = torch.random.get_rng_state()
+    if seed is not None:
+        torch.manual_seed(seed)
+    try:
+        backbone = DinoV2.__new__(DinoV2)
+        nn.Module.__init__(backbone)
+        # DinoV2.__init__ only offers the four official ViT sizes; set the same attributes it sets.
+        backbone.name, backbone.out_layers = "vits", list(out_layers)
+        backbone.alt_start = backbone.qknorm_start = backbone.rope_start = alt_start
+        backbone.cat_token = True
+        backbone.pretrained = DinoVisionTransformer(
+            img_size=518, patch_size=14, embed_dim=embed_dim, depth=depth, num_heads=num_heads,
+            mlp_ratio=4, alt_start=alt_start, qknorm_start=alt_start, rope_start=alt_start, cat_token=True,
+        )
+        nn.init.trunc_normal_(backbone.pretrained.pos_embed, std=0.02)
+        nn.init.trunc_normal_(backbone.pretrained.cls_token, std=0.02)
+        head = DualDPT(dim_in=2 * embed_dim, output_dim=2, features=head_features, out_channels=list(head_channels))
+        cam_dec = CameraDec(dim_in=2 * embed_dim) if camera_decoder else None
+        cam_enc = CameraEnc(dim_out=embed_dim, num_heads=num_heads) if camera_decoder else None
+        return DepthAnything3Net(backbone, head, cam_dec=cam_dec, cam_enc=cam_enc).eval()
+    finally:
+        if seed is not None:
+            torch.random.set_rng_state(generator_state)
+
+
+def _builders() -> dict:
+    names = ("da3-small", "da3-base", "da3-large", "da3-giant", "da3mono-large", "da3metric-large")
+    return {name: _builder(name) for name in names}
+
+
+SPEC = register(
+    BackboneSpec(
+        family=FAMILY,
+        supports="depth-anything-3 0.1.1 (GitHub 2c21ea8)",
+        recognise=recognise,
+        describe=describe,
+        targets=TARGETS,
+        predict=predict,
+        builders=_builders(),
+    )
+)

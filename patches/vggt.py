@@ -1,0 +1,265 @@
+"""VGGT (``facebookresearch/vggt`` at 44b3afb; not on PyPI, used from a source checkout).
+
+Hook map (UPSTREAM.md section 3), all patched per instance on the ``VGGT`` model:
+
+* PE: ``aggregator.patch_embed.interpolate_pos_encoding(x, w, h)`` of the DINOv2 ViT-L/14-reg
+  that VGGT uses as its patch embedding (``w`` is the image height; row 0 of the table is the
+  class slot; the 4 register tokens are inserted after the PE is added, so they get none);
+* RoPE: one ``RotaryPositionEmbedding2D`` instance, ``aggregator.rope``, serves all frame and
+  global blocks. ``Aggregator.forward`` assembles the positions inline (the position getter's
+  (y, x) grid, +1, then 5 special tokens at (0, 0)) and hands them to ``rope.forward(tokens,
+  positions)``. The replacement of ``rope.forward`` identifies every patch token by its own
+  upstream integer position (y + 1, x + 1), displaces it by the adapter's radial RoPE table, and
+  evaluates cos/sin at the resulting float position; special tokens, at (0, 0), are untouched.
+  This covers frame blocks ((B*S, P, 2) positions) and global blocks ((B, S*P, 2)) alike, with
+  no change to ``Aggregator.forward`` or to the position getter (see :func:`grid_position_rope`);
+* patch tokenisation: ``aggregator.patch_embed.patch_embed.forward(x)`` (inside the ViT, so the
+  border-token replacement happens after patch embedding and before the PE is added);
+* prediction grid: ``depth_head._apply_pos_embed(x, W, H, ratio)`` and
+  ``point_head._apply_pos_embed(...)`` (``DPTHead``; same contract as DA3's ``_add_pos_embed``,
+  the sinusoid comes from ``vggt.heads.dpt_head.position_grid_to_embed``).
+
+Not patched: the track head's own sin-cos embedding of query points (a fifth, track-only
+positional hook) and the pinhole intrinsics decoded from the FoV part of ``pose_enc``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from raytun3r_plugin import hooks
+from raytun3r_plugin.errors import InputError, MissingDependencyError, UnsupportedUpstreamError, WeightsError
+from raytun3r_plugin.prediction import Prediction, as_batched_images, to_homogeneous
+from raytun3r_plugin.registry import BackboneInfo, BackboneSpec, PatchTarget, register
+from raytun3r_plugin.weights import load_into, read_state_dict
+
+FAMILY = "vggt"
+UPSTREAM_MODULE = "vggt"
+UPSTREAM_COMMIT = "44b3afbd1869d8bde4894dd8ea1e293112dd5eba"
+
+# (embed_dim, aggregator depth) -> name; VGGT-1B is the only published configuration.
+_KNOWN = {(1024, 24): "vggt-1b"}
+_INSTALL_HINT = (
+    "VGGT is not on PyPI: clone the facebookresearch/vggt repository from GitHub and run "
+    "'pip install -e .' in it (or put the checkout on PYTHONPATH; it also needs huggingface_hub)"
+)
+#: RoPE classes whose instances must all be covered by the ``rope`` target (see :func:`check_rope_coverage`).
+ROPE_CLASS_NAMES = ("RotaryPositionEmbedding2D", "RoPE2D", "cuRoPE2D")
+
+
+# ---------------------------------------------------------------------------------------------
+# RoPE at grid positions (shared with patches/pi3.py)
+# ---------------------------------------------------------------------------------------------
+
+
+def displace_grid_positions(positions: torch.Tensor, state, patch_size: int) -> torch.Tensor:
+    """Float positions: every patch token displaced by the adapter's radial RoPE table.
+
+    ``positions`` (..., N, 2) are upstream integer (y, x) positions in any token layout: patch
+    tokens carry (row + 1, col + 1) of an h x w grid, special tokens (0, 0). The grid size is read
+    from the positions themselves (h = max y, w = max x), so the image is (h p, w p) pixels. A
+    call without patch tokens (e.g. Pi3X's metric query at (0, 0)) returns the positions as they
+    are.
+    """
+    rows, cols = (int(v) for v in positions.reshape(-1, 2).amax(dim=0).tolist())
+    if rows < 1 or cols < 1:
+        return positions
+    geometry = state.geometry(rows * patch_size, cols * patch_size)
+    displacement = state.rope_displacement(geometry, positions.device, torch.float32)  # (h*w, 2), (y, x)
+    is_patch = (positions[..., 0] > 0) & (positions[..., 1] > 0)
+    index = ((positions[..., 0] - 1) * cols + (positions[..., 1] - 1)).clamp(min=0)
+    offset = torch.where(is_patch[..., None], displacement[index], displacement.new_zeros(()))
+    return positions.to(torch.float32) + offset
+
+
+def grid_position_rope(original, owner, state):
+    """Wrap a RoPE module's ``forward(tokens, positions)``: radial displacement + continuous angles.
+
+    Upstream integer positions (y + 1, x + 1) identify each patch token, whatever the layout of
+    the call (per frame or all frames of a global block), so the position assembly code of the
+    model (``Aggregator.forward``, ``Pi3.decode``) is left alone: q' = q + rope.radial(rho) d/|d|
+    with q the upstream position including its +1 (DESIGN.md section 4), special tokens at (0, 0)
+    unchanged. Float positions and a disabled handle go straight to the continuous / upstream
+    evaluation of :func:`raytun3r_plugin.hooks.continuous_rope`.
+    """
+    continuous = hooks.continuous_rope(original, owner, state)
+    patch_size = state.info.patch_size
+
+    def forward(tokens, positions):
+        if positions.is_floating_point() or not state.uses("rope"):
+            return continuous(tokens, positions)
+        return continuous(tokens, displace_grid_positions(positions, state, patch_size))
+
+    return forward
+
+
+def check_rope_coverage(root: nn.Module, owner_paths: tuple[str, ...], family: str) -> None:
+    """Refuse a model holding a RoPE instance that the ``rope`` target would not reach."""
+    from raytun3r_plugin.registry import resolve_path
+
+    covered = {id(resolve_path(root, path)) for path in owner_paths}
+    for name, module in root.named_modules():
+        if type(module).__name__ in ROPE_CLASS_NAMES and id(module) not in covered:
+            raise UnsupportedUpstreamError(
+                f"{family}: found a {type(module).__name__} at '{name}' that is not one of the patched RoPE "
+                f"instances ({', '.join(owner_paths)}); this upstream version is not supported"
+            )
+
+
+# ---------------------------------------------------------------------------------------------
+# Spec
+# ---------------------------------------------------------------------------------------------
+
+
+def recognise(model: nn.Module) -> nn.Module | None:
+    if type(model).__name__ == "VGGT" and type(model).__module__.startswith(UPSTREAM_MODULE):
+        return model
+    return None
+
+
+def _vit(root: nn.Module) -> nn.Module:
+    vit = getattr(getattr(root, "aggregator", None), "patch_embed", None)
+    if vit is None or not isinstance(getattr(vit, "pos_embed", None), torch.Tensor):
+        found = type(vit).__qualname__ if vit is not None else "nothing"
+        raise UnsupportedUpstreamError(
+            f"vggt: expected a DINOv2 ViT with an absolute PE table at 'aggregator.patch_embed', found {found} "
+            "(the 'conv' patch embedding variant is not supported)"
+        )
+    return vit
+
+
+def describe(root: nn.Module) -> BackboneInfo:
+    vit = _vit(root)
+    aggregator = root.aggregator
+    depth = len(aggregator.frame_blocks)
+    heads = [getattr(root, name, None) for name in ("depth_head", "point_head")]
+    name = getattr(root, "raytun3r_name", None) or _KNOWN.get((vit.embed_dim, depth)) or f"vggt-custom-e{vit.embed_dim}-d{depth}"
+    return BackboneInfo(
+        name=name,
+        embed_dim=vit.embed_dim,
+        patch_size=vit.patch_size,
+        has_rope=getattr(aggregator, "rope", None) is not None,
+        pos_embed=vit.pos_embed,
+        has_grid=any(bool(getattr(head, "pos_embed", False)) for head in heads if head is not None),
+    )
+
+
+ROPE_OWNERS = ("aggregator.rope",)
+
+TARGETS = (
+    PatchTarget(
+        name="pe_interpolation",
+        hook="pe",
+        owners=("aggregator.patch_embed",),
+        attribute="interpolate_pos_encoding",
+        signature=("x", "w", "h"),
+        owner_classes=("DinoVisionTransformer",),
+        build=hooks.pe_interpolation,
+    ),
+    PatchTarget(
+        name="rope",
+        hook="rope",
+        owners=ROPE_OWNERS,
+        attribute="forward",
+        signature=("tokens", "positions"),
+        owner_classes=("RotaryPositionEmbedding2D",),
+        build=grid_position_rope,
+        optional=True,  # Aggregator(rope_freq=0) has no RoPE
+    ),
+    PatchTarget(
+        name="patch_embedding",
+        hook="patch_embed",
+        owners=("aggregator.patch_embed.patch_embed",),
+        attribute="forward",
+        signature=("x",),
+        owner_classes=("PatchEmbed",),
+        build=hooks.patch_embedding,
+    ),
+    PatchTarget(
+        name="prediction_grid",
+        hook="grid",
+        owners=("depth_head", "point_head"),
+        attribute="_apply_pos_embed",
+        signature=("x", "W", "H", "ratio"),
+        owner_classes=("DPTHead",),
+        build=hooks.uv_grid_embedding,
+        optional=True,  # VGGT(enable_depth=False / enable_point=False)
+    ),
+)
+
+
+def check(root: nn.Module) -> None:
+    _vit(root)
+    check_rope_coverage(root, ROPE_OWNERS, FAMILY)
+
+
+def _pose_decoder():
+    try:
+        from vggt.utils.pose_enc import pose_encoding_to_extri_intri
+    except ImportError as error:
+        raise MissingDependencyError(f"vggt.utils.pose_enc is not importable ({error}); {_INSTALL_HINT}") from error
+    return pose_encoding_to_extri_intri
+
+
+def predict(root: nn.Module, images: torch.Tensor, **kwargs) -> Prediction:
+    """Run VGGT on images in [0, 1] (it normalises them itself).
+
+    ``pose_enc`` is decoded with upstream's ``pose_encoding_to_extri_intri`` into cam_from_world
+    (B, S, 4, 4) (OpenCV axes, world = first camera); depth (B, S, H, W) is VGGT's depth channel
+    and the confidence its ``depth_conf``. ``extras`` holds upstream's pinhole ``intrinsics``
+    (principal point at (W/2, H/2) as upstream writes it), ``world_points`` and
+    ``world_points_conf`` when the point head is enabled.
+    """
+    images = as_batched_images(images, root.aggregator.patch_size)
+    output = root(images, **kwargs)
+    if "pose_enc" not in output:
+        raise InputError("this VGGT has no camera head (enable_camera=False): it predicts no pose")
+    if "depth" not in output:
+        raise InputError("this VGGT has no depth head (enable_depth=False): it predicts no depth")
+    extrinsics, intrinsics = _pose_decoder()(output["pose_enc"], images.shape[-2:])
+    extras = {"intrinsics": intrinsics}
+    for key in ("world_points", "world_points_conf"):
+        if key in output:
+            extras[key] = output[key]
+    return Prediction(
+        depth=output["depth"][..., 0],
+        cam_from_world=to_homogeneous(extrinsics),
+        confidence=output.get("depth_conf"),
+        extras=extras,
+    )
+
+
+def build_network() -> nn.Module:
+    """A randomly initialised ``VGGT()`` (VGGT-1B) from the user's installed upstream package."""
+    try:
+        from vggt.models.vggt import VGGT
+    except ImportError as error:
+        raise MissingDependencyError(f"VGGT is not importable ({error}); {_INSTALL_HINT}") from error
+    return VGGT()
+
+
+def load_weights(model: nn.Module, path) -> nn.Module:
+    """Load an official VGGT checkpoint (``model.safetensors`` or ``model.pt``; keys unprefixed) strictly."""
+    return load_into(model, read_state_dict(path), str(path))
+
+
+def _build_vggt_1b(path=None) -> nn.Module:
+    if path is None:
+        raise WeightsError("vggt-1b needs a local weight file (.safetensors or .pt); raytun3r never downloads")
+    state = read_state_dict(path)  # before the (slow, 5 GB) build: a bad path fails at once
+    return load_into(build_network(), state, str(path))
+
+
+SPEC = register(
+    BackboneSpec(
+        family=FAMILY,
+        supports=f"facebookresearch/vggt {UPSTREAM_COMMIT[:7]}",
+        recognise=recognise,
+        describe=describe,
+        targets=TARGETS,
+        predict=predict,
+        builders={"vggt-1b": _build_vggt_1b},
+        check=check,
+    )
+)

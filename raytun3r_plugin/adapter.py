@@ -1,0 +1,309 @@
+"""The learned part of raytun3r: radial/angular lookup tables, and their file format (v1).
+
+A fresh adapter is all zeros and therefore the identity. The file is one ``.safetensors`` with
+exactly the tensors ``pe.radial`` [N_r, C], ``pe.angular`` [N_theta, C] and, for RoPE backbones,
+``rope.radial`` [N_r_rope], all float32, plus string metadata (DESIGN.md section 4). Loading never
+unpickles: safetensors stores raw tensors and a JSON header.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from raytun3r_plugin.errors import AdapterError, CameraError
+
+FORMAT = "raytun3r-adapter"
+FORMAT_VERSION = "1"
+DEFAULT_N_R = 20
+DEFAULT_N_THETA = 8
+DEFAULT_N_R_ROPE = 20
+
+#: Corrections that can be switched on and off (DESIGN.md section 5); tables are "pe" and "rope".
+COMPONENTS = ("pe", "rope", "patch_resample", "border_tokens", "grid")
+
+_REQUIRED_METADATA = (
+    "format",
+    "format_version",
+    "backbone",
+    "embed_dim",
+    "patch_size",
+    "n_r",
+    "n_theta",
+    "n_r_rope",
+    "camera",
+    "components",
+    "pe_fingerprint",
+    "raytun3r_version",
+    "training",
+)
+
+
+def pe_fingerprint(pos_embed: torch.Tensor) -> str:
+    """Short hash of a backbone's absolute PE table, to tell weight sets apart."""
+    data = pos_embed.detach().to("cpu", torch.float32).contiguous().numpy().tobytes()
+    return hashlib.sha256(data).hexdigest()[:16]
+
+
+def normalise_components(components: Mapping[str, bool] | list[str] | tuple[str, ...] | set[str] | None) -> dict[str, bool]:
+    """Turn a component list or mapping into ``{name: enabled}`` over :data:`COMPONENTS`."""
+    if components is None:
+        return dict.fromkeys(COMPONENTS, True)
+    if isinstance(components, Mapping):
+        unknown = set(components) - set(COMPONENTS)
+        if unknown:
+            raise AdapterError(f"unknown components {sorted(unknown)}; known: {list(COMPONENTS)}")
+        return {name: bool(components.get(name, True)) for name in COMPONENTS}
+    names = set(components)
+    unknown = names - set(COMPONENTS)
+    if unknown:
+        raise AdapterError(f"unknown components {sorted(unknown)}; known: {list(COMPONENTS)}")
+    return {name: name in names for name in COMPONENTS}
+
+
+class Adapter(nn.Module):
+    """Radial/angular PE tables and a radial RoPE table for one backbone and one camera.
+
+    Attributes:
+        pe.radial: (n_r, C) radial PE update at rho_k = k / (n_r - 1).
+        pe.angular: (n_theta, C) angular PE update at 2 pi k / n_theta, scaled by rho when applied.
+        rope.radial: (n_r_rope,) radial RoPE displacement in token units (RoPE backbones only).
+        camera: the camera the adapter was fitted on (or None before fitting).
+    """
+
+    def __init__(
+        self,
+        backbone: str,
+        embed_dim: int,
+        patch_size: int = 14,
+        n_r: int = DEFAULT_N_R,
+        n_theta: int = DEFAULT_N_THETA,
+        n_r_rope: int = DEFAULT_N_R_ROPE,
+        camera=None,
+        components=None,
+        pe_fingerprint: str = "",
+        training: Mapping[str, Any] | None = None,
+    ) -> None:
+        super().__init__()
+        for name, value, low in (("embed_dim", embed_dim, 1), ("patch_size", patch_size, 1), ("n_r", n_r, 2), ("n_theta", n_theta, 1), ("n_r_rope", n_r_rope, 0)):
+            if not isinstance(value, int) or value < low:
+                raise AdapterError(f"{name} must be an integer >= {low}, got {value!r}")
+        self.backbone = backbone
+        self.embed_dim = embed_dim
+        self.patch_size = patch_size
+        self.camera = camera
+        self.components = normalise_components(components)
+        self.pe_fingerprint = pe_fingerprint
+        self.training_info: dict[str, Any] = dict(training or {})
+        self.pe = nn.ParameterDict(
+            {
+                "radial": nn.Parameter(torch.zeros(n_r, embed_dim)),
+                "angular": nn.Parameter(torch.zeros(n_theta, embed_dim)),
+            }
+        )
+        self.rope = nn.ParameterDict({"radial": nn.Parameter(torch.zeros(n_r_rope))}) if n_r_rope else None
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def n_r(self) -> int:
+        return self.pe["radial"].shape[0]
+
+    @property
+    def n_theta(self) -> int:
+        return self.pe["angular"].shape[0]
+
+    @property
+    def n_r_rope(self) -> int:
+        return 0 if self.rope is None else self.rope["radial"].shape[0]
+
+    def num_parameters(self) -> dict[str, int]:
+        """Parameter counts: ``{"pe": ..., "rope": ..., "total": ...}``."""
+        pe = self.pe["radial"].numel() + self.pe["angular"].numel()
+        return {"pe": pe, "rope": self.n_r_rope, "total": pe + self.n_r_rope}
+
+    @classmethod
+    def for_model(cls, model: nn.Module, camera=None, *, n_r: int = DEFAULT_N_R, n_theta: int = DEFAULT_N_THETA, n_r_rope: int = DEFAULT_N_R_ROPE, components=None) -> Adapter:
+        """A zero (identity) adapter sized for ``model``'s backbone."""
+        from raytun3r_plugin.registry import spec_for
+
+        spec, root = spec_for(model)
+        info = spec.describe(root)
+        return cls(
+            backbone=info.name,
+            embed_dim=info.embed_dim,
+            patch_size=info.patch_size,
+            n_r=n_r,
+            n_theta=n_theta,
+            n_r_rope=n_r_rope if info.has_rope else 0,
+            camera=camera,
+            components=components,
+            pe_fingerprint=pe_fingerprint(info.pos_embed),
+        )
+
+    # ------------------------------------------------------------------ file format
+    def metadata(self) -> dict[str, str]:
+        from raytun3r_plugin import __version__
+
+        return {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "backbone": self.backbone,
+            "embed_dim": str(self.embed_dim),
+            "patch_size": str(self.patch_size),
+            "n_r": str(self.n_r),
+            "n_theta": str(self.n_theta),
+            "n_r_rope": str(self.n_r_rope),
+            "camera": "" if self.camera is None else self.camera.to_json(),
+            "components": json.dumps(self.components, sort_keys=True),
+            "pe_fingerprint": self.pe_fingerprint,
+            "raytun3r_version": __version__,
+            "training": json.dumps(self.training_info, sort_keys=True, default=str),
+        }
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        """The file's tensors: detached, contiguous float32 CPU copies."""
+        return {name: value.detach().to("cpu", torch.float32).contiguous().clone() for name, value in self.state_dict().items()}
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the adapter atomically (temporary file in the same folder, then rename)."""
+        from safetensors.torch import save_file
+
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        os.close(handle)
+        try:
+            save_file(self.tensors(), temporary, metadata=self.metadata())
+            os.replace(temporary, path)
+        except BaseException:
+            Path(temporary).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Adapter:
+        """Read and validate an adapter file; raises :class:`AdapterError` naming the problem."""
+        from safetensors import SafetensorError, safe_open
+
+        path = Path(path)
+        if not path.is_file():
+            raise AdapterError(f"{path}: no such adapter file")
+        try:
+            with safe_open(str(path), framework="pt") as handle:
+                metadata = dict(handle.metadata() or {})
+                tensors = {name: handle.get_tensor(name) for name in handle.keys()}  # noqa: SIM118
+        except (SafetensorError, OSError, ValueError, RuntimeError) as error:
+            raise AdapterError(f"{path}: not a readable safetensors file ({error})") from error
+        return cls._from_parts(path, metadata, tensors)
+
+    @classmethod
+    def _from_parts(cls, path: Path, metadata: dict[str, str], tensors: dict[str, torch.Tensor]) -> Adapter:
+        def fail(message: str) -> AdapterError:
+            return AdapterError(f"{path}: {message}")
+
+        missing = [key for key in _REQUIRED_METADATA if key not in metadata]
+        if missing:
+            raise fail(f"missing metadata {missing}")
+        if metadata["format"] != FORMAT:
+            raise fail(f"metadata 'format' is {metadata['format']!r}, expected {FORMAT!r}")
+        if metadata["format_version"] != FORMAT_VERSION:
+            raise fail(f"format_version {metadata['format_version']!r} is not supported (this raytun3r reads version {FORMAT_VERSION})")
+        sizes = {}
+        for key in ("embed_dim", "patch_size", "n_r", "n_theta", "n_r_rope"):
+            try:
+                sizes[key] = int(metadata[key])
+            except ValueError:
+                raise fail(f"metadata {key!r} is not an integer: {metadata[key]!r}") from None
+        for key in ("components", "training"):
+            try:
+                json.loads(metadata[key])
+            except json.JSONDecodeError as error:
+                raise fail(f"metadata {key!r} is not valid JSON ({error})") from None
+        expected = {
+            "pe.radial": (sizes["n_r"], sizes["embed_dim"]),
+            "pe.angular": (sizes["n_theta"], sizes["embed_dim"]),
+        }
+        if sizes["n_r_rope"]:
+            expected["rope.radial"] = (sizes["n_r_rope"],)
+        if set(tensors) != set(expected):
+            raise fail(f"tensors {sorted(tensors)} do not match the expected {sorted(expected)}")
+        for name, shape in expected.items():
+            tensor = tensors[name]
+            if tensor.dtype != torch.float32:
+                raise fail(f"tensor {name!r} has dtype {tensor.dtype}, expected torch.float32")
+            if tuple(tensor.shape) != shape:
+                raise fail(f"tensor {name!r} has shape {tuple(tensor.shape)}, expected {shape} from the metadata")
+            if not bool(torch.isfinite(tensor).all()):
+                raise fail(f"tensor {name!r} has non-finite values")
+        camera = None
+        if metadata["camera"]:
+            from raytun3r_plugin.cameras import from_dict
+
+            try:
+                camera = from_dict(json.loads(metadata["camera"]))
+            except (CameraError, json.JSONDecodeError, KeyError, TypeError) as error:
+                raise fail(f"metadata 'camera' is not a valid camera ({error})") from None
+        try:
+            adapter = cls(
+                backbone=metadata["backbone"],
+                camera=camera,
+                components=json.loads(metadata["components"]),
+                pe_fingerprint=metadata["pe_fingerprint"],
+                training=json.loads(metadata["training"]),
+                **sizes,
+            )
+        except AdapterError as error:
+            raise fail(str(error)) from None
+        with torch.no_grad():
+            for name, value in adapter.state_dict().items():
+                value.copy_(tensors[name])
+        return adapter
+
+    # ------------------------------------------------------------------ comparisons
+    def same_as(self, other: Adapter) -> bool:
+        """True when ``other`` holds the same tables, sizes, backbone and camera."""
+        if self is other:
+            return True
+        if self.metadata() | {"training": ""} != other.metadata() | {"training": ""}:
+            return False
+        mine, theirs = self.state_dict(), other.state_dict()
+        return all(torch.equal(mine[k].detach(), theirs[k].detach()) for k in mine)
+
+    def is_zero(self) -> bool:
+        return all(not bool(p.detach().abs().max() > 0) for p in self.parameters())
+
+    def extra_repr(self) -> str:
+        counts = self.num_parameters()
+        return f"backbone={self.backbone!r}, embed_dim={self.embed_dim}, n_r={self.n_r}, n_theta={self.n_theta}, n_r_rope={self.n_r_rope}, parameters={counts['total']}"
+
+
+def describe_file(path: str | os.PathLike) -> str:
+    """Human-readable summary of an adapter file (what ``raytun3r inspect`` prints)."""
+    adapter = Adapter.load(path)
+    counts = adapter.num_parameters()
+    metadata = adapter.metadata()
+    lines = [
+        f"file:            {path}",
+        f"format:          {FORMAT} v{FORMAT_VERSION} (written by raytun3r {metadata['raytun3r_version']})",
+        f"backbone:        {adapter.backbone} (embed_dim {adapter.embed_dim}, patch {adapter.patch_size})",
+        f"tables:          pe.radial {adapter.n_r}x{adapter.embed_dim}, pe.angular {adapter.n_theta}x{adapter.embed_dim}"
+        + (f", rope.radial {adapter.n_r_rope}" if adapter.n_r_rope else ""),
+        f"parameters:      {counts['total']:,} ({counts['pe']:,} PE + {counts['rope']:,} RoPE)",
+        f"camera:          {adapter.camera!r}",
+        f"field of view:   {adapter.camera.fov_deg:.1f} deg" if adapter.camera is not None else "field of view:   -",
+        f"components:      {', '.join(k for k, v in adapter.components.items() if v) or 'none'}",
+        f"pe_fingerprint:  {adapter.pe_fingerprint}",
+        f"training:        {json.dumps(adapter.training_info, sort_keys=True)}",
+    ]
+    magnitude = max(float(p.detach().abs().max()) for p in adapter.parameters())
+    lines.append(f"max |table|:     {magnitude:.3g}" + (" (identity adapter)" if magnitude == 0 or math.isclose(magnitude, 0.0) else ""))
+    return "\n".join(lines)

@@ -1,0 +1,43 @@
+"""The project's error hierarchy: every error raytun3r raises derives from :class:`Raytun3rError`."""
+
+from __future__ import annotations
+
+
+class Raytun3rError(Exception):
+    """Base class of every error raised by raytun3r."""
+
+
+class CameraError(Raytun3rError, ValueError):
+    """A camera or calibration file is malformed, incomplete or outside the model's domain."""
+
+
+class AdapterError(Raytun3rError, ValueError):
+    """An adapter file or adapter object is corrupt, inconsistent or made for another model."""
+
+
+class UnsupportedUpstreamError(Raytun3rError, TypeError):
+    """The upstream model code does not have the structure a patch expects."""
+
+
+class AlreadyAppliedError(Raytun3rError, RuntimeError):
+    """The model already carries a raytun3r patch with another camera or adapter."""
+
+
+class NotAppliedError(Raytun3rError, RuntimeError):
+    """``remove`` was asked for a model that carries no raytun3r patch."""
+
+
+class InputError(Raytun3rError, ValueError):
+    """Images or other run-time inputs do not fit the model or the camera."""
+
+
+class DatasetError(Raytun3rError, ValueError):
+    """A dataset folder or file is missing or malformed."""
+
+
+class WeightsError(Raytun3rError, ValueError):
+    """A weight file is missing, corrupt or does not match the network."""
+
+
+class MissingDependencyError(Raytun3rError, ImportError):
+    """An optional upstream package needed for the request is not installed."""

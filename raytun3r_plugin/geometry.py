@@ -1,0 +1,335 @@
+"""Per-camera, per-input-size geometry that every patched hook shares.
+
+Everything here is parameter-free and depends only on (camera, input size, patch size), so it
+is computed once in float64 and cached by :class:`GeometryCache`; a patched forward only reads
+it. Conventions (DESIGN.md sections 2, 4, 5):
+
+* pixel coordinates have the centre of the top-left pixel at (0, 0);
+* token (i, j) of patch size p covers pixels [j p, (j + 1) p) x [i p, (i + 1) p), so its centre is
+  ((j + 0.5) p - 0.5, (i + 0.5) p - 0.5) in that convention (DESIGN.md writes the same point as
+  ((j + 0.5) p, (i + 0.5) p) with pixel edges at integers);
+* the fisheye-to-pinhole map ``M`` sends a pixel whose ray makes angle ``a`` with the optical axis
+  and has image-plane direction (cos b, sin b) to (cx + fx g(a) cos b, cy + fy g(a) sin b), with
+  g(a) = tan a up to ``a_k`` and its C1 linear continuation beyond.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from raytun3r_plugin.errors import InputError
+
+DEFAULT_KNEE_DEG = 60.0
+DEFAULT_MAX_STRETCH = 2.0
+# A map that moves no pixel by more than this (in pixels) is the identity for our purposes: the
+# corrections then defer to upstream code, so a pinhole camera reproduces upstream bit for bit.
+IDENTITY_TOLERANCE_PX = 1e-6
+ASPECT_TOLERANCE = 0.01
+
+
+def camera_for_input(camera, height: int, width: int):
+    """Return ``camera`` rescaled to a network input of ``height`` x ``width`` pixels.
+
+    A pure resize is assumed (DESIGN.md section 3). Crops must be stated by the caller with
+    ``camera.cropped(...)`` before calling; an aspect-ratio change beyond 1% is refused.
+    """
+    if camera.width == width and camera.height == height:
+        return camera
+    native = camera.width / camera.height
+    given = width / height
+    if abs(given - native) / native > ASPECT_TOLERANCE:
+        raise InputError(
+            f"input of {width}x{height} px (aspect {given:.4f}) does not match the camera's "
+            f"{camera.width}x{camera.height} px (aspect {native:.4f}); only a pure resize is "
+            "implied; describe a crop explicitly with camera.cropped(x0, y0, w, h)"
+        )
+    return camera.resized(width, height)
+
+
+def _g(angle: torch.Tensor, knee: float) -> torch.Tensor:
+    """Radial pinhole mapping tan(a), continued linearly (C1) beyond ``knee`` radians."""
+    tan_k = math.tan(knee)
+    slope = 1.0 / math.cos(knee) ** 2
+    return torch.where(angle <= knee, torch.tan(torch.clamp(angle, max=knee)), tan_k + (angle - knee) * slope)
+
+
+def fisheye_to_pinhole(camera, uv: torch.Tensor, knee_deg: float = DEFAULT_KNEE_DEG) -> torch.Tensor:
+    """Apply the map ``M`` to pixels ``uv`` (..., 2) of ``camera``; returns pinhole pixels (..., 2).
+
+    Pixels whose ray is invalid are returned unchanged.
+    """
+    rays, valid = camera.unproject(uv)
+    dtype = uv.dtype
+    xy = rays[..., :2]
+    radius = xy.norm(dim=-1)
+    angle = torch.atan2(radius, rays[..., 2])
+    safe = radius.clamp_min(torch.finfo(dtype).tiny)
+    direction = xy / safe.unsqueeze(-1)
+    g = _g(angle, math.radians(knee_deg))
+    fx, fy, cx, cy = (torch.as_tensor(v, dtype=dtype, device=uv.device) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
+    mapped = torch.stack((cx + fx * g * direction[..., 0], cy + fy * g * direction[..., 1]), dim=-1)
+    # On the axis the direction is undefined but M is the principal point itself.
+    mapped = torch.where((radius > 0).unsqueeze(-1), mapped, torch.stack((cx.expand_as(uv[..., 0]), cy.expand_as(uv[..., 1])), -1))
+    return torch.where(valid.unsqueeze(-1), mapped, uv)
+
+
+def token_centres(height: int, width: int, patch: int, dtype=torch.float64) -> torch.Tensor:
+    """Pixel centres of the patch tokens, (h*w, 2) as (x, y), row-major like the token order."""
+    ys = (torch.arange(height // patch, dtype=dtype) + 0.5) * patch - 0.5
+    xs = (torch.arange(width // patch, dtype=dtype) + 0.5) * patch - 0.5
+    grid_y, grid_x = torch.meshgrid(ys, xs, indexing="ij")
+    return torch.stack((grid_x.reshape(-1), grid_y.reshape(-1)), dim=-1)
+
+
+@dataclass(frozen=True)
+class TokenPolar:
+    """Polar coordinates of the token centres around the principal point (DESIGN.md section 4).
+
+    rho: (hw,) normalised radius in [0, 1]; theta: (hw,) angle in [0, 2 pi);
+    direction_yx: (hw, 2) unit outward direction in (y, x) order, zero at the exact centre.
+    """
+
+    rho: torch.Tensor
+    theta: torch.Tensor
+    direction_yx: torch.Tensor
+
+
+def token_polar(camera, height: int, width: int, patch: int) -> TokenPolar:
+    centres = token_centres(height, width, patch)
+    offset = torch.stack(
+        ((centres[:, 0] - float(camera.cx)) / patch, (centres[:, 1] - float(camera.cy)) / patch), dim=-1
+    )
+    radius = offset.norm(dim=-1)
+    rho = radius / radius.max().clamp_min(1e-12)
+    theta = torch.remainder(torch.atan2(offset[:, 1], offset[:, 0]), 2 * math.pi)
+    direction = torch.where(
+        (radius > 1e-9).unsqueeze(-1), offset / radius.clamp_min(1e-12).unsqueeze(-1), torch.zeros_like(offset)
+    )
+    return TokenPolar(rho=rho, theta=theta, direction_yx=direction.flip(-1))
+
+
+def radial_weights(rho: torch.Tensor, n_bins: int) -> torch.Tensor:
+    """Linear-interpolation weights (n, n_bins) for bins at k / (n_bins - 1), clamped at the ends."""
+    position = rho.clamp(0.0, 1.0) * (n_bins - 1)
+    lower = position.floor().clamp(max=n_bins - 2 if n_bins > 1 else 0).long()
+    frac = position - lower
+    weights = torch.zeros(rho.shape[0], n_bins, dtype=rho.dtype)
+    weights.scatter_(1, lower[:, None], (1 - frac)[:, None])
+    if n_bins > 1:
+        weights.scatter_add_(1, (lower + 1)[:, None], frac[:, None])
+    return weights
+
+
+def angular_weights(theta: torch.Tensor, n_bins: int) -> torch.Tensor:
+    """Weights (n, n_bins) for bins at 2 pi k / n_bins with wrap-around."""
+    position = torch.remainder(theta, 2 * math.pi) / (2 * math.pi) * n_bins
+    lower = position.floor().long() % n_bins
+    frac = position - position.floor()
+    weights = torch.zeros(theta.shape[0], n_bins, dtype=theta.dtype)
+    weights.scatter_(1, lower[:, None], (1 - frac)[:, None])
+    weights.scatter_add_(1, ((lower + 1) % n_bins)[:, None], frac[:, None])
+    return weights
+
+
+def _jacobian_of_map(camera, points: torch.Tensor, knee_deg: float, step: float = 0.25) -> torch.Tensor:
+    """Central-difference Jacobian dM/dx at ``points`` (n, 2) -> (n, 2, 2) (rows: output x, y)."""
+    columns = []
+    for axis in range(2):
+        delta = torch.zeros(2, dtype=points.dtype)
+        delta[axis] = step
+        plus = fisheye_to_pinhole(camera, points + delta, knee_deg)
+        minus = fisheye_to_pinhole(camera, points - delta, knee_deg)
+        columns.append((plus - minus) / (2 * step))
+    return torch.stack(columns, dim=-1)
+
+
+def patch_resample_grid(
+    camera, height: int, width: int, patch: int, knee_deg: float = DEFAULT_KNEE_DEG, max_stretch: float = DEFAULT_MAX_STRETCH
+) -> torch.Tensor | None:
+    """Normalised ``grid_sample`` grid (1, H, W, 2) that locally undistorts every patch.
+
+    The output pixel at patch centre c plus offset e samples the input at c + A e with
+    A = (dM/dx at c)^-1, singular values clamped to [1/s, s]. Returns None when A is the identity
+    for every patch (then resampling is skipped and upstream tokens are reproduced exactly).
+    """
+    centres = token_centres(height, width, patch)
+    jac = _jacobian_of_map(camera, centres, knee_deg)
+    inverse = torch.linalg.inv(jac)
+    u, s, vh = torch.linalg.svd(inverse)
+    s = s.clamp(1.0 / max_stretch, max_stretch)
+    local = u @ torch.diag_embed(s) @ vh
+    offsets_1d = torch.arange(patch, dtype=torch.float64) - (patch - 1) / 2
+    oy, ox = torch.meshgrid(offsets_1d, offsets_1d, indexing="ij")
+    offsets = torch.stack((ox, oy), dim=-1).reshape(-1, 2)  # (p*p, 2) as (x, y)
+    displaced = torch.einsum("nij,kj->nki", local, offsets)  # (hw, p*p, 2)
+    if (displaced - offsets).abs().max() < IDENTITY_TOLERANCE_PX:
+        return None
+    sample = centres[:, None, :] + displaced
+    h, w = height // patch, width // patch
+    sample = sample.reshape(h, w, patch, patch, 2).permute(0, 2, 1, 3, 4).reshape(height, width, 2)
+    normalised = torch.stack(((2 * sample[..., 0] + 1) / width - 1, (2 * sample[..., 1] + 1) / height - 1), dim=-1)
+    return normalised[None]
+
+
+def token_validity(valid_pixels: torch.Tensor, patch: int) -> torch.Tensor:
+    """(hw,) bool: tokens with at least half of their pixels valid. ``valid_pixels`` is (H, W)."""
+    fraction = F.avg_pool2d(valid_pixels[None, None].double(), patch, stride=patch)[0, 0]
+    return (fraction >= 0.5).reshape(-1)
+
+
+def head_uv_grid(camera, height: int, width: int, cells_h: int, cells_w: int, knee_deg: float = DEFAULT_KNEE_DEG) -> torch.Tensor:
+    """Camera-aware version of the DPT heads' normalised uv grid, (cells_h, cells_w, 2) as (u, v).
+
+    Cell centres of a cells_h x cells_w grid over the image go through ``M``; the affine
+    normalisation is the upstream one (half-diagonal of the image plane = 1), so an identity ``M``
+    gives the upstream grid.
+    """
+    ys = (torch.arange(cells_h, dtype=torch.float64) + 0.5) * (height / cells_h) - 0.5
+    xs = (torch.arange(cells_w, dtype=torch.float64) + 0.5) * (width / cells_w) - 0.5
+    grid_y, grid_x = torch.meshgrid(ys, xs, indexing="ij")
+    mapped = fisheye_to_pinhole(camera, torch.stack((grid_x, grid_y), dim=-1), knee_deg)
+    aspect = width / height
+    diagonal = math.sqrt(aspect**2 + 1.0)
+    u = (aspect / diagonal) * (mapped[..., 0] - (width - 1) / 2) / (width / 2)
+    v = (1.0 / diagonal) * (mapped[..., 1] - (height - 1) / 2) / (height / 2)
+    return torch.stack((u, v), dim=-1)
+
+
+def map_is_identity(camera, knee_deg: float = DEFAULT_KNEE_DEG) -> bool:
+    """True when ``M`` moves no pixel of the image (a pinhole whose field lies inside the knee)."""
+    ys = torch.linspace(0, camera.height - 1, 17, dtype=torch.float64)
+    xs = torch.linspace(0, camera.width - 1, 17, dtype=torch.float64)
+    grid = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), dim=-1)
+    return bool((fisheye_to_pinhole(camera, grid, knee_deg) - grid).abs().max() < IDENTITY_TOLERANCE_PX)
+
+
+class SizeGeometry:
+    """Everything the hooks need for one (camera, input size, patch size); float64, CPU.
+
+    Derived tensors are computed lazily and then cached on this object; device/dtype copies are
+    cached too, so a forward pass only pays a table add and one ``grid_sample``.
+    """
+
+    def __init__(self, camera, height: int, width: int, patch: int, mask: torch.Tensor | None, knee_deg: float, max_stretch: float):
+        if height % patch or width % patch:
+            raise InputError(f"input of {width}x{height} px is not a multiple of the patch size {patch}")
+        self.camera = camera_for_input(camera, height, width)
+        self.height, self.width, self.patch = height, width, patch
+        self.knee_deg, self.max_stretch = knee_deg, max_stretch
+        self._mask = mask
+        self._lock = threading.RLock()
+        self._cache: dict = {}
+
+    def _get(self, key, build):
+        value = self._cache.get(key, self)
+        if value is self:
+            with self._lock:
+                value = self._cache.get(key, self)
+                if value is self:
+                    value = build()
+                    self._cache[key] = value
+        return value
+
+    @property
+    def identity(self) -> bool:
+        return self._get("identity", lambda: map_is_identity(self.camera, self.knee_deg))
+
+    @property
+    def polar(self) -> TokenPolar:
+        return self._get("polar", lambda: token_polar(self.camera, self.height, self.width, self.patch))
+
+    def pe_weights(self, n_r: int, n_theta: int, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        """(hw, n_r) radial and (hw, n_theta) rho-scaled angular interpolation matrices."""
+
+        def build():
+            polar = self.polar
+            radial = radial_weights(polar.rho, n_r)
+            angular = angular_weights(polar.theta, n_theta) * polar.rho[:, None]
+            return radial.to(device=device, dtype=dtype), angular.to(device=device, dtype=dtype)
+
+        return self._get(("pe", n_r, n_theta, device, dtype), build)
+
+    def rope_basis(self, n_bins: int, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        """Radial weights (hw, n_bins) and outward directions (hw, 2) in (y, x) order."""
+
+        def build():
+            polar = self.polar
+            return (
+                radial_weights(polar.rho, n_bins).to(device=device, dtype=dtype),
+                polar.direction_yx.to(device=device, dtype=dtype),
+            )
+
+        return self._get(("rope", n_bins, device, dtype), build)
+
+    def resample_grid(self, device, dtype) -> torch.Tensor | None:
+        def build():
+            if self.identity:
+                return None
+            grid = patch_resample_grid(self.camera, self.height, self.width, self.patch, self.knee_deg, self.max_stretch)
+            return None if grid is None else grid.to(device=device, dtype=dtype)
+
+        return self._get(("resample", device, dtype), build)
+
+    def valid_pixels(self) -> torch.Tensor:
+        def build():
+            valid = self.camera.valid_mask().to("cpu").bool()
+            if self._mask is not None:
+                mask = self._mask.to("cpu").bool()
+                if mask.shape != valid.shape:
+                    mask = F.interpolate(mask[None, None].float(), size=valid.shape, mode="nearest")[0, 0] > 0.5
+                valid = valid & mask
+            return valid
+
+        return self._get("valid_pixels", build)
+
+    def token_valid(self, device) -> torch.Tensor | None:
+        """(hw,) bool validity, or None when every token is valid (nothing to replace)."""
+
+        def build():
+            valid = token_validity(self.valid_pixels(), self.patch)
+            if bool(valid.all()):
+                return None
+            if not bool(valid.any()):
+                raise InputError("no patch of the image is inside the camera's valid region")
+            return valid.to(device)
+
+        return self._get(("token_valid", device), build)
+
+    def uv_grid(self, cells_h: int, cells_w: int, device, dtype) -> torch.Tensor | None:
+        """Camera-aware head grid (cells_h, cells_w, 2), or None when upstream's is already right."""
+
+        def build():
+            if self.identity:
+                return None
+            grid = head_uv_grid(self.camera, self.height, self.width, cells_h, cells_w, self.knee_deg)
+            return grid.to(device=device, dtype=dtype)
+
+        return self._get(("uv", cells_h, cells_w, device, dtype), build)
+
+
+class GeometryCache:
+    """Per-handle cache of :class:`SizeGeometry` keyed by (input height, width)."""
+
+    def __init__(self, camera, patch: int, mask: torch.Tensor | None = None, knee_deg: float = DEFAULT_KNEE_DEG, max_stretch: float = DEFAULT_MAX_STRETCH):
+        self.camera = camera
+        self.patch = patch
+        self.mask = mask
+        self.knee_deg = knee_deg
+        self.max_stretch = max_stretch
+        self._sizes: dict[tuple[int, int], SizeGeometry] = {}
+        self._lock = threading.RLock()
+
+    def at(self, height: int, width: int) -> SizeGeometry:
+        geometry = self._sizes.get((height, width))
+        if geometry is None:
+            with self._lock:
+                geometry = self._sizes.get((height, width))
+                if geometry is None:
+                    geometry = SizeGeometry(self.camera, height, width, self.patch, self.mask, self.knee_deg, self.max_stretch)
+                    self._sizes[(height, width)] = geometry
+        return geometry

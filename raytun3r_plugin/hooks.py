@@ -1,0 +1,110 @@
+"""Replacement builders shared by the backbone patch modules.
+
+Each builder has the :class:`raytun3r_plugin.registry.PatchTarget` ``build`` signature
+``build(original, owner, state) -> replacement`` and wraps one upstream method of one instance.
+The backbone modules only say *where* these go; what they do is written once here.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import torch
+import torch.nn.functional as F
+
+from raytun3r_plugin.errors import UnsupportedUpstreamError
+from raytun3r_plugin.rope import apply_rope_2d, displaced_positions
+
+
+def pe_interpolation(original, owner, state):
+    """Wrap ``interpolate_pos_encoding(x, w, h)``: add the adapter's PE correction to patch rows.
+
+    Upstream names are swapped (``w`` receives the image height); the table's first row is the
+    class slot and stays unchanged.
+    """
+
+    def interpolate_pos_encoding(x, w, h):
+        table = original(x, w, h)
+        if not state.uses("pe"):
+            return table
+        geometry = state.geometry(w, h)
+        correction = state.pe_correction(geometry, table.device, torch.float32).to(table.dtype)
+        return torch.cat((table[:, :1], table[:, 1:] + correction), dim=1)
+
+    return interpolate_pos_encoding
+
+
+def patch_embedding(original, owner, state):
+    """Wrap ``PatchEmbed.forward(x)``: local undistortion before, border tokens after.
+
+    x: (N, C, H, W) images; returns (N, hw, D) tokens like upstream.
+    """
+
+    def forward(x):
+        resample = state.uses("patch_resample")
+        border = state.uses("border_tokens")
+        if not (resample or border):
+            return original(x)
+        geometry = state.geometry(x.shape[-2], x.shape[-1])
+        if resample:
+            grid = geometry.resample_grid(x.device, x.dtype)
+            if grid is not None:
+                x = F.grid_sample(x, grid.expand(x.shape[0], -1, -1, -1), mode="bilinear", padding_mode="zeros", align_corners=False)
+        tokens = original(x)
+        if border:
+            valid = geometry.token_valid(tokens.device)
+            if valid is not None:
+                weights = valid.to(tokens.dtype)[None, :, None]
+                mean = (tokens * weights).sum(dim=1, keepdim=True) / weights.sum(dim=1, keepdim=True)
+                tokens = torch.where(valid[None, :, None], tokens, mean)
+        return tokens
+
+    return forward
+
+
+def continuous_rope(original, owner, state):
+    """Wrap a RoPE module's ``forward(tokens, positions)`` to accept fractional positions.
+
+    Integer positions (upstream's own, or a disabled handle) go to the original table look-up;
+    float positions are evaluated directly, bit-identical to the table at integer values.
+    """
+    base = float(getattr(owner, "base_frequency", getattr(owner, "base", 100.0)))
+
+    def forward(tokens, positions):
+        if not positions.is_floating_point():
+            return original(tokens, positions)
+        return apply_rope_2d(tokens, positions, base)
+
+    return forward
+
+
+def displaced_rope_positions(positions: torch.Tensor, patch_start: int, state, height: int, width: int) -> torch.Tensor:
+    """Apply the adapter's radial RoPE displacement to patch positions (..., patch_start + hw, 2)."""
+    geometry = state.geometry(height, width)
+    displacement = state.rope_displacement(geometry, positions.device, torch.float32)
+    return displaced_positions(positions, patch_start, displacement)
+
+
+def uv_grid_embedding(original, owner, state):
+    """Wrap a DPT head's ``_add_pos_embed(x, W, H, ratio)`` / ``_apply_pos_embed``.
+
+    The camera-aware uv grid goes through the sinusoidal embedding function that the head's own
+    module uses (looked up by name there, so upstream's formula is reused, not copied).
+    """
+    module = sys.modules.get(type(owner).__module__)
+    to_embed = getattr(module, "position_grid_to_embed", None)
+    if to_embed is None:
+        raise UnsupportedUpstreamError(
+            f"{type(owner).__module__}: expected a module-level 'position_grid_to_embed' next to {type(owner).__qualname__}, found none"
+        )
+
+    def add_pos_embed(x, W, H, ratio=0.1):
+        if not state.uses("grid"):
+            return original(x, W, H, ratio)
+        grid = state.geometry(H, W).uv_grid(x.shape[-2], x.shape[-1], x.device, x.dtype)
+        if grid is None:
+            return original(x, W, H, ratio)
+        embed = to_embed(grid, x.shape[1]) * ratio
+        return x + embed.permute(2, 0, 1)[None].to(x.dtype)
+
+    return add_pos_embed

@@ -1,0 +1,77 @@
+"""One prediction interface for every registered backbone."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+from raytun3r_plugin.errors import InputError
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+@dataclass
+class Prediction:
+    """Backbone outputs in raytun3r's conventions (DESIGN.md section 2).
+
+    Attributes:
+        depth: (B, S, H, W) depth along the backbone's convention (z-depth for pinhole training;
+            read as range along the ray on a fisheye, see DESIGN.md section 2).
+        cam_from_world: (B, S, 4, 4) world-to-camera poses, OpenCV axes; the world is the
+            backbone's reference frame.
+        confidence: (B, S, H, W) or None when the backbone gives none.
+        extras: backbone-specific outputs (e.g. ``intrinsics``, ``local_points``).
+    """
+
+    depth: torch.Tensor
+    cam_from_world: torch.Tensor
+    confidence: torch.Tensor | None = None
+    extras: dict = field(default_factory=dict)
+
+
+def as_batched_images(images: torch.Tensor, patch_size: int | None = 14) -> torch.Tensor:
+    """Check and shape images in [0, 1] to (B, S, 3, H, W) float.
+
+    Accepts (S, 3, H, W) or (B, S, 3, H, W). Raises :class:`InputError` naming the problem.
+    """
+    if not isinstance(images, torch.Tensor):
+        raise InputError(f"images must be a torch.Tensor, got {type(images).__name__}")
+    if images.ndim == 4:
+        images = images[None]
+    if images.ndim != 5 or images.shape[2] != 3:
+        raise InputError(f"images must be (S, 3, H, W) or (B, S, 3, H, W), got shape {tuple(images.shape)}")
+    if not images.is_floating_point():
+        raise InputError(f"images must be floating point in [0, 1], got dtype {images.dtype}")
+    height, width = images.shape[-2:]
+    if patch_size and (height % patch_size or width % patch_size):
+        raise InputError(f"image size {width}x{height} px is not a multiple of the patch size {patch_size}; resize first")
+    return images
+
+
+def imagenet_normalise(images: torch.Tensor) -> torch.Tensor:
+    mean = torch.tensor(IMAGENET_MEAN, dtype=images.dtype, device=images.device).view(3, 1, 1)
+    std = torch.tensor(IMAGENET_STD, dtype=images.dtype, device=images.device).view(3, 1, 1)
+    return (images - mean) / std
+
+
+def to_homogeneous(poses: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 4) rigid transforms -> (..., 4, 4)."""
+    if poses.shape[-2:] == (4, 4):
+        return poses
+    bottom = torch.zeros(*poses.shape[:-2], 1, 4, dtype=poses.dtype, device=poses.device)
+    bottom[..., 0, 3] = 1
+    return torch.cat((poses, bottom), dim=-2)
+
+
+def predict(model: nn.Module, images: torch.Tensor, **kwargs) -> Prediction:
+    """Run ``model`` (patched or not) on images in [0, 1], (S, 3, H, W) or (B, S, 3, H, W).
+
+    Each backbone's normalisation and pose conventions are handled by its registered spec.
+    """
+    from raytun3r_plugin.registry import spec_for
+
+    spec, root = spec_for(model)
+    return spec.predict(root, images, **kwargs)

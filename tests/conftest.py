@@ -1,0 +1,26 @@
+"""Shared fixtures. Stub ``vggt`` / ``pi3`` packages are used only when the real ones are absent."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+
+STUBS = Path(__file__).parent / "stubs"
+REAL_UPSTREAM = {name: importlib.util.find_spec(name) is not None for name in ("vggt", "pi3")}
+if not all(REAL_UPSTREAM.values()) and STUBS.is_dir():
+    sys.path.append(str(STUBS))
+
+warnings.filterwarnings("ignore", message="register_new_resolver")
+
+
+@pytest.fixture(autouse=True)
+def _quiet_da3_logger():
+    """DA3 logs at INFO on every forward with 3+ views; keep test output readable."""
+    import logging
+
+    logging.getLogger("depth_anything_3").setLevel(logging.WARNING)
+    yield

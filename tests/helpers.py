@@ -1,0 +1,53 @@
+"""Small builders shared by the tests (not fixtures, so tests can call them with arguments)."""
+
+from __future__ import annotations
+
+import torch
+
+
+def pinhole(width: int = 84, height: int = 70, focal: float = 60.0):
+    from raytun3r_plugin.cameras import Pinhole
+
+    return Pinhole(width, height, {"fx": focal, "fy": focal, "cx": (width - 1) / 2, "cy": (height - 1) / 2})
+
+
+def fisheye(width: int = 84, height: int = 70, fov_deg: float = 190.0, k1: float = 0.01):
+    """An equidistant-like KB4 whose image circle (fov_deg) fits the shorter side."""
+    import math
+
+    from raytun3r_plugin.cameras import KannalaBrandt4
+
+    half = math.radians(fov_deg / 2)
+    focal = (min(width, height) / 2) / (half * (1 + k1 * half**2))
+    return KannalaBrandt4(
+        width, height, {"fx": focal, "fy": focal, "cx": (width - 1) / 2, "cy": (height - 1) / 2, "k1": k1, "k2": 0.0, "k3": 0.0, "k4": 0.0},
+        max_fov_deg=fov_deg,
+    )
+
+
+def outputs(model, images):
+    from raytun3r_plugin import predict
+
+    with torch.no_grad():
+        prediction = predict(model, images)
+    return {"depth": prediction.depth, "conf": prediction.confidence, "pose": prediction.cam_from_world}
+
+
+def max_relative_difference(a: dict, b: dict) -> float:
+    worst = 0.0
+    for key in a:
+        scale = max(float(a[key].abs().max()), 1e-12)
+        worst = max(worst, float((a[key] - b[key]).abs().max()) / scale)
+    return worst
+
+
+def randomise_(adapter, scale: float = 0.05, seed: int = 0):
+    """Fill an adapter with a smooth, trained-looking nonzero correction."""
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for parameter in adapter.parameters():
+            parameter.copy_(torch.randn(parameter.shape, generator=generator) * scale)
+        if adapter.rope is not None:
+            bins = adapter.rope["radial"].shape[0]
+            adapter.rope["radial"].copy_(torch.linspace(0, 1, bins) ** 2 * 0.8)
+    return adapter
