@@ -13,12 +13,19 @@ Hook map (UPSTREAM.md section 2), all patched per instance on the ``DepthAnythin
 
 from __future__ import annotations
 
+import warnings
+
 import torch
 from torch import nn
 
 from raytun3r_plugin import hooks
 from raytun3r_plugin.errors import InputError, MissingDependencyError, WeightsError
-from raytun3r_plugin.prediction import Prediction, as_batched_images, imagenet_normalise, to_homogeneous
+from raytun3r_plugin.prediction import (
+    Prediction,
+    as_batched_images,
+    imagenet_normalise,
+    to_homogeneous,
+)
 from raytun3r_plugin.registry import BackboneInfo, BackboneSpec, PatchTarget, register
 from raytun3r_plugin.weights import load_into, read_state_dict, strip_prefix
 
@@ -142,8 +149,10 @@ def predict(root: nn.Module, images: torch.Tensor, **kwargs) -> Prediction:
 
 def _import_upstream():
     try:
-        from depth_anything_3.cfg import create_object, load_config
-        from depth_anything_3.registry import MODEL_REGISTRY
+        with warnings.catch_warnings():  # omegaconf deprecation noise from depth_anything_3.cfg
+            warnings.simplefilter("ignore")
+            from depth_anything_3.cfg import create_object, load_config
+            from depth_anything_3.registry import MODEL_REGISTRY
     except ImportError as error:
         raise MissingDependencyError(f"Depth Anything 3 is not importable ({error}); install it with: {_INSTALL_HINT}") from error
     return create_object, load_config, MODEL_REGISTRY

@@ -225,6 +225,10 @@ class SizeGeometry:
         self._lock = threading.RLock()
         self._cache: dict = {}
 
+    def memo(self, key, build):
+        """Cache ``build()`` under ``key`` for this camera and input size (thread-safe)."""
+        return self._get(key, build)
+
     def _get(self, key, build):
         value = self._cache.get(key, self)
         if value is self:

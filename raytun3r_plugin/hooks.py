@@ -49,7 +49,7 @@ def patch_embedding(original, owner, state):
         if resample:
             grid = geometry.resample_grid(x.device, x.dtype)
             if grid is not None:
-                x = F.grid_sample(x, grid.expand(x.shape[0], -1, -1, -1), mode="bilinear", padding_mode="zeros", align_corners=False)
+                x = F.grid_sample(x, grid.expand(x.shape[0], -1, -1, -1), mode="bilinear", padding_mode="zeros", align_corners=False).contiguous()
         tokens = original(x)
         if border:
             valid = geometry.token_valid(tokens.device)
@@ -101,10 +101,19 @@ def uv_grid_embedding(original, owner, state):
     def add_pos_embed(x, W, H, ratio=0.1):
         if not state.uses("grid"):
             return original(x, W, H, ratio)
-        grid = state.geometry(H, W).uv_grid(x.shape[-2], x.shape[-1], x.device, x.dtype)
-        if grid is None:
+        geometry = state.geometry(H, W)
+        cells_h, cells_w, channels = x.shape[-2], x.shape[-1], x.shape[1]
+
+        def build():
+            grid = geometry.uv_grid(cells_h, cells_w, x.device, x.dtype)
+            if grid is None:
+                return None
+            # The embedding depends only on camera and sizes, so it is computed once.
+            return (to_embed(grid, channels) * ratio).permute(2, 0, 1)[None].to(x.dtype).contiguous()
+
+        embed = geometry.memo(("grid_embed", cells_h, cells_w, channels, ratio, x.device, x.dtype), build)
+        if embed is None:
             return original(x, W, H, ratio)
-        embed = to_embed(grid, x.shape[1]) * ratio
-        return x + embed.permute(2, 0, 1)[None].to(x.dtype)
+        return x + embed
 
     return add_pos_embed

@@ -21,7 +21,12 @@ from torch import nn
 
 from raytun3r_plugin.adapter import Adapter, normalise_components, pe_fingerprint
 from raytun3r_plugin.errors import AdapterError, AlreadyAppliedError, CameraError, NotAppliedError
-from raytun3r_plugin.geometry import DEFAULT_KNEE_DEG, DEFAULT_MAX_STRETCH, GeometryCache, SizeGeometry
+from raytun3r_plugin.geometry import (
+    DEFAULT_KNEE_DEG,
+    DEFAULT_MAX_STRETCH,
+    GeometryCache,
+    SizeGeometry,
+)
 from raytun3r_plugin.registry import BackboneInfo, BackboneSpec, resolve_targets, spec_for
 
 # Hook kind -> the components it serves (a hook is installed when any of them is on).

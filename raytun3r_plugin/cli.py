@@ -1,0 +1,164 @@
+"""``raytun3r`` command line: adapt, infer, eval, inspect, demo, bench."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from raytun3r_plugin.errors import Raytun3rError
+
+
+def _load_model(backbone: str, weights: str | None):
+    from raytun3r_plugin.weights import load_backbone
+
+    return load_backbone(backbone, weights)
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from raytun3r_plugin.adapter import describe_file
+
+    print(describe_file(args.adapter))
+    return 0
+
+
+def cmd_infer(args: argparse.Namespace) -> int:
+    from raytun3r_plugin.adapter import Adapter
+    from raytun3r_plugin.cameras import load as load_camera
+    from raytun3r_plugin.images import fit_to_network, read_frames
+    from raytun3r_plugin.inference import predict_with_camera, write_outputs
+
+    adapter = Adapter.load(args.adapter) if args.adapter else None
+    if args.camera:
+        camera = load_camera(args.camera, camera=args.camera_id)
+    elif adapter is not None and adapter.camera is not None:
+        camera = adapter.camera
+    else:
+        raise Raytun3rError("infer needs --camera, or an --adapter that carries its camera")
+    frames, names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
+    model = _load_model(args.backbone, args.weights)
+    images, input_camera = fit_to_network(frames, camera, args.size)
+    prediction = predict_with_camera(model, input_camera, adapter, images, strict=not args.no_strict)
+    summary = write_outputs(args.out, prediction, images, input_camera, names)
+    print(f"wrote depth for {summary['frames']} frames, trajectory.txt and points.ply ({summary['points']:,} points) to {args.out}")
+    return 0
+
+
+def cmd_adapt(args: argparse.Namespace) -> int:
+    from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+    from raytun3r_plugin.cameras import load as load_camera
+    from raytun3r_plugin.images import read_frames
+
+    camera = load_camera(args.camera, camera=args.camera_id)
+    frames, _names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
+    model = _load_model(args.backbone, args.weights)
+    config = AdaptConfig(steps=args.steps, long_side=args.size, n_windows=args.windows, matcher=args.matcher, seed=args.seed, pose_source=args.pose_source, cache_dir=args.cache_dir)
+    adapter = adapt(model, camera, frames, config, out_path=args.out)
+    adapter.save(args.out)
+    print(f"saved adapter to {args.out} ({adapter.num_parameters()['total']:,} parameters)")
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from raytun3r_plugin.evaluation import evaluate_command
+
+    return evaluate_command(args)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from raytun3r_plugin.demo import run_demo
+
+    return run_demo(args)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from raytun3r_plugin.evaluation import bench_command
+
+    return bench_command(args)
+
+
+def _add_model_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--backbone", required=True, help="model name, e.g. da3-small (see `raytun3r backbones`)")
+    parser.add_argument("--weights", help="local weight file (.safetensors or .pt); never downloaded")
+
+
+def _add_frame_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--frames", required=True, help="image folder (sorted by name) or video file")
+    parser.add_argument("--stride", type=int, default=1, help="use every n-th frame")
+    parser.add_argument("--max-frames", type=int, default=None)
+    parser.add_argument("--size", type=int, default=504, help="network input long side in pixels (a multiple of 14 after cropping)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="raytun3r", description="Run frozen pinhole-trained 3D foundation models on fisheye cameras.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("inspect", help="print an adapter file's metadata, camera and parameter count")
+    p.add_argument("adapter")
+    p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser("infer", help="apply an adapter and write depth (.npy, .png), poses (TUM) and a point cloud (.ply)")
+    _add_model_arguments(p)
+    _add_frame_arguments(p)
+    p.add_argument("--camera", help="calibration file (Kalibr, basalt, COLMAP, KITTI-360, raytun3r JSON)")
+    p.add_argument("--camera-id", default=None, help="which camera in the file (cam1, index, COLMAP id)")
+    p.add_argument("--adapter", help="adapter .safetensors (optional: parameter-free corrections only)")
+    p.add_argument("--no-strict", action="store_true", help="apply an adapter fitted on other weights or another camera")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_infer)
+
+    p = sub.add_parser("adapt", help="fit an adapter on a short fisheye segment (self-supervised)")
+    _add_model_arguments(p)
+    _add_frame_arguments(p)
+    p.add_argument("--camera", required=True)
+    p.add_argument("--camera-id", default=None)
+    p.add_argument("--steps", type=int, default=300)
+    p.add_argument("--windows", type=int, default=30)
+    p.add_argument("--matcher", default="dis", help="dis | sift | a registered matcher")
+    p.add_argument("--pose-source", default="model", choices=("model", "targets"))
+    p.add_argument("--cache-dir", default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="output adapter .safetensors")
+    p.set_defaults(func=cmd_adapt)
+
+    p = sub.add_parser("eval", help="run a method on a dataset sequence and print the metrics table")
+    _add_model_arguments(p)
+    p.add_argument("--dataset", required=True, help="sequence folder or file (synthetic, colmap, scannetpp, tumvi, kitti360)")
+    p.add_argument("--kind", default=None, help="reader to use (default: detect)")
+    p.add_argument("--method", default="vanilla", help="vanilla | raytun3r | center-ph")
+    p.add_argument("--adapter", default=None)
+    p.add_argument("--size", type=int, default=504)
+    p.add_argument("--max-frames", type=int, default=None)
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("demo", help="the main job on a built-in default: synthetic fisheye, adapt, metrics before/after")
+    p.add_argument("--out", default="runs/demo")
+    p.add_argument("--steps", type=int, default=None, help="adaptation steps (default: the demo's budget)")
+    p.add_argument("--size", type=int, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("bench", help="the synthetic fisheye benchmark (vanilla vs Center-PH vs raytun3r)")
+    p.add_argument("--out", default="runs/bench")
+    p.add_argument("--quick", action="store_true")
+    p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("backbones", help="list the backbone names load_backbone accepts")
+    p.set_defaults(func=lambda args: print("\n".join(__import__("raytun3r_plugin").available_backbones())) or 0)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except Raytun3rError as error:
+        print(f"raytun3r: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("raytun3r: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
