@@ -234,7 +234,12 @@ def build_tiny_network(
 
 def _builders() -> dict:
     names = ("da3-small", "da3-base", "da3-large", "da3-giant", "da3mono-large", "da3metric-large")
-    return {name: _builder(name) for name in names}
+    builders = {name: _builder(name) for name in names}
+    try:  # the network raytun3r trains and ships (patches/da3_default.py)
+        from raytun3r_plugin.patches.da3_default import BUILDERS as shipped
+    except ImportError:
+        shipped = {}
+    return builders | shipped
 
 
 SPEC = register(

@@ -51,9 +51,8 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     camera = load_camera(args.camera, camera=args.camera_id)
     frames, _names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
     model = _load_model(args.backbone, args.weights)
-    config = AdaptConfig(steps=args.steps, long_side=args.size, n_windows=args.windows, matcher=args.matcher, seed=args.seed, pose_source=args.pose_source, cache_dir=args.cache_dir)
+    config = AdaptConfig(steps=args.steps, input_size=args.size, n_windows=args.windows, matcher=args.matcher, seed=args.seed, pose_source=args.pose_source, cache_dir=args.cache_dir)
     adapter = adapt(model, camera, frames, config, out_path=args.out)
-    adapter.save(args.out)
     print(f"saved adapter to {args.out} ({adapter.num_parameters()['total']:,} parameters)")
     return 0
 

@@ -1,0 +1,190 @@
+"""Scoring a method on a sequence (DESIGN.md section 8): vanilla, Center-PH, raytun3r.
+
+Every method is run on the same frame windows and scored on the same pair list. The network sees
+non-overlapping windows of consecutive frames (``window`` views per forward); relative poses are
+scored on consecutive pairs inside a window, depth on every frame. On a fisheye the depth channel
+is read as range along the ray for every method (DESIGN.md section 2), so all methods are scored
+alike; AbsRel and delta < 1.25 use a per-image median scale.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from raytun3r_plugin import metrics
+from raytun3r_plugin.patching import apply
+from raytun3r_plugin.prediction import predict
+
+METHODS = ("vanilla", "center-ph", "raytun3r")
+CENTER_PH_FOV_DEG = 110.0
+
+
+@dataclass
+class MethodOutput:
+    """Per-frame predictions of one method over a sequence (at the network input size).
+
+    depth: (N, h, w) range along the ray (0 where the method gives none);
+    window_poses: list of (frame indices, cam_from_world (S, 4, 4)) per forward window;
+    coverage: fraction of valid fisheye pixels that received a depth.
+    """
+
+    depth: np.ndarray
+    window_poses: list[tuple[list[int], np.ndarray]]
+    coverage: float = 1.0
+    seconds: float = 0.0
+    extras: dict = field(default_factory=dict)
+
+
+def frame_windows(indices: list[int], window: int) -> list[list[int]]:
+    """Non-overlapping windows of consecutive indices; a short tail joins the previous window."""
+    windows = [indices[k : k + window] for k in range(0, len(indices), window)]
+    if len(windows) > 1 and len(windows[-1]) < 2:
+        windows[-2].extend(windows.pop())
+    return windows
+
+
+def _input_images(seq, frames: list[int]) -> torch.Tensor:
+    images = np.stack([seq.image(k) for k in frames])
+    return torch.from_numpy(images).permute(0, 3, 1, 2)[None].float()
+
+
+def center_pinhole(camera, fov_deg: float = CENTER_PH_FOV_DEG):
+    """The virtual pinhole of Center-PH: same optical axis and size, ``fov_deg`` across the width."""
+    from raytun3r_plugin.cameras import Pinhole
+
+    focal = (camera.width / 2) / math.tan(math.radians(fov_deg) / 2)
+    return Pinhole(camera.width, camera.height, {"fx": focal, "fy": focal, "cx": (camera.width - 1) / 2, "cy": (camera.height - 1) / 2})
+
+
+def fisheye_to_center_pinhole(images: torch.Tensor, camera, pinhole) -> torch.Tensor:
+    """Resample fisheye images (..., 3, H, W) into the virtual pinhole view (bilinear)."""
+    rays, _ = pinhole.ray_table(dtype=torch.float64)
+    uv, valid = camera.project(rays)
+    grid = torch.stack(((2 * uv[..., 0] + 1) / camera.width - 1, (2 * uv[..., 1] + 1) / camera.height - 1), -1)
+    grid = torch.where(valid[..., None], grid, torch.full_like(grid, 2.0)).float()
+    flat = images.reshape(-1, *images.shape[-3:])
+    out = F.grid_sample(flat, grid[None].expand(flat.shape[0], -1, -1, -1), mode="bilinear", padding_mode="zeros", align_corners=False)
+    return out.reshape(images.shape)
+
+
+def center_pinhole_depth_to_fisheye(depth_z: torch.Tensor, camera, pinhole) -> tuple[torch.Tensor, torch.Tensor]:
+    """Map pinhole z-depth (..., h, w) back to the fisheye pixels it covers, as range.
+
+    Returns range depth (..., H, W) (0 where uncovered) and the coverage mask (H, W).
+    """
+    rays, valid = camera.ray_table(dtype=torch.float64)
+    uv, in_front = pinhole.project(rays)
+    inside = valid & in_front & (rays[..., 2] > 1e-6) & (uv[..., 0] >= 0) & (uv[..., 0] <= pinhole.width - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= pinhole.height - 1)
+    grid = torch.stack(((2 * uv[..., 0] + 1) / pinhole.width - 1, (2 * uv[..., 1] + 1) / pinhole.height - 1), -1)
+    grid = torch.where(inside[..., None], grid, torch.zeros_like(grid)).float()
+    flat = depth_z.reshape(-1, 1, *depth_z.shape[-2:]).float()
+    sampled = F.grid_sample(flat, grid[None].expand(flat.shape[0], -1, -1, -1), mode="bilinear", align_corners=False)[:, 0]
+    range_depth = sampled / rays[..., 2].clamp_min(1e-6).float()
+    range_depth = torch.where(inside, range_depth, torch.zeros_like(range_depth))
+    return range_depth.reshape(*depth_z.shape[:-2], *range_depth.shape[-2:]), inside
+
+
+def run_method(model, seq, method: str, adapter=None, frames: list[int] | None = None, window: int = 3, components=None) -> MethodOutput:
+    """Run ``method`` on ``frames`` of ``seq`` (images already at the network input size)."""
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
+    camera = seq.camera
+    frames = list(range(len(seq))) if frames is None else list(frames)
+    depth = np.zeros((len(seq), camera.height, camera.width), np.float32)
+    poses: list[tuple[list[int], np.ndarray]] = []
+    coverage = 1.0
+    pinhole = center_pinhole(camera) if method == "center-ph" else None
+    start = time.perf_counter()
+    handle = apply(model, camera, adapter, components=components, strict=False) if method == "raytun3r" else None
+    try:
+        with torch.no_grad():
+            for group in frame_windows(frames, window):
+                images = _input_images(seq, group)
+                if method == "center-ph":
+                    prediction = predict(model, fisheye_to_center_pinhole(images, camera, pinhole))
+                    window_depth, covered = center_pinhole_depth_to_fisheye(prediction.depth[0], camera, pinhole)
+                    coverage = float(covered.sum() / camera.valid_mask().sum())
+                else:
+                    prediction = predict(model, images)
+                    window_depth = prediction.depth[0]
+                depth[group] = window_depth.float().numpy()
+                poses.append((group, prediction.cam_from_world[0].double().numpy()))
+    finally:
+        if handle is not None:
+            handle.remove()
+    return MethodOutput(depth=depth, window_poses=poses, coverage=coverage, seconds=time.perf_counter() - start)
+
+
+def score(seq, output: MethodOutput, min_translation: float = 1e-3, correspondence_stride: int = 4) -> dict[str, Any]:
+    """Metrics of one method's output against the sequence's ground truth."""
+    from raytun3r_plugin.synthetic import correspondences
+
+    gt_poses = np.asarray(seq.cam_from_world, dtype=np.float64)
+    rotation, translation, pairs = [], [], []
+    n_skipped = 0
+    for group, predicted in output.window_poses:
+        local_pairs = [(a, a + 1) for a in range(len(group) - 1)]
+        errors = metrics.relative_pose_errors(predicted, gt_poses[group], local_pairs, min_translation=min_translation)
+        rotation.extend(errors["rotation_deg"].tolist())
+        translation.extend(errors["translation_deg"].tolist())
+        pairs.extend((group[a], group[b]) for a, b in errors["pairs"])
+        n_skipped += errors["n_skipped"]
+    pose_errors = {"rotation_deg": np.array(rotation), "translation_deg": np.array(translation), "pairs": np.array(pairs).reshape(-1, 2), "n_pairs": len(pairs), "n_skipped": n_skipped, "folded": False}
+    d_values = []
+    if seq.depth is not None:
+        for i, j in pairs:
+            uv_i, uv_j, visible = correspondences(seq, i, j, stride=correspondence_stride)
+            keep = visible & np.isfinite(uv_j).all(-1)
+            relative = gt_poses[j] @ np.linalg.inv(gt_poses[i])
+            d_values.append(metrics.d_reproj(output.depth[i], seq.camera, uv_i[keep], uv_j[keep], relative))
+    abs_rel = delta = None
+    if seq.depth is not None:
+        scored = sorted({k for group, _ in output.window_poses for k in group})
+        valid = seq.camera.valid_mask().numpy()[None] & (seq.depth[scored] > 0)
+        if seq.mask is not None:
+            valid &= np.broadcast_to(seq.mask, seq.depth.shape)[scored]
+        valid &= output.depth[scored] > 0
+        abs_rel = metrics.abs_rel(output.depth[scored], seq.depth[scored], valid)
+        delta = metrics.delta_125(output.depth[scored], seq.depth[scored], valid)
+    summary = metrics.summarize(pose_errors=pose_errors, d_reproj=d_values, abs_rel=abs_rel, delta_125=delta, name=seq.name)
+    summary["coverage"] = output.coverage
+    summary["seconds"] = output.seconds
+    return summary
+
+
+def headline(summary: dict[str, Any]) -> dict[str, float]:
+    """The numbers a results table shows: means of rotation / translation error (deg),
+    d_reproj (px), AbsRel, delta < 1.25, coverage."""
+
+    def mean(key: str) -> float:
+        value = summary.get(key)
+        return float(value["mean"]) if isinstance(value, dict) and "mean" in value else math.nan
+
+    return {
+        "rot_deg": mean("rotation_deg"),
+        "trans_deg": mean("translation_deg"),
+        "d_reproj_px": mean("d_reproj"),
+        "abs_rel": mean("abs_rel"),
+        "delta_1.25": mean("delta_125"),
+        "coverage": float(summary.get("coverage", math.nan)),
+    }
+
+
+def format_table(rows: list[dict[str, Any]], columns: list[str]) -> str:
+    """Markdown table of ``rows`` (dicts) over ``columns``; floats with 3 significant digits."""
+
+    def cell(value: Any) -> str:
+        if isinstance(value, float):
+            return "-" if math.isnan(value) else f"{value:.3g}"
+        return str(value)
+
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(cell(row.get(c, "")) for c in columns) + " |" for row in rows]
+    return "\n".join(lines)
