@@ -1,0 +1,38 @@
+"""Online adaptation: correspondences, relative-pose targets and adaptation windows."""
+
+from __future__ import annotations
+
+from raytun3r_plugin.adaptation.matchers import (
+    MATCHERS,
+    DISFlowMatcher,
+    Matcher,
+    Matches,
+    SIFTMatcher,
+    TorchFlowMatcher,
+    get_matcher,
+    register_matcher,
+)
+from raytun3r_plugin.adaptation.pose_targets import PoseTarget, estimate_relative_pose
+from raytun3r_plugin.adaptation.windows import (
+    AdaptationSet,
+    Window,
+    build_windows,
+    prepare_adaptation_set,
+)
+
+__all__ = [
+    "MATCHERS",
+    "AdaptationSet",
+    "DISFlowMatcher",
+    "Matcher",
+    "Matches",
+    "PoseTarget",
+    "SIFTMatcher",
+    "TorchFlowMatcher",
+    "Window",
+    "build_windows",
+    "estimate_relative_pose",
+    "get_matcher",
+    "prepare_adaptation_set",
+    "register_matcher",
+]
