@@ -29,7 +29,12 @@ import torch
 from torch import nn
 
 from raytun3r_plugin import hooks
-from raytun3r_plugin.errors import InputError, MissingDependencyError, UnsupportedUpstreamError, WeightsError
+from raytun3r_plugin.errors import (
+    InputError,
+    MissingDependencyError,
+    UnsupportedUpstreamError,
+    WeightsError,
+)
 from raytun3r_plugin.prediction import Prediction, as_batched_images, to_homogeneous
 from raytun3r_plugin.registry import BackboneInfo, BackboneSpec, PatchTarget, register
 from raytun3r_plugin.weights import load_into, read_state_dict
@@ -44,69 +49,6 @@ _INSTALL_HINT = (
     "VGGT is not on PyPI: clone the facebookresearch/vggt repository from GitHub and run "
     "'pip install -e .' in it (or put the checkout on PYTHONPATH; it also needs huggingface_hub)"
 )
-#: RoPE classes whose instances must all be covered by the ``rope`` target (see :func:`check_rope_coverage`).
-ROPE_CLASS_NAMES = ("RotaryPositionEmbedding2D", "RoPE2D", "cuRoPE2D")
-
-
-# ---------------------------------------------------------------------------------------------
-# RoPE at grid positions (shared with patches/pi3.py)
-# ---------------------------------------------------------------------------------------------
-
-
-def displace_grid_positions(positions: torch.Tensor, state, patch_size: int) -> torch.Tensor:
-    """Float positions: every patch token displaced by the adapter's radial RoPE table.
-
-    ``positions`` (..., N, 2) are upstream integer (y, x) positions in any token layout: patch
-    tokens carry (row + 1, col + 1) of an h x w grid, special tokens (0, 0). The grid size is read
-    from the positions themselves (h = max y, w = max x), so the image is (h p, w p) pixels. A
-    call without patch tokens (e.g. Pi3X's metric query at (0, 0)) returns the positions as they
-    are.
-    """
-    rows, cols = (int(v) for v in positions.reshape(-1, 2).amax(dim=0).tolist())
-    if rows < 1 or cols < 1:
-        return positions
-    geometry = state.geometry(rows * patch_size, cols * patch_size)
-    displacement = state.rope_displacement(geometry, positions.device, torch.float32)  # (h*w, 2), (y, x)
-    is_patch = (positions[..., 0] > 0) & (positions[..., 1] > 0)
-    index = ((positions[..., 0] - 1) * cols + (positions[..., 1] - 1)).clamp(min=0)
-    offset = torch.where(is_patch[..., None], displacement[index], displacement.new_zeros(()))
-    return positions.to(torch.float32) + offset
-
-
-def grid_position_rope(original, owner, state):
-    """Wrap a RoPE module's ``forward(tokens, positions)``: radial displacement + continuous angles.
-
-    Upstream integer positions (y + 1, x + 1) identify each patch token, whatever the layout of
-    the call (per frame or all frames of a global block), so the position assembly code of the
-    model (``Aggregator.forward``, ``Pi3.decode``) is left alone: q' = q + rope.radial(rho) d/|d|
-    with q the upstream position including its +1 (DESIGN.md section 4), special tokens at (0, 0)
-    unchanged. Float positions and a disabled handle go straight to the continuous / upstream
-    evaluation of :func:`raytun3r_plugin.hooks.continuous_rope`.
-    """
-    continuous = hooks.continuous_rope(original, owner, state)
-    patch_size = state.info.patch_size
-
-    def forward(tokens, positions):
-        if positions.is_floating_point() or not state.uses("rope"):
-            return continuous(tokens, positions)
-        return continuous(tokens, displace_grid_positions(positions, state, patch_size))
-
-    return forward
-
-
-def check_rope_coverage(root: nn.Module, owner_paths: tuple[str, ...], family: str) -> None:
-    """Refuse a model holding a RoPE instance that the ``rope`` target would not reach."""
-    from raytun3r_plugin.registry import resolve_path
-
-    covered = {id(resolve_path(root, path)) for path in owner_paths}
-    for name, module in root.named_modules():
-        if type(module).__name__ in ROPE_CLASS_NAMES and id(module) not in covered:
-            raise UnsupportedUpstreamError(
-                f"{family}: found a {type(module).__name__} at '{name}' that is not one of the patched RoPE "
-                f"instances ({', '.join(owner_paths)}); this upstream version is not supported"
-            )
-
-
 # ---------------------------------------------------------------------------------------------
 # Spec
 # ---------------------------------------------------------------------------------------------
@@ -164,7 +106,7 @@ TARGETS = (
         attribute="forward",
         signature=("tokens", "positions"),
         owner_classes=("RotaryPositionEmbedding2D",),
-        build=grid_position_rope,
+        build=hooks.grid_position_rope,
         optional=True,  # Aggregator(rope_freq=0) has no RoPE
     ),
     PatchTarget(
@@ -191,7 +133,7 @@ TARGETS = (
 
 def check(root: nn.Module) -> None:
     _vit(root)
-    check_rope_coverage(root, ROPE_OWNERS, FAMILY)
+    hooks.check_rope_coverage(root, ROPE_OWNERS, FAMILY)
 
 
 def _pose_decoder():

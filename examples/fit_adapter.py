@@ -1,0 +1,44 @@
+"""Fit an adapter for a camera from a short fisheye segment and save it as one shareable file.
+
+    python examples/fit_adapter.py --out my_camera.safetensors [--frames FOLDER --camera CALIB]
+
+Without --frames, a synthetic 190-degree fisheye segment is rendered, so the script runs anywhere.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import raytun3r_plugin as rt
+from raytun3r_plugin import cameras, synthetic
+from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+from raytun3r_plugin.demo import default_network, demo_camera
+from raytun3r_plugin.images import read_frames
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--frames", help="image folder or video of the segment")
+    parser.add_argument("--camera", help="calibration file of the frames")
+    parser.add_argument("--backbone", help="backbone name (default: the built-in network)")
+    parser.add_argument("--weights", help="local weight file of --backbone")
+    parser.add_argument("--size", type=int, default=140, help="network input long side (px)")
+    parser.add_argument("--steps", type=int, default=150)
+    parser.add_argument("--n-frames", type=int, default=24)
+    args = parser.parse_args()
+
+    model = rt.load_backbone(args.backbone, args.weights) if args.backbone else default_network()[0]
+    if args.frames:
+        camera = cameras.load(args.camera)
+        frames, _ = read_frames(args.frames, limit=args.n_frames)
+    else:
+        camera = demo_camera(args.size)
+        frames = synthetic.render_sequence("indoor", camera, n_frames=args.n_frames, seed=7).images
+    config = AdaptConfig(steps=args.steps, input_size=args.size, seed=0)
+    adapter = adapt(model, camera, frames, config, out_path=args.out, progress=False)
+    print(f"saved {args.out}: {adapter.num_parameters()['total']:,} parameters, final losses {adapter.training_info.get('final_losses')}")
+
+
+if __name__ == "__main__":
+    main()

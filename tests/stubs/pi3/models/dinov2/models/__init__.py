@@ -1,0 +1,1 @@
+from . import vision_transformer as vits  # noqa: F401
