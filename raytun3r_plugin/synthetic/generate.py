@@ -1,0 +1,169 @@
+"""Synthetic sequences: trajectory + procedural scene + rendering, deterministic for a seed."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from raytun3r_plugin.datasets.sequence import Sequence
+from raytun3r_plugin.synthetic.render import Renderer
+from raytun3r_plugin.synthetic.scene import Scene, make_scene
+from raytun3r_plugin.synthetic.trajectory import (
+    calibrate_step,
+    driving_trajectory,
+    handheld_trajectory,
+)
+
+__all__ = ["camera_centres", "make_trajectory", "median_flow", "render_sequence", "scene_of"]
+
+# Typical scene range (m) at which the apparent motion of a trajectory is measured.
+_DEPTH_SCALE = {"indoor": 2.5, "outdoor": 16.0}
+
+
+def camera_centres(cam_from_world: np.ndarray) -> np.ndarray:
+    """Camera centres in the world (N, 3) from ``cam_from_world`` (N, 4, 4)."""
+    R = cam_from_world[:, :3, :3]
+    return -np.einsum("nji,nj->ni", R, cam_from_world[:, :3, 3])
+
+
+def median_flow(camera, cam_from_world: np.ndarray, depth: float, n_rays: int = 256) -> float:
+    """Median image motion (pixels) between consecutive poses of points at range ``depth`` (m)
+    along ``n_rays`` rays spread over the camera's valid region (a scene-independent estimate
+    of the optical flow of a trajectory)."""
+    rays, valid = camera.ray_table(dtype=torch.float64)
+    rays = rays.detach().cpu().numpy().reshape(-1, 3)
+    ok = np.flatnonzero(valid.detach().cpu().numpy().reshape(-1))
+    if ok.size == 0 or cam_from_world.shape[0] < 2:
+        return 0.0
+    pick = ok[np.linspace(0, ok.size - 1, min(n_rays, ok.size)).astype(np.int64)]
+    X = depth * rays[pick]
+    uv0, ok0 = camera.project(torch.from_numpy(X))
+    uv0 = uv0.detach().cpu().numpy()
+    meds = []
+    for k in range(cam_from_world.shape[0] - 1):
+        T = cam_from_world[k + 1] @ np.linalg.inv(cam_from_world[k])
+        uv1, ok1 = camera.project(torch.from_numpy(X @ T[:3, :3].T + T[:3, 3]))
+        m = (ok0 & ok1).detach().cpu().numpy()
+        if m.any():
+            meds.append(float(np.median(np.linalg.norm(uv1.detach().cpu().numpy()[m] - uv0[m], axis=1))))
+    return float(np.median(meds)) if meds else 0.0
+
+
+def make_trajectory(
+    kind: str, motion: str, camera, n_frames: int, seed: int, flow_px: float = 6.0
+) -> tuple[np.ndarray, float]:
+    """Poses (N, 4, 4) for ``motion`` ("handheld" | "driving") in a ``kind`` scene, with the
+    time step chosen so the median apparent motion between frames is about ``flow_px`` pixels.
+    Returns ``(cam_from_world, step)``."""
+    if motion == "handheld":
+        if kind == "indoor":
+            kw = {"center": (0.0, -1.5, 0.0), "amplitude": (1.2, 0.2, 1.5)}
+        else:
+            kw = {"center": (0.0, -1.6, 0.0), "amplitude": (2.0, 0.2, 3.0)}
+
+        def make(n: int, step: float) -> np.ndarray:
+            return handheld_trajectory(n, seed, step=step, **kw)
+    elif motion == "driving":
+        start = (0.0, -1.3, -3.0) if kind == "indoor" else (2.0, -1.6, 0.0)
+
+        def make(n: int, step: float) -> np.ndarray:
+            return driving_trajectory(n, seed, step=step, start=start)
+    else:
+        raise ValueError(f"unknown motion {motion!r}; expected 'handheld' or 'driving'")
+    depth = _DEPTH_SCALE[kind]
+    step = calibrate_step(make, n_frames, lambda poses: median_flow(camera, poses, depth), flow_px)
+    return make(n_frames, step), step
+
+
+def scene_of(seq: Sequence) -> Scene:
+    """The analytic scene of a synthetic sequence (rebuilt from its generator parameters and
+    camera path when it is not held in ``seq.meta["scene"]``)."""
+    scene = seq.meta.get("scene")
+    if isinstance(scene, Scene):
+        return scene
+    gen = seq.meta.get("synthetic")
+    if not gen or seq.cam_from_world is None:
+        raise ValueError(f"sequence {seq.name!r} is not a raytun3r synthetic sequence")
+    path = np.asarray(gen.get("path", camera_centres(seq.cam_from_world)), dtype=np.float64)
+    scene = make_scene(gen["kind"], int(gen["seed"]), path)
+    seq.meta["scene"] = scene
+    return scene
+
+
+def render_sequence(
+    kind: str,
+    camera,
+    n_frames: int = 10,
+    seed: int = 0,
+    motion: str | None = None,
+    *,
+    flow_px: float = 6.0,
+    supersample: int = 2,
+    adaptive: bool = True,
+    fps: float = 10.0,
+    name: str | None = None,
+    num_threads: int | None = 1,
+) -> Sequence:
+    """Render a synthetic sequence.
+
+    Args:
+        kind: "indoor" (furnished room) or "outdoor" (street).
+        camera: any ``raytun3r_plugin.cameras`` model (FoV beyond 180 degrees is fine).
+        n_frames: number of frames.
+        seed: seed of scene and trajectory (same seed and arguments -> identical output).
+        motion: "handheld", "driving" or None (handheld indoors, driving outdoors).
+        flow_px: target median apparent motion between consecutive frames, in pixels.
+        supersample: sub-pixel rays per axis at edges (see :class:`Renderer`).
+        adaptive: supersample only edge pixels (default) or every pixel.
+        fps: frame rate used for ``timestamps`` (k / fps seconds).
+        name: sequence name (default ``synthetic-<kind>-<motion>-s<seed>``).
+        num_threads: torch threads while rendering (see :class:`Renderer`; default 1).
+
+    Returns:
+        A :class:`Sequence` with ``images`` (N, H, W, 3) float32, ``depth`` (N, H, W) float32
+        range (metres along the ray, 0 = invalid), ``mask`` (N, H, W) lens-valid & hit,
+        ``cam_from_world`` (N, 4, 4) and ``meta`` holding the scene object (``"scene"``), the
+        generator parameters and camera path (``"synthetic"``) and, under ``"per_frame"``,
+        z-depth (``"z_depth"``, N x H x W float32) and sky masks (``"sky"``, N x H x W bool).
+    """
+    if kind not in _DEPTH_SCALE:
+        raise ValueError(f"unknown scene kind {kind!r}; expected 'indoor' or 'outdoor'")
+    if n_frames < 1:
+        raise ValueError("n_frames must be >= 1")
+    motion = motion or ("handheld" if kind == "indoor" else "driving")
+    poses, step = make_trajectory(kind, motion, camera, n_frames, seed, flow_px)
+    path = camera_centres(poses)
+    scene = make_scene(kind, seed, path)
+    renderer = Renderer(camera, supersample=supersample, adaptive=adaptive, num_threads=num_threads)
+    h, w = int(camera.height), int(camera.width)
+    images = np.zeros((n_frames, h, w, 3), dtype=np.float32)
+    depth = np.zeros((n_frames, h, w), dtype=np.float32)
+    zdepth = np.zeros((n_frames, h, w), dtype=np.float32)
+    mask = np.zeros((n_frames, h, w), dtype=bool)
+    sky = np.zeros((n_frames, h, w), dtype=bool)
+    for k in range(n_frames):
+        f = renderer.render(scene, poses[k])
+        images[k], depth[k], zdepth[k], mask[k], sky[k] = f.rgb, f.range, f.z_depth, f.valid, f.sky
+    gen = {
+        "kind": kind,
+        "seed": int(seed),
+        "motion": motion,
+        "flow_px": float(flow_px),
+        "step": float(step),
+        "supersample": int(supersample),
+        "adaptive": bool(adaptive),
+        "fps": float(fps),
+        "path": path.tolist(),
+    }
+    return Sequence(
+        name=name or f"synthetic-{kind}-{motion}-s{seed}",
+        camera=camera,
+        timestamps=np.arange(n_frames, dtype=np.float64) / float(fps),
+        cam_from_world=poses,
+        images=images,
+        depth=depth,
+        depth_kind="range",
+        mask=mask,
+        meta={"synthetic": gen, "scene": scene, "per_frame": {"z_depth": zdepth, "sky": sky}},
+    )
+
