@@ -138,10 +138,14 @@ def score(seq, output: MethodOutput, min_translation: float = 1e-3, corresponden
         n_skipped += errors["n_skipped"]
     pose_errors = {"rotation_deg": np.array(rotation), "translation_deg": np.array(translation), "pairs": np.array(pairs).reshape(-1, 2), "n_pairs": len(pairs), "n_skipped": n_skipped, "folded": False}
     d_values = []
+    sky = (getattr(seq, "meta", None) or {}).get("per_frame", {}).get("sky")
     if seq.depth is not None:
         for i, j in pairs:
             uv_i, uv_j, visible = correspondences(seq, i, j, stride=correspondence_stride)
             keep = visible & np.isfinite(uv_j).all(-1)
+            if sky is not None:
+                rows, cols = np.round(uv_i[:, 1]).astype(int), np.round(uv_i[:, 0]).astype(int)
+                keep &= ~np.asarray(sky, bool)[i][rows, cols]
             relative = gt_poses[j] @ np.linalg.inv(gt_poses[i])
             d_values.append(metrics.d_reproj(output.depth[i], seq.camera, uv_i[keep], uv_j[keep], relative))
     abs_rel = delta = None
@@ -151,6 +155,8 @@ def score(seq, output: MethodOutput, min_translation: float = 1e-3, corresponden
         if seq.mask is not None:
             valid &= np.broadcast_to(seq.mask, seq.depth.shape)[scored]
         valid &= output.depth[scored] > 0
+        if sky is not None:  # synthetic sky sits at ~2 km: not a depth to score
+            valid &= ~np.asarray(sky, bool)[scored]
         abs_rel = metrics.abs_rel(output.depth[scored], seq.depth[scored], valid)
         delta = metrics.delta_125(output.depth[scored], seq.depth[scored], valid)
     summary = metrics.summarize(pose_errors=pose_errors, d_reproj=d_values, abs_rel=abs_rel, delta_125=delta, name=seq.name)
