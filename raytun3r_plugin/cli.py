@@ -58,9 +58,20 @@ def cmd_adapt(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from raytun3r_plugin.evaluation import evaluate_command
+    from raytun3r_plugin.adapter import Adapter
+    from raytun3r_plugin.datasets import load_sequence
+    from raytun3r_plugin.evaluation import fit_sequence, format_table, headline, run_method, score
 
-    return evaluate_command(args)
+    model = _load_model(args.backbone, args.weights)
+    seq = fit_sequence(load_sequence(args.dataset, kind=args.kind), args.size, max_frames=args.max_frames)
+    if seq.cam_from_world is None:
+        raise Raytun3rError(f"{args.dataset}: the sequence has no ground-truth poses to score against")
+    adapter = Adapter.load(args.adapter) if args.adapter else None
+    methods = args.method.split(",")
+    rows = [{"method": method, **headline(score(seq, run_method(model, seq, method, adapter=adapter)))} for method in methods]
+    print(f"{seq.name}: {len(seq)} frames at {seq.camera.width}x{seq.camera.height} px, camera {seq.camera!r}")
+    print(format_table(rows, ["method", "rot_deg", "trans_deg", "d_reproj_px", "abs_rel", "delta_1.25", "coverage"]))
+    return 0
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -70,9 +81,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from raytun3r_plugin.evaluation import bench_command
+    from raytun3r_plugin.benchmark import CAMERAS, run_benchmark
+    from raytun3r_plugin.demo import default_network
 
-    return bench_command(args)
+    model, description = default_network()
+    if args.quick:
+        table = run_benchmark(model, args.out, size=84, n_adapt=6, n_eval=4, steps=3, cameras=CAMERAS[-1:], scenes=("indoor",), network=description)
+    else:
+        table = run_benchmark(model, args.out, network=description, progress=True)
+    print(table)
+    return 0
 
 
 def _add_model_arguments(parser: argparse.ArgumentParser) -> None:
@@ -123,9 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_model_arguments(p)
     p.add_argument("--dataset", required=True, help="sequence folder or file (synthetic, colmap, scannetpp, tumvi, kitti360)")
     p.add_argument("--kind", default=None, help="reader to use (default: detect)")
-    p.add_argument("--method", default="vanilla", help="vanilla | raytun3r | center-ph")
+    p.add_argument("--method", default="vanilla,center-ph,raytun3r", help="comma-separated: vanilla, center-ph, raytun3r")
     p.add_argument("--adapter", default=None)
-    p.add_argument("--size", type=int, default=504)
+    p.add_argument("--size", type=int, default=504, help="network input long side (px)")
     p.add_argument("--max-frames", type=int, default=None)
     p.set_defaults(func=cmd_eval)
 

@@ -1,0 +1,41 @@
+"""The synthetic fisheye benchmark (issue 7): vanilla vs Center-PH vs raytun3r on held-out
+sequences of three lenses (KB4 120, KB4 185, double sphere 195 deg), indoor and outdoor.
+
+    python benchmarks/fisheye_synthetic.py [--out runs/bench] [--readme README.md]
+
+With --readme the table replaces the block between the README's bench markers, so the README
+shows what this script produced, not typed numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+from raytun3r_plugin.benchmark import run_benchmark
+from raytun3r_plugin.demo import default_network
+
+START, END = "<!-- bench:start -->", "<!-- bench:end -->"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="runs/bench")
+    parser.add_argument("--size", type=int, default=140)
+    parser.add_argument("--steps", type=int, default=150)
+    parser.add_argument("--readme", default=None)
+    args = parser.parse_args()
+    model, description = default_network()
+    table = run_benchmark(model, args.out, size=args.size, steps=args.steps, network=description, progress=False)
+    print(table)
+    if args.readme:
+        readme = Path(args.readme)
+        text = readme.read_text()
+        block = f"{START}\n{table}\n{END}"
+        text = re.sub(re.escape(START) + ".*?" + re.escape(END), lambda _: block, text, flags=re.S) if START in text else text + "\n" + block + "\n"
+        readme.write_text(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,92 @@
+"""The ``raytun3r`` command line, end to end on small synthetic data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from raytun3r_plugin import cameras, synthetic
+from raytun3r_plugin.cli import main
+from raytun3r_plugin.export import read_ply
+from tests.helpers import fisheye, randomise_
+
+pytest.importorskip("depth_anything_3")
+from raytun3r_plugin.patches.da3 import build_network  # noqa: E402
+
+SIZE = 84
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    """A random da3-small weight file, a camera file and a synthetic sequence folder."""
+    import cv2
+    from safetensors.torch import save_model
+
+    folder = tmp_path_factory.mktemp("cli")
+    torch.manual_seed(0)
+    net = build_network("da3-small")
+    with torch.no_grad():
+        net.backbone.pretrained.pos_embed.normal_(0, 0.02)
+    weights = folder / "model.safetensors"
+    save_model(net, str(weights))
+    camera = fisheye(SIZE, SIZE, 190.0)
+    cameras.save(camera, folder / "camera.json")
+    seq = synthetic.render_sequence("indoor", camera, n_frames=6, seed=5)
+    frames = folder / "frames"
+    frames.mkdir()
+    for k, image in enumerate(seq.images):
+        cv2.imwrite(str(frames / f"{k:04d}.png"), (image[..., ::-1] * 255).round().astype(np.uint8))
+    synthetic.write_sequence(seq, folder / "sequence")
+    return {"folder": folder, "weights": weights, "camera": folder / "camera.json", "frames": frames, "sequence": folder / "sequence", "net": net}
+
+
+def test_adapt_inspect_infer(setup, capsys):
+    folder = setup["folder"]
+    adapter = folder / "adapter.safetensors"
+    code = main(["adapt", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--camera", str(setup["camera"]),
+                 "--frames", str(setup["frames"]), "--size", str(SIZE), "--steps", "2", "--windows", "2", "--out", str(adapter)])
+    assert code == 0 and adapter.is_file()
+    assert main(["inspect", str(adapter)]) == 0
+    text = capsys.readouterr().out
+    assert "da3-small" in text and "10,772" in text and "KannalaBrandt4" in text
+
+    out = folder / "infer"
+    code = main(["infer", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--adapter", str(adapter),
+                 "--frames", str(setup["frames"]), "--size", str(SIZE), "--out", str(out)])
+    assert code == 0
+    assert len(list((out / "depth").glob("*.npy"))) == 6 and len(list((out / "depth").glob("*.png"))) == 6
+    depth = np.load(out / "depth" / "0000.npy")
+    assert depth.shape == (SIZE, SIZE) and np.isfinite(depth).all()
+    lines = [line for line in (out / "trajectory.txt").read_text().splitlines() if not line.startswith("#")]
+    assert len(lines) == 6 and all(len(line.split()) == 8 for line in lines)
+    points, colours = read_ply(out / "points.ply")
+    assert len(points) > 1000 and np.isfinite(points).all() and colours.dtype == np.uint8
+
+
+def test_eval_prints_a_table_for_each_method(setup, capsys):
+    code = main(["eval", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--dataset", str(setup["sequence"]),
+                 "--size", str(SIZE), "--method", "vanilla,center-ph,raytun3r"])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "| vanilla |" in out and "| center-ph |" in out and "| raytun3r |" in out
+
+
+def test_errors_are_reported_not_raised(setup, tmp_path, capsys):
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"not a safetensors file")
+    assert main(["inspect", str(bad)]) == 2
+    assert "not a readable safetensors file" in capsys.readouterr().err
+    other = randomise_(__import__("raytun3r_plugin").Adapter.for_model(setup["net"], fisheye(SIZE, SIZE, 150.0)))
+    other.save(tmp_path / "other.safetensors")
+    code = main(["infer", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--adapter", str(tmp_path / "other.safetensors"),
+                 "--camera", str(setup["camera"]), "--frames", str(setup["frames"]), "--size", str(SIZE), "--out", str(tmp_path / "o")])
+    assert code == 2 and "pass strict=False" in capsys.readouterr().err
+
+
+def test_bench_quick(tmp_path, capsys):
+    assert main(["bench", "--quick", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    for method in ("vanilla", "center-ph", "raytun3r"):
+        assert f"| {method} |" in out
+    assert (tmp_path / "results.md").is_file()
