@@ -1,0 +1,33 @@
+"""Camera models and calibration readers.
+
+Every model is an immutable :class:`Camera` with batched, differentiable torch ``project`` /
+``unproject`` (unit rays, valid masks), whole-image helpers (``ray_table``, ``valid_mask``,
+``fov_deg``), resize/crop and an exact JSON form. ``load`` reads Kalibr, basalt, COLMAP,
+KITTI-360 (OpenCV YAML) and raytun3r's own JSON calibration files. See ``docs/cameras.md``.
+"""
+
+from __future__ import annotations
+
+from raytun3r_plugin.cameras.base import CAMERA_MODELS, Camera, from_dict, pixel_grid
+from raytun3r_plugin.cameras.formats import load, save, to_colmap_line
+from raytun3r_plugin.cameras.kb import KannalaBrandt4, ThinPrismFisheye
+from raytun3r_plugin.cameras.pinhole import OpenCVRadTan, Pinhole
+from raytun3r_plugin.cameras.unified import EUCM, MEI, UCM, DoubleSphere
+
+__all__ = [
+    "CAMERA_MODELS",
+    "EUCM",
+    "MEI",
+    "UCM",
+    "Camera",
+    "DoubleSphere",
+    "KannalaBrandt4",
+    "OpenCVRadTan",
+    "Pinhole",
+    "ThinPrismFisheye",
+    "from_dict",
+    "load",
+    "pixel_grid",
+    "save",
+    "to_colmap_line",
+]

@@ -1,0 +1,694 @@
+"""Calibration file readers and writers.
+
+``load(path, camera=...)`` detects the format from the file's content:
+
+- raytun3r JSON (what :func:`save` writes): ``{"model", "width", "height", "params": {...}}``;
+- basalt calibration JSON: ``{"value0": {"intrinsics": [...], "resolution": [...]}}``;
+- OpenCV FileStorage YAML (``%YAML:1.0``, camodocal layout): KITTI-360 ``image_02.yaml`` /
+  ``image_03.yaml`` (``model_type: MEI``), also camodocal ``PINHOLE`` and ``KANNALA_BRANDT``;
+- Kalibr camchain YAML (``cam0: {camera_model, intrinsics, distortion_model, ...}``);
+- COLMAP ``cameras.txt`` (pixel centres at +0.5 there: cx, cy lose 0.5 on import).
+
+Every error is a :class:`CameraError` whose message starts with the file path and names the
+offending field.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import tempfile
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from raytun3r_plugin.cameras.base import Camera, from_dict
+from raytun3r_plugin.cameras.kb import KannalaBrandt4, ThinPrismFisheye
+from raytun3r_plugin.cameras.pinhole import OpenCVRadTan, Pinhole
+from raytun3r_plugin.cameras.unified import EUCM, MEI, UCM, DoubleSphere
+from raytun3r_plugin.errors import CameraError
+
+__all__ = ["detect_format", "load", "save", "to_colmap_line"]
+
+PathLike = str | os.PathLike
+
+
+# ---------------------------------------------------------------------------- helpers
+def _fail(path: PathLike, field: str, problem: str) -> CameraError:
+    return CameraError(f"{path}: field '{field}': {problem}")
+
+
+def _num(path: PathLike, field: str, value: Any) -> float:
+    """A float from a parsed file value. Strings are accepted because YAML 1.1 reads numbers
+    such as ``1e-05`` (no dot) as strings; non-finite values are rejected later, by the model,
+    with the parameter's name."""
+    if isinstance(value, bool) or value is None:
+        raise _fail(path, field, f"expected a number, got {value!r}")
+    if isinstance(value, (int, float)):
+        return float(value)
+    if isinstance(value, str):
+        try:
+            return float(value.strip())
+        except ValueError:
+            pass
+    raise _fail(path, field, f"expected a number, got {value!r}")
+
+
+def _int(path: PathLike, field: str, value: Any) -> int:
+    if isinstance(value, bool):
+        raise _fail(path, field, f"expected a positive integer, got {value!r}")
+    if isinstance(value, str):
+        try:
+            value = int(value.strip())
+        except ValueError:
+            pass
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
+    if not isinstance(value, int) or value <= 0:
+        raise _fail(path, field, f"expected a positive integer, got {value!r}")
+    return value
+
+
+def _get(path: PathLike, d: Mapping[str, Any], key: str, field: str) -> Any:
+    if not isinstance(d, Mapping) or key not in d:
+        raise _fail(path, field, "is missing")
+    return d[key]
+
+
+def _numbers(path: PathLike, value: Any, field: str, count: int, names: str) -> list[float]:
+    if not isinstance(value, (list, tuple)):
+        raise _fail(path, field, f"expected a list of {count} numbers [{names}], got {value!r}")
+    if len(value) != count:
+        raise _fail(
+            path, field, f"expected {count} values [{names}], got {len(value)}: {list(value)!r}"
+        )
+    return [_num(path, f"{field}[{i}]", v) for i, v in enumerate(value)]
+
+
+def _build(
+    path: PathLike,
+    cls: type[Camera],
+    width: int,
+    height: int,
+    values: dict[str, float],
+    fields: dict[str, str],
+) -> Camera:
+    """Construct the camera; a model-level error is re-raised naming the file field."""
+    try:
+        return cls(width, height, values)
+    except CameraError as e:
+        name = getattr(e, "param", None)
+        field = fields.get(name, name) if name else "params"
+        err = _fail(path, field, str(e))
+        err.param = name  # type: ignore[attr-defined]
+        raise err from None
+
+
+def _camera_index(path: PathLike, camera: str | int | None, names: list[str]) -> int:
+    """Index into ``names`` (e.g. ["cam0", "cam1"]) for ``camera`` given as name or index."""
+    if camera is None:
+        return 0
+    if isinstance(camera, bool):
+        raise _fail(path, "camera", f"unknown camera id {camera!r}")
+    if isinstance(camera, int):
+        if 0 <= camera < len(names):
+            return camera
+    elif isinstance(camera, str):
+        if camera in names:
+            return names.index(camera)
+        m = re.fullmatch(r"(?:cam)?(\d+)", camera.strip())
+        if m and 0 <= int(m.group(1)) < len(names):
+            return int(m.group(1))
+    raise _fail(path, "camera", f"unknown camera id {camera!r} (available: {names})")
+
+
+# ---------------------------------------------------------------------------- raytun3r JSON
+def _read_own(path: PathLike, d: Mapping[str, Any], camera: str | int | None) -> Camera:
+    if camera not in (None, 0, "0", "cam0"):
+        raise _fail(path, "camera", f"unknown camera id {camera!r} (the file holds one camera)")
+    try:
+        return from_dict(d)
+    except CameraError as e:
+        raise CameraError(f"{path}: {e}") from None
+
+
+# ---------------------------------------------------------------------------- basalt JSON
+_BASALT = {
+    "kb4": (KannalaBrandt4, ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")),
+    "ds": (DoubleSphere, ("fx", "fy", "cx", "cy", "xi", "alpha")),
+    "eucm": (EUCM, ("fx", "fy", "cx", "cy", "alpha", "beta")),
+    "ucm": (UCM, ("fx", "fy", "cx", "cy", "alpha")),
+    "pinhole": (Pinhole, ("fx", "fy", "cx", "cy")),
+}
+
+
+def _read_basalt(path: PathLike, d: Mapping[str, Any], camera: str | int | None) -> Camera:
+    v = d["value0"]
+    intr = _get(path, v, "intrinsics", "value0.intrinsics")
+    res = _get(path, v, "resolution", "value0.resolution")
+    if not isinstance(intr, list) or not intr:
+        raise _fail(path, "value0.intrinsics", "expected a non-empty list of cameras")
+    i = _camera_index(path, camera, [f"cam{k}" for k in range(len(intr))])
+    base = f"value0.intrinsics[{i}]"
+    entry = intr[i]
+    ctype = _get(path, entry, "camera_type", f"{base}.camera_type")
+    if ctype not in _BASALT:
+        raise _fail(
+            path,
+            f"{base}.camera_type",
+            f"unsupported camera type {ctype!r} (supported: {sorted(_BASALT)})",
+        )
+    cls, keys = _BASALT[ctype]
+    block = _get(path, entry, "intrinsics", f"{base}.intrinsics")
+    if not isinstance(block, Mapping):
+        raise _fail(path, f"{base}.intrinsics", "expected an object of named parameters")
+    extra = [k for k in block if k not in keys]
+    if extra:
+        raise _fail(
+            path,
+            f"{base}.intrinsics.{extra[0]}",
+            f"unexpected parameter for {ctype!r} (expected {list(keys)})",
+        )
+    values = {
+        k: _num(path, f"{base}.intrinsics.{k}", _get(path, block, k, f"{base}.intrinsics.{k}"))
+        for k in keys
+    }
+    if not isinstance(res, list) or i >= len(res):
+        raise _fail(path, f"value0.resolution[{i}]", "is missing")
+    wh = res[i]
+    if not isinstance(wh, (list, tuple)) or len(wh) != 2:
+        raise _fail(path, f"value0.resolution[{i}]", f"expected [width, height], got {wh!r}")
+    w = _int(path, f"value0.resolution[{i}][0]", wh[0])
+    h = _int(path, f"value0.resolution[{i}][1]", wh[1])
+    return _build(path, cls, w, h, values, {k: f"{base}.intrinsics.{k}" for k in keys})
+
+
+# ---------------------------------------------------------------------------- Kalibr YAML
+def _read_kalibr(path: PathLike, d: Mapping[str, Any], camera: str | int | None) -> Camera:
+    names = sorted((k for k in d if re.fullmatch(r"cam\d+", str(k))), key=lambda k: int(k[3:]))
+    if camera is None:
+        key = "cam0" if "cam0" in names else names[0]
+    elif isinstance(camera, int) and not isinstance(camera, bool) and f"cam{camera}" in names:
+        key = f"cam{camera}"
+    elif isinstance(camera, str) and (camera in names or f"cam{camera}" in names):
+        key = camera if camera in names else f"cam{camera}"
+    else:
+        raise _fail(path, "camera", f"unknown camera id {camera!r} (available: {names})")
+    c = d[key]
+    if not isinstance(c, Mapping):
+        raise _fail(path, key, "expected a mapping")
+    cam_model = _get(path, c, "camera_model", f"{key}.camera_model")
+    dist_model = c.get("distortion_model", "none")
+    if dist_model is None:
+        dist_model = "none"
+    # Kalibr's command line says "equi" for what its camchain files call "equidistant".
+    dist_model = {"equi": "equidistant"}.get(dist_model, dist_model)
+    res = _numbers(
+        path,
+        _get(path, c, "resolution", f"{key}.resolution"),
+        f"{key}.resolution",
+        2,
+        "width height",
+    )
+    w = _int(path, f"{key}.resolution[0]", res[0])
+    h = _int(path, f"{key}.resolution[1]", res[1])
+    intr_field = f"{key}.intrinsics"
+    raw_intr = _get(path, c, "intrinsics", intr_field)
+    dist_field = f"{key}.distortion_coeffs"
+
+    def dist(count: int, names: str) -> list[float]:
+        return _numbers(
+            path, _get(path, c, "distortion_coeffs", dist_field), dist_field, count, names
+        )
+
+    def no_dist() -> None:
+        coeffs = c.get("distortion_coeffs", [])
+        if coeffs not in (None, []) and any(_num(path, dist_field, x) != 0.0 for x in coeffs):
+            raise _fail(path, dist_field, "must be empty for distortion_model 'none'")
+
+    if dist_model not in ("none", "radtan", "equidistant"):
+        raise _fail(
+            path,
+            f"{key}.distortion_model",
+            f"unsupported distortion model {dist_model!r} (supported: none, radtan, equidistant)",
+        )
+    if cam_model == "pinhole":
+        fu, fv, pu, pv = _numbers(path, raw_intr, intr_field, 4, "fu fv pu pv")
+        base = {"fx": fu, "fy": fv, "cx": pu, "cy": pv}
+        fields = {
+            n: f"{intr_field}[{i}] ({k})"
+            for i, (n, k) in enumerate(
+                zip(("fx", "fy", "cx", "cy"), ("fu", "fv", "pu", "pv"), strict=True)
+            )
+        }
+        if dist_model == "none":
+            no_dist()
+            return _build(path, Pinhole, w, h, base, fields)
+        if dist_model == "radtan":
+            k1, k2, r1, r2 = dist(4, "k1 k2 r1 r2")
+            fields |= {
+                n: f"{dist_field}[{i}] ({n})" for i, n in enumerate(("k1", "k2", "p1", "p2"))
+            }
+            return _build(
+                path, OpenCVRadTan, w, h, base | {"k1": k1, "k2": k2, "p1": r1, "p2": r2}, fields
+            )
+        ks = dist(4, "k1 k2 k3 k4")
+        fields |= {n: f"{dist_field}[{i}] ({n})" for i, n in enumerate(("k1", "k2", "k3", "k4"))}
+        return _build(
+            path,
+            KannalaBrandt4,
+            w,
+            h,
+            base | dict(zip(("k1", "k2", "k3", "k4"), ks, strict=True)),
+            fields,
+        )
+    if cam_model == "omni":
+        xi, fu, fv, pu, pv = _numbers(path, raw_intr, intr_field, 5, "xi fu fv pu pv")
+        fields = {
+            n: f"{intr_field}[{i}] ({k})"
+            for i, (n, k) in enumerate(
+                zip(("xi", "fx", "fy", "cx", "cy"), ("xi", "fu", "fv", "pu", "pv"), strict=True)
+            )
+        }
+        if dist_model == "radtan":
+            k1, k2, r1, r2 = dist(4, "k1 k2 r1 r2")
+            fields |= {
+                n: f"{dist_field}[{i}] ({n})" for i, n in enumerate(("k1", "k2", "p1", "p2"))
+            }
+            vals = {
+                "fx": fu,
+                "fy": fv,
+                "cx": pu,
+                "cy": pv,
+                "xi": xi,
+                "k1": k1,
+                "k2": k2,
+                "p1": r1,
+                "p2": r2,
+            }
+            return _build(path, MEI, w, h, vals, fields)
+        if dist_model == "none":
+            no_dist()
+            # xi form -> alpha form: alpha = xi / (1 + xi), f_alpha = f_xi / (1 + xi).
+            if not (math.isfinite(xi) and xi >= 0.0):
+                raise _fail(path, fields["xi"], f"must be a finite number >= 0, got {xi!r}")
+            vals = {
+                "fx": fu / (1.0 + xi),
+                "fy": fv / (1.0 + xi),
+                "cx": pu,
+                "cy": pv,
+                "alpha": xi / (1.0 + xi),
+            }
+            return _build(path, UCM, w, h, vals, fields | {"alpha": fields["xi"]})
+        raise _fail(
+            path,
+            f"{key}.distortion_model",
+            "camera_model 'omni' supports distortion_model none or radtan",
+        )
+    if cam_model in ("ds", "eucm"):
+        if dist_model != "none":
+            raise _fail(
+                path,
+                f"{key}.distortion_model",
+                f"camera_model {cam_model!r} supports distortion_model none only",
+            )
+        no_dist()
+        first = ("xi", "alpha") if cam_model == "ds" else ("alpha", "beta")
+        vals6 = _numbers(path, raw_intr, intr_field, 6, f"{first[0]} {first[1]} fu fv pu pv")
+        order = (*first, "fx", "fy", "cx", "cy")
+        fields = {n: f"{intr_field}[{i}] ({n})" for i, n in enumerate(order)}
+        cls = DoubleSphere if cam_model == "ds" else EUCM
+        return _build(path, cls, w, h, dict(zip(order, vals6, strict=True)), fields)
+    raise _fail(
+        path,
+        f"{key}.camera_model",
+        f"unsupported camera model {cam_model!r} (supported: pinhole, omni, ds, eucm)",
+    )
+
+
+# ---------------------------------------------------------------------------- OpenCV YAML
+class _CvLoader(yaml.SafeLoader):
+    """SafeLoader that also reads OpenCV's ``!!opencv-matrix`` nodes (as plain mappings)."""
+
+
+_CvLoader.add_constructor(
+    "tag:yaml.org,2002:opencv-matrix",
+    lambda loader, node: loader.construct_mapping(node, deep=True),
+)
+
+
+def _parse_opencv_yaml(path: PathLike, text: str) -> Any:
+    lines = text.splitlines()
+    # PyYAML does not understand the "%YAML:1.0" directive OpenCV writes.
+    if lines and lines[0].lstrip().startswith("%YAML"):
+        lines = lines[1:]
+    # OpenCV may write "key:value"; YAML needs a space after the colon of a key.
+    fixed = [re.sub(r"^(\s*[A-Za-z_][\w.\-]*):(?=[^\s:/])", r"\1: ", ln) for ln in lines]
+    try:
+        return yaml.load("\n".join(fixed), Loader=_CvLoader)  # noqa: S506 - SafeLoader subclass
+    except yaml.YAMLError as e:
+        raise CameraError(f"{path}: not a valid OpenCV YAML file: {e}") from None
+
+
+_CAMODOCAL: dict[str, tuple[type[Camera], list[tuple[str, str, str]]]] = {
+    # model_type -> (class, [(our name, group, file name)])
+    "MEI": (
+        MEI,
+        [
+            ("xi", "mirror_parameters", "xi"),
+            ("k1", "distortion_parameters", "k1"),
+            ("k2", "distortion_parameters", "k2"),
+            ("p1", "distortion_parameters", "p1"),
+            ("p2", "distortion_parameters", "p2"),
+            ("fx", "projection_parameters", "gamma1"),
+            ("fy", "projection_parameters", "gamma2"),
+            ("cx", "projection_parameters", "u0"),
+            ("cy", "projection_parameters", "v0"),
+        ],
+    ),
+    "PINHOLE": (
+        OpenCVRadTan,
+        [
+            ("k1", "distortion_parameters", "k1"),
+            ("k2", "distortion_parameters", "k2"),
+            ("p1", "distortion_parameters", "p1"),
+            ("p2", "distortion_parameters", "p2"),
+            ("fx", "projection_parameters", "fx"),
+            ("fy", "projection_parameters", "fy"),
+            ("cx", "projection_parameters", "cx"),
+            ("cy", "projection_parameters", "cy"),
+        ],
+    ),
+    # camodocal's EquidistantCamera names the same four coefficients k2..k5.
+    "KANNALA_BRANDT": (
+        KannalaBrandt4,
+        [
+            ("k1", "projection_parameters", "k2"),
+            ("k2", "projection_parameters", "k3"),
+            ("k3", "projection_parameters", "k4"),
+            ("k4", "projection_parameters", "k5"),
+            ("fx", "projection_parameters", "mu"),
+            ("fy", "projection_parameters", "mv"),
+            ("cx", "projection_parameters", "u0"),
+            ("cy", "projection_parameters", "v0"),
+        ],
+    ),
+}
+
+
+def _read_camodocal(path: PathLike, d: Mapping[str, Any], camera: str | int | None) -> Camera:
+    name = d.get("camera_name")
+    if camera not in (None, 0, "0") and camera != name:
+        raise _fail(path, "camera", f"unknown camera id {camera!r} (the file holds {name!r})")
+    mt = d["model_type"]
+    key = str(mt).upper() if isinstance(mt, str) else mt
+    if key not in _CAMODOCAL:
+        raise _fail(
+            path, "model_type", f"unsupported model type {mt!r} (supported: {sorted(_CAMODOCAL)})"
+        )
+    cls, spec = _CAMODOCAL[key]
+    w = _int(path, "image_width", _get(path, d, "image_width", "image_width"))
+    h = _int(path, "image_height", _get(path, d, "image_height", "image_height"))
+    groups: dict[str, set[str]] = {}
+    for _n, g, f in spec:
+        groups.setdefault(g, set()).add(f)
+    for g, allowed in groups.items():
+        block = _get(path, d, g, g)
+        if not isinstance(block, Mapping):
+            raise _fail(path, g, "expected a mapping")
+        extra = [k for k in block if k not in allowed]
+        if extra:
+            raise _fail(
+                path,
+                f"{g}.{extra[0]}",
+                f"unexpected parameter for model_type {mt!r} (expected {sorted(allowed)})",
+            )
+    values = {n: _num(path, f"{g}.{f}", _get(path, d[g], f, f"{g}.{f}")) for n, g, f in spec}
+    return _build(path, cls, w, h, values, {n: f"{g}.{f}" for n, g, f in spec})
+
+
+# ---------------------------------------------------------------------------- COLMAP
+_HALF = ("cx", "cy")
+
+# COLMAP model -> (class, COLMAP parameter names, function to our {name: value}).
+_COLMAP: dict[
+    str, tuple[type[Camera], tuple[str, ...], Callable[[list[float]], dict[str, float]]]
+] = {
+    "SIMPLE_PINHOLE": (
+        Pinhole,
+        ("f", "cx", "cy"),
+        lambda p: {"fx": p[0], "fy": p[0], "cx": p[1], "cy": p[2]},
+    ),
+    "PINHOLE": (
+        Pinhole,
+        ("fx", "fy", "cx", "cy"),
+        lambda p: dict(zip(Pinhole.param_names, p, strict=True)),
+    ),
+    "SIMPLE_RADIAL": (
+        OpenCVRadTan,
+        ("f", "cx", "cy", "k"),
+        lambda p: {
+            "fx": p[0],
+            "fy": p[0],
+            "cx": p[1],
+            "cy": p[2],
+            "k1": p[3],
+            "k2": 0.0,
+            "p1": 0.0,
+            "p2": 0.0,
+        },
+    ),
+    "RADIAL": (
+        OpenCVRadTan,
+        ("f", "cx", "cy", "k1", "k2"),
+        lambda p: {
+            "fx": p[0],
+            "fy": p[0],
+            "cx": p[1],
+            "cy": p[2],
+            "k1": p[3],
+            "k2": p[4],
+            "p1": 0.0,
+            "p2": 0.0,
+        },
+    ),
+    "OPENCV": (
+        OpenCVRadTan,
+        OpenCVRadTan.param_names,
+        lambda p: dict(zip(OpenCVRadTan.param_names, p, strict=True)),
+    ),
+    "OPENCV_FISHEYE": (
+        KannalaBrandt4,
+        KannalaBrandt4.param_names,
+        lambda p: dict(zip(KannalaBrandt4.param_names, p, strict=True)),
+    ),
+    "THIN_PRISM_FISHEYE": (
+        ThinPrismFisheye,
+        ThinPrismFisheye.param_names,
+        lambda p: dict(zip(ThinPrismFisheye.param_names, p, strict=True)),
+    ),
+    "EUCM": (EUCM, EUCM.param_names, lambda p: dict(zip(EUCM.param_names, p, strict=True))),
+}
+
+# Our model -> the COLMAP model used on export (parameters in our order = COLMAP order).
+_COLMAP_EXPORT = {
+    "pinhole": "PINHOLE",
+    "opencv": "OPENCV",
+    "kb4": "OPENCV_FISHEYE",
+    "thin_prism_fisheye": "THIN_PRISM_FISHEYE",
+    "eucm": "EUCM",
+}
+
+_COLMAP_LINE = re.compile(r"^\s*-?\d+\s+[A-Z][A-Z0-9_]*\s")
+
+
+def _looks_like_colmap(text: str) -> bool:
+    rows = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    return bool(rows) and all(_COLMAP_LINE.match(ln + " ") for ln in rows)
+
+
+def _read_colmap(path: PathLike, text: str, camera: str | int | None) -> Camera:
+    rows: list[tuple[int, list[str]]] = []
+    for n, ln in enumerate(text.splitlines(), start=1):
+        if ln.strip() and not ln.lstrip().startswith("#"):
+            rows.append((n, ln.split()))
+    ids = [int(t[0]) for _n, t in rows]
+    if camera is None:
+        idx = 0
+    else:
+        want: int | None = None
+        if isinstance(camera, int) and not isinstance(camera, bool):
+            want = camera
+        elif isinstance(camera, str) and re.fullmatch(r"\s*-?\d+\s*", camera):
+            want = int(camera)
+        if want is None or want not in ids:
+            raise _fail(path, "camera", f"unknown camera id {camera!r} (available: {ids})")
+        idx = ids.index(want)
+    lineno, tok = rows[idx]
+    where = f"camera {tok[0]} (line {lineno})"
+    model = tok[1]
+    if model not in _COLMAP:
+        raise _fail(
+            path,
+            f"{where} MODEL",
+            f"unsupported COLMAP camera model {model!r} (supported: {sorted(_COLMAP)})",
+        )
+    cls, names, convert = _COLMAP[model]
+    if len(tok) < 4:
+        raise _fail(path, f"{where} WIDTH HEIGHT", "is missing")
+    w = _int(path, f"{where} WIDTH", tok[2])
+    h = _int(path, f"{where} HEIGHT", tok[3])
+    raw = tok[4:]
+    if len(raw) != len(names):
+        raise _fail(
+            path,
+            f"{where} PARAMS",
+            f"{model} takes {len(names)} parameters {list(names)}, got {len(raw)}",
+        )
+    vals = [_num(path, f"{where} param {n}", v) for n, v in zip(names, raw, strict=True)]
+    values = convert(vals)
+    # COLMAP's pixel (0, 0) is the top-left corner of the image; ours is the first pixel centre.
+    values["cx"] -= 0.5
+    values["cy"] -= 0.5
+    fields = {}
+    for ours in cls.param_names:
+        colmap_name = "f" if ours in ("fx", "fy") and "f" in names else ours
+        if ours in ("k1",) and model == "SIMPLE_RADIAL":
+            colmap_name = "k"
+        fields[ours] = f"{where} param {colmap_name}"
+    return _build(path, cls, w, h, values, fields)
+
+
+def to_colmap_line(camera: Camera, camera_id: int, model: str | None = None) -> str:
+    """One COLMAP ``cameras.txt`` line ``CAMERA_ID MODEL WIDTH HEIGHT PARAMS...``.
+
+    Adds 0.5 to cx, cy (COLMAP's pixel-centre convention) and writes floats with ``repr`` so
+    that import followed by export reproduces the line. ``model`` may force ``SIMPLE_PINHOLE``
+    (pinhole with fx == fy); by default pinhole -> PINHOLE, opencv -> OPENCV, kb4 ->
+    OPENCV_FISHEYE, thin_prism_fisheye -> THIN_PRISM_FISHEYE, eucm -> EUCM.
+
+    Raises:
+        CameraError: the model has no COLMAP equivalent.
+    """
+    if not isinstance(camera, Camera):
+        raise CameraError(f"to_colmap_line needs a Camera, got {type(camera).__name__}")
+    if camera.model not in _COLMAP_EXPORT:
+        raise CameraError(f"camera model {camera.model!r} has no COLMAP equivalent")
+    if camera.max_fov_deg is not None:
+        raise CameraError("COLMAP cannot store max_fov_deg; export a camera without it")
+    v = camera.values
+    v["cx"] += 0.5
+    v["cy"] += 0.5
+    name = model or _COLMAP_EXPORT[camera.model]
+    if name == "SIMPLE_PINHOLE":
+        if camera.model != "pinhole" or v["fx"] != v["fy"]:
+            raise CameraError("SIMPLE_PINHOLE needs a pinhole camera with fx == fy")
+        nums = [v["fx"], v["cx"], v["cy"]]
+    elif name == _COLMAP_EXPORT[camera.model]:
+        nums = [v[n] for n in camera.param_names]
+    else:
+        raise CameraError(f"cannot export a {camera.model!r} camera as COLMAP {name!r}")
+    return " ".join(
+        [str(int(camera_id)), name, str(camera.width), str(camera.height)]
+        + [repr(float(x)) for x in nums]
+    )
+
+
+# ---------------------------------------------------------------------------- entry points
+def detect_format(path: PathLike) -> str:
+    """Name of the calibration format of ``path``: ``raytun3r``, ``basalt``, ``opencv_yaml``,
+    ``kalibr`` or ``colmap`` (raises :class:`CameraError` if none fits)."""
+    return _parse(Path(path))[0]
+
+
+def _parse(path: Path) -> tuple[str, Any]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise CameraError(f"{path}: cannot read calibration file: {e}") from None
+    head = text.lstrip()
+    if head.startswith("{"):
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise CameraError(f"{path}: not valid JSON: {e}") from None
+        if isinstance(d, Mapping) and "value0" in d:
+            return "basalt", d
+        if isinstance(d, Mapping) and "model" in d:
+            return "raytun3r", d
+        raise CameraError(f"{path}: unknown calibration format (JSON without 'value0' or 'model')")
+    if head.startswith("%YAML"):
+        d = _parse_opencv_yaml(path, text)
+        if isinstance(d, Mapping) and "model_type" in d:
+            return "opencv_yaml", d
+        raise CameraError(
+            f"{path}: unknown calibration format (OpenCV YAML without field 'model_type')"
+        )
+    if _looks_like_colmap(text):
+        return "colmap", text
+    try:
+        d = yaml.safe_load(text)
+    except yaml.YAMLError:
+        d = None
+    if isinstance(d, Mapping):
+        if "model_type" in d:
+            return "opencv_yaml", d
+        if any(re.fullmatch(r"cam\d+", str(k)) and isinstance(v, Mapping) for k, v in d.items()):
+            return "kalibr", d
+    raise CameraError(
+        f"{path}: unknown calibration format (expected raytun3r/basalt JSON, Kalibr camchain or "
+        "KITTI-360/OpenCV YAML, or COLMAP cameras.txt)"
+    )
+
+
+def load(path: PathLike, camera: str | int | None = None) -> Camera:
+    """Read a camera from a calibration file, detecting the format from its content.
+
+    Args:
+        path: the file.
+        camera: which camera of a multi-camera file: Kalibr ``"cam1"`` or ``1`` (default cam0),
+            basalt index (default 0), COLMAP camera id (default: the first line). Single-camera
+            formats accept ``None``/``0`` (and KITTI-360 its ``camera_name``).
+
+    Raises:
+        CameraError: unreadable or unknown format, missing/extra fields, bad values, unknown
+            camera id. The message names the file and the field.
+    """
+    p = Path(path)
+    kind, data = _parse(p)
+    if kind == "raytun3r":
+        return _read_own(p, data, camera)
+    if kind == "basalt":
+        return _read_basalt(p, data, camera)
+    if kind == "opencv_yaml":
+        return _read_camodocal(p, data, camera)
+    if kind == "kalibr":
+        return _read_kalibr(p, data, camera)
+    return _read_colmap(p, data, camera)
+
+
+def save(camera: Camera, path: PathLike) -> None:
+    """Write ``camera`` as raytun3r JSON (``camera.to_json()``), atomically (temp file + rename)."""
+    if not isinstance(camera, Camera):
+        raise CameraError(f"save needs a Camera, got {type(camera).__name__}")
+    p = Path(path)
+    text = camera.to_json() + "\n"
+    fd, tmp = tempfile.mkstemp(
+        prefix=f".{p.name}.", suffix=".tmp", dir=p.parent if str(p.parent) else "."
+    )
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, p)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise

@@ -1,0 +1,673 @@
+"""Camera models: exactness against independent references, round trips, domains, gradients."""
+
+from __future__ import annotations
+
+import math
+import pickle
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from raytun3r_plugin.cameras import (
+    CAMERA_MODELS,
+    EUCM,
+    MEI,
+    UCM,
+    Camera,
+    DoubleSphere,
+    KannalaBrandt4,
+    OpenCVRadTan,
+    Pinhole,
+    ThinPrismFisheye,
+    from_dict,
+)
+from raytun3r_plugin.errors import CameraError, Raytun3rError
+
+# Official calibrations (docs/CAMERAS_AND_FORMATS.md), used full size and scaled down.
+TUMVI_KB4 = [190.97847715128717, 190.9733070521226, 254.93170605935475, 256.8974428996504,
+             0.0034823894022493434, 0.0007150348452162257, -0.0020532361418706202,
+             0.00020293673591811182]  # fmt: skip
+TUMVI_DS = [158.28600034966977, 158.2743455478755, 254.96116578191653, 256.8894394501779,
+            -0.17213086034353243, 0.5931177593944744]  # fmt: skip
+TUMVI_EUCM = [191.14799836282189, 191.13150963902818, 254.9585771534443, 256.88154645599448,
+              0.6291060881178562, 1.0418067381860868]  # fmt: skip
+KITTI360_02 = [1336.3220825849971, 1335.7883350012958, 716.94323510126321, 705.76498308221585,
+               2.2134047507854890, 0.016798235660113681, 1.6548773243373522,
+               4.2223943394772046e-04, 4.2462134260997584e-04]  # fmt: skip
+ETH3D_TP = [3411.42, 3410.02, 3041.29 - 0.5, 2014.07 - 0.5, 0.21047, 0.21102, -5.36231e-06,
+            0.00051541, -0.158023, 0.406856, -8.46499e-05, 0.000861313]  # fmt: skip
+EUROC_RADTAN = [458.654, 457.296, 367.215, 248.375, -0.28340811, 0.07395907, 0.00019359,
+                1.76187114e-05]  # fmt: skip
+
+
+def _small(cam: Camera, width: int = 200, height: int = 160) -> Camera:
+    """Scale a real camera to 200 px wide, then centre-crop/pad to ``width x height``."""
+    s = cam.resized(width, round(cam.height * width / cam.width))
+    return s.cropped(0, (s.height - height) // 2, width, height)
+
+
+def make_cameras() -> dict[str, Camera]:
+    return {
+        "pinhole": Pinhole(200, 160, [160.0, 158.0, 99.3, 80.1]),
+        "opencv": _small(OpenCVRadTan(752, 480, EUROC_RADTAN)),
+        "kb4": _small(KannalaBrandt4(512, 512, TUMVI_KB4)),
+        "ucm": UCM(200, 160, [74.6, 74.5, 99.8, 80.3, 0.63]),
+        "eucm": _small(EUCM(512, 512, TUMVI_EUCM)),
+        "ds": _small(DoubleSphere(512, 512, TUMVI_DS)),
+        "mei": _small(MEI(1400, 1400, KITTI360_02)),
+        "thin_prism_fisheye": _small(ThinPrismFisheye(6048, 4032, ETH3D_TP), 200, 133),
+    }
+
+
+CAMS = make_cameras()
+NAMES = list(CAMS)
+
+
+# ----------------------------------------------------------------------------- references
+def ref_project(cam: Camera, X: np.ndarray) -> np.ndarray:
+    """Independent numpy implementations written from the published formulas."""
+    p = cam.values
+    x, y, z = X[:, 0], X[:, 1], X[:, 2]
+    fx, fy, cx, cy = p["fx"], p["fy"], p["cx"], p["cy"]
+    if cam.model == "pinhole":
+        return np.stack([fx * x / z + cx, fy * y / z + cy], -1)
+    if cam.model == "opencv":
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+        D = np.array([p["k1"], p["k2"], p["p1"], p["p2"]])
+        uv, _ = cv2.projectPoints(X.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, D)
+        return uv.reshape(-1, 2)
+    if cam.model == "kb4":
+        r = np.hypot(x, y)
+        th = np.arctan2(r, z)
+        td = th * (1 + p["k1"] * th**2 + p["k2"] * th**4 + p["k3"] * th**6 + p["k4"] * th**8)
+        return np.stack([fx * td * x / r + cx, fy * td * y / r + cy], -1)
+    if cam.model == "ucm":  # via the xi form: a different formula for the same model
+        xi = p["alpha"] / (1 - p["alpha"])
+        rho = np.linalg.norm(X, axis=1)
+        den = z + xi * rho
+        return np.stack([fx * (1 + xi) * x / den + cx, fy * (1 + xi) * y / den + cy], -1)
+    if cam.model == "eucm":
+        a, b = p["alpha"], p["beta"]
+        d = np.sqrt(b * (x * x + y * y) + z * z)
+        den = a * d + (1 - a) * z
+        return np.stack([fx * x / den + cx, fy * y / den + cy], -1)
+    if cam.model == "ds":
+        xi, a = p["xi"], p["alpha"]
+        d1 = np.linalg.norm(X, axis=1)
+        k = xi * d1 + z
+        d2 = np.sqrt(x * x + y * y + k * k)
+        den = a * d2 + (1 - a) * k
+        return np.stack([fx * x / den + cx, fy * y / den + cy], -1)
+    if cam.model == "mei":
+        s = X / np.linalg.norm(X, axis=1, keepdims=True)
+        xu = s[:, 0] / (s[:, 2] + p["xi"])
+        yu = s[:, 1] / (s[:, 2] + p["xi"])
+        r2 = xu * xu + yu * yu
+        rad = 1 + p["k1"] * r2 + p["k2"] * r2 * r2
+        xd = xu * rad + 2 * p["p1"] * xu * yu + p["p2"] * (r2 + 2 * xu * xu)
+        yd = yu * rad + p["p1"] * (r2 + 2 * yu * yu) + 2 * p["p2"] * xu * yu
+        return np.stack([fx * xd + cx, fy * yd + cy], -1)
+    if cam.model == "thin_prism_fisheye":  # COLMAP's route: normalised plane, then atan(R)
+        a, b = x / z, y / z
+        R = np.hypot(a, b)
+        th = np.arctan(R)
+        u, v = a * th / R, b * th / R
+        r2 = u * u + v * v
+        rad = p["k1"] * r2 + p["k2"] * r2**2 + p["k3"] * r2**3 + p["k4"] * r2**4
+        ud = u + u * rad + 2 * p["p1"] * u * v + p["p2"] * (r2 + 2 * u * u) + p["sx1"] * r2
+        vd = v + v * rad + 2 * p["p2"] * u * v + p["p1"] * (r2 + 2 * v * v) + p["sy1"] * r2
+        return np.stack([fx * ud + cx, fy * vd + cy], -1)
+    raise AssertionError(cam.model)
+
+
+def directions(n: int, max_angle: float, seed: int = 0, min_angle: float = 0.0) -> torch.Tensor:
+    """(n, 3) float64 directions with angle from the axis uniform in [min_angle, max_angle],
+    random azimuth, random (positive) length."""
+    g = torch.Generator().manual_seed(seed)
+    th = min_angle + (max_angle - min_angle) * torch.rand(n, generator=g, dtype=torch.float64)
+    ph = 2 * math.pi * torch.rand(n, generator=g, dtype=torch.float64)
+    d = torch.stack([th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos()], -1)
+    return d * (0.1 + 10 * torch.rand(n, 1, generator=g, dtype=torch.float64))
+
+
+def test_registry_names():
+    assert set(CAMERA_MODELS) == {
+        "pinhole",
+        "opencv",
+        "kb4",
+        "ucm",
+        "eucm",
+        "ds",
+        "mei",
+        "thin_prism_fisheye",
+    }
+    assert KannalaBrandt4.param_names == ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")
+    for cls in CAMERA_MODELS.values():
+        assert cls.param_names[:4] == ("fx", "fy", "cx", "cy")
+    assert issubclass(CameraError, Raytun3rError)
+
+
+# ----------------------------------------------------------------------------- exactness
+@pytest.mark.parametrize("name", NAMES)
+def test_project_matches_reference(name):
+    cam = CAMS[name]
+    # Reference formulas of the perspective-based models only exist in front of the camera.
+    lim = min(
+        cam.max_angle,
+        math.radians(89) if name in ("pinhole", "opencv", "thin_prism_fisheye") else 10.0,
+    )
+    X = directions(500, 0.98 * lim, seed=1, min_angle=1e-3)
+    uv, valid = cam.project(X)
+    assert valid.all()
+    ref = ref_project(cam, X.numpy())
+    np.testing.assert_allclose(uv.numpy(), ref, rtol=0, atol=1e-9 * max(1.0, np.abs(ref).max()))
+
+
+def test_kb4_matches_cv2_fisheye_full_resolution():
+    cam = KannalaBrandt4(512, 512, TUMVI_KB4)
+    X = directions(2000, math.radians(85), seed=2)
+    uv, valid = cam.project(X)
+    p = cam.values
+    K = np.array([[p["fx"], 0, p["cx"]], [0, p["fy"], p["cy"]], [0, 0, 1.0]])
+    D = np.array([p["k1"], p["k2"], p["k3"], p["k4"]])
+    ref, _ = cv2.fisheye.projectPoints(X.numpy().reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, D)
+    assert valid.all()
+    err = np.abs(uv.numpy() - ref.reshape(-1, 2)).max()
+    assert err < 1e-6, err
+
+
+def test_special_cases_agree_across_models():
+    X = directions(300, math.radians(85), seed=3)
+    base = [150.0, 151.0, 99.5, 80.5]
+
+    def proj(c):
+        return c.project(X)[0]
+
+    ucm = UCM(200, 160, [*base, 0.6])
+    torch.testing.assert_close(
+        proj(EUCM(200, 160, [*base, 0.6, 1.0])), proj(ucm), rtol=0, atol=1e-10
+    )
+    torch.testing.assert_close(
+        proj(DoubleSphere(200, 160, [*base, 0.0, 0.6])), proj(ucm), rtol=0, atol=1e-10
+    )
+    xi = 0.6 / 0.4  # MEI without distortion is UCM in the xi form
+    mei = MEI(200, 160, [base[0] * (1 + xi), base[1] * (1 + xi), 99.5, 80.5, xi, 0, 0, 0, 0])
+    torch.testing.assert_close(proj(mei), proj(ucm), rtol=0, atol=1e-10)
+    tp = ThinPrismFisheye(200, 160, [*base] + [0.0] * 8)
+    torch.testing.assert_close(
+        proj(tp), proj(KannalaBrandt4(200, 160, [*base, 0, 0, 0, 0])), rtol=0, atol=1e-10
+    )
+    torch.testing.assert_close(
+        proj(OpenCVRadTan(200, 160, [*base, 0, 0, 0, 0])),
+        proj(Pinhole(200, 160, base)),
+        rtol=0,
+        atol=1e-10,
+    )
+    # Equidistant: a ray at 90 degrees lands at f * pi / 2 from the principal point.
+    uv, ok = KannalaBrandt4(200, 160, [*base, 0, 0, 0, 0]).project(
+        torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    )
+    assert ok and abs(float(uv[0]) - (99.5 + 150.0 * math.pi / 2)) < 1e-12
+
+
+# ----------------------------------------------------------------------------- round trips
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-6), (torch.float32, 1e-3)])
+@pytest.mark.parametrize("name", NAMES)
+def test_pixel_round_trip_every_valid_pixel(name, dtype, tol):
+    cam = CAMS[name]
+    uv = cam.pixel_grid(dtype=dtype)
+    rays, valid = cam.unproject(uv)
+    assert rays.dtype == dtype and rays.shape == (cam.height, cam.width, 3)
+    assert torch.isfinite(rays).all()
+    torch.testing.assert_close(
+        rays.norm(dim=-1), torch.ones_like(rays[..., 0]), rtol=0, atol=10 * torch.finfo(dtype).eps
+    )
+    # Most of each test image is inside the model's domain.
+    assert valid.float().mean() > 0.8
+    uv2, valid2 = cam.project(rays)
+    assert valid2[valid].all()
+    err = (uv2 - uv).norm(dim=-1)[valid].max().item()
+    assert err < tol, (name, err)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_ray_round_trip(name):
+    cam = CAMS[name]
+    X = directions(2000, 0.995 * cam.max_angle, seed=4)
+    uv, valid = cam.project(X)
+    assert valid.all()
+    rays, valid2 = cam.unproject(uv)
+    assert valid2.all()
+    torch.testing.assert_close(rays, X / X.norm(dim=-1, keepdim=True), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_invalid_outside_domain_and_finite(name):
+    cam = CAMS[name]
+    if cam.max_angle < math.pi - 1e-9:
+        X = directions(200, math.pi, seed=5, min_angle=cam.max_angle + 1e-3)
+        uv, valid = cam.project(X)
+        assert not valid.any()
+        assert torch.isfinite(uv).all()
+    # The zero vector has no direction.
+    uv, valid = cam.project(torch.zeros(3, dtype=torch.float64))
+    assert not valid and torch.isfinite(uv).all()
+    # Far outside the image circle: invalid for models with a bounded image, always finite.
+    far = torch.tensor([[1e4, -3e4], [-5e5, 2e5]], dtype=torch.float64)
+    rays, valid = cam.unproject(far)
+    assert torch.isfinite(rays).all()
+    if name in ("kb4", "mei", "eucm", "ds", "thin_prism_fisheye"):
+        assert not valid.any()
+
+
+# ----------------------------------------------------------------------------- FoV edges
+@pytest.mark.parametrize(
+    "cam",
+    [
+        KannalaBrandt4(512, 512, TUMVI_KB4, max_fov_deg=195.0),
+        DoubleSphere(512, 512, TUMVI_DS, max_fov_deg=195.0),
+    ],
+    ids=["kb4", "ds"],
+)
+def test_195_degree_cameras_beyond_90_degrees(cam):
+    assert math.isclose(cam.max_angle, math.radians(97.5))
+    free = type(cam)(cam.width, cam.height, cam.params)  # same lens without the cap
+    az = torch.tensor([0.25, 0.75, 1.25, 1.75], dtype=torch.float64) * math.pi  # image diagonals
+
+    def rays_at(deg):
+        th = torch.full_like(az, math.radians(deg))
+        return torch.stack([th.sin() * az.cos(), th.sin() * az.sin(), th.cos()], -1)
+
+    inside = rays_at(96.0)
+    uv, valid = cam.project(inside)
+    assert valid.all()
+    assert ((uv >= 0) & (uv <= 511)).all()  # visible in the image
+    rays, valid = cam.unproject(uv)
+    assert valid.all() and (rays[:, 2] < 0).all()
+    torch.testing.assert_close(rays, inside, rtol=0, atol=1e-9)
+    outside = rays_at(99.0)
+    assert not cam.project(outside)[1].any()
+    uv_out, ok = free.project(outside)
+    assert ok.all() and free.unproject(uv_out)[1].all()
+    assert not cam.unproject(uv_out)[1].any()
+    mask = cam.valid_mask()
+    assert mask.shape == (512, 512) and mask.dtype == torch.bool
+    assert mask[256, 256] and not mask[0, 0] and not mask[511, 511]
+    assert 194.0 < cam.fov_deg <= 195.0
+
+
+def test_double_sphere_natural_domain():
+    cam = DoubleSphere(512, 512, TUMVI_DS)
+    p = cam.values
+    # Exact boundary on the unit sphere (the fold of the projection); see DoubleSphere docs.
+    w1 = (1 - p["alpha"]) / p["alpha"]
+    q = 1 - w1 * w1
+    z_b = -p["xi"] * q - w1 * math.sqrt(1 - p["xi"] ** 2 * q)
+    assert math.isclose(cam.max_angle, math.acos(z_b), rel_tol=1e-12)
+    assert math.degrees(cam.max_angle) > 125.0  # far beyond 90 degrees
+    X_in = directions(100, cam.max_angle - 1e-4, seed=6, min_angle=cam.max_angle - 0.05)
+    X_out = directions(100, cam.max_angle + 0.05, seed=7, min_angle=cam.max_angle + 1e-4)
+    assert cam.project(X_in)[1].all()
+    assert not cam.project(X_out)[1].any()
+    # Unprojection domain: r2 < 1 / (2 alpha - 1) in normalised coordinates.
+    r_lim = math.sqrt(1 / (2 * p["alpha"] - 1))
+    r = torch.tensor([0.999 * r_lim, 1.001 * r_lim], dtype=torch.float64)
+    uv = torch.stack([p["cx"] + p["fx"] * r, torch.full_like(r, p["cy"])], -1)
+    rays, valid = cam.unproject(uv)
+    assert valid.tolist() == [True, False]
+    assert rays[0, 2] < -0.5  # ~125 degrees from the axis
+
+
+def test_kb4_fold_limits_domain():
+    # k1 < 0 makes theta_d(theta) fold at 1 + 3 k1 theta^2 = 0.
+    k1 = -0.05
+    cam = KannalaBrandt4(400, 400, [60.0, 60.0, 199.5, 199.5, k1, 0, 0, 0])
+    fold = math.sqrt(-1 / (3 * k1))
+    assert math.isclose(cam.max_angle, fold, rel_tol=1e-12)
+    td_max = fold * (1 + k1 * fold**2)
+    uv = torch.tensor(
+        [[199.5 + 60 * td_max * 0.999, 199.5], [199.5 + 60 * td_max * 1.001, 199.5]],
+        dtype=torch.float64,
+    )
+    rays, valid = cam.unproject(uv)
+    assert valid.tolist() == [True, False]
+    assert math.acos(rays[0, 2]) < fold
+    assert cam.project(directions(50, fold - 1e-6, seed=8))[1].all()
+    assert not cam.project(directions(50, math.pi, seed=9, min_angle=fold + 1e-6))[1].any()
+
+
+def test_mei_kitti360_lens_circle():
+    cam = MEI(1400, 1400, KITTI360_02)
+    assert math.isclose(math.degrees(cam.max_angle), 116.86, abs_tol=0.01)  # pi - acos(1/xi)
+    small = _small(cam, 200, 200)
+    mask = small.valid_mask()
+    assert mask[100, 100] and not mask[0, 0] and not mask[199, 0] and not mask[0, 199]
+    # The mask is the image of the fold circle (tangential terms shift it by < 1 px).
+    xi, k1, k2 = 2.2134047507854890, 0.016798235660113681, 1.6548773243373522
+    rho = 1 / math.sqrt(xi * xi - 1)
+    rd = rho * (1 + k1 * rho**2 + k2 * rho**4) * small.values["fx"]
+    v, u = torch.meshgrid(torch.arange(200.0), torch.arange(200.0), indexing="ij")
+    r = torch.hypot(u - small.values["cx"], v - small.values["cy"])
+    assert mask[r < rd - 1].all() and not mask[r > rd + 1].any()
+    assert 230.0 < small.fov_deg < 2 * math.degrees(cam.max_angle)
+
+
+def test_thin_prism_only_front_hemisphere():
+    cam = ThinPrismFisheye(
+        200, 200, [40.0, 40.0, 99.5, 99.5, 0.01, 0, 1e-3, 1e-3, 0, 0, 1e-3, 1e-3]
+    )
+    assert cam.max_angle == math.pi / 2
+    rays, valid = cam.ray_table(dtype=torch.float64)
+    assert valid.any() and not valid.all()
+    assert (rays[valid][:, 2] > 0).all()
+    assert not cam.project(torch.tensor([1.0, 0.0, -0.01], dtype=torch.float64))[1]
+
+
+# ----------------------------------------------------------------------------- gradients
+def _probe_points(cam: Camera) -> torch.Tensor:
+    return directions(3, 0.8 * min(cam.max_angle, 2.0), seed=10, min_angle=0.2)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_gradcheck_project(name):
+    cam = CAMS[name]
+    X = _probe_points(cam).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: cam.project(x)[0], (X,))
+    params = cam.params.clone().requires_grad_(True)
+    X0 = X.detach()
+    assert torch.autograd.gradcheck(
+        lambda p: type(cam)(cam.width, cam.height, p).project(X0)[0], (params,)
+    )
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_gradcheck_unproject(name):
+    cam = CAMS[name]
+    uv = cam.project(_probe_points(cam))[0].detach().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda q: cam.unproject(q)[0], (uv,))
+    params = cam.params.clone().requires_grad_(True)
+    uv0 = uv.detach()
+    assert torch.autograd.gradcheck(
+        lambda p: type(cam)(cam.width, cam.height, p).unproject(uv0)[0], (params,)
+    )
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_gradients_finite_on_axis(name):
+    cam = CAMS[name]
+    params = cam.params.clone().requires_grad_(True)
+    c = type(cam)(cam.width, cam.height, params)
+    X = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 0.0]], dtype=torch.float64, requires_grad=True)
+    uv = c.project(X)[0]
+    pp = c.params[2:4].detach().clone().reshape(1, 2).requires_grad_(True)
+    rays = c.unproject(pp)[0]
+    (uv.sum() + rays.sum()).backward()
+    assert (
+        torch.isfinite(X.grad).all()
+        and torch.isfinite(pp.grad).all()
+        and torch.isfinite(params.grad).all()
+    )
+    # At the principal point the ray is the axis, and the analytic Jacobian there matches a
+    # central difference (the series branches near the axis must carry the right derivative).
+    torch.testing.assert_close(
+        rays.detach(), torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64), rtol=0, atol=1e-12
+    )
+    q0 = pp.detach()
+    j = torch.autograd.functional.jacobian(lambda q: cam.unproject(q)[0], q0)[0, :, 0, :]
+    h = 1e-4
+    for k in range(2):
+        e = torch.zeros(1, 2, dtype=torch.float64)
+        e[0, k] = h
+        fd = (cam.unproject(q0 + e)[0] - cam.unproject(q0 - e)[0])[0] / (2 * h)
+        torch.testing.assert_close(j[:, k], fd, rtol=1e-6, atol=1e-10)
+    jp = torch.autograd.functional.jacobian(lambda x: cam.project(x)[0], X.detach()[:1])[0, :, 0, :]
+    assert (
+        abs(
+            float(jp[0, 0])
+            - float(
+                cam.project(torch.tensor([[1e-6, 0.0, 2.0]], dtype=torch.float64))[0][0, 0]
+                - cam.values["cx"]
+            )
+            / 1e-6
+        )
+        < 1e-4
+    )
+
+
+def test_params_gradient_reaches_leaf():
+    leaf = torch.tensor(TUMVI_KB4, dtype=torch.float64, requires_grad=True)
+    cam = KannalaBrandt4(512, 512, leaf)
+    assert cam.requires_grad
+    rays, _ = cam.ray_table(dtype=torch.float64)  # not cached: it carries the graph
+    assert rays.requires_grad
+    rays[..., 2].sum().backward()
+    assert leaf.grad is not None and torch.isfinite(leaf.grad).all() and leaf.grad[0] != 0
+    assert cam.ray_table(dtype=torch.float64)[0] is not rays
+    # Parameters given as a float32 tensor are stored as float64.
+    assert (
+        KannalaBrandt4(512, 512, torch.tensor(TUMVI_KB4, dtype=torch.float32)).params.dtype
+        == torch.float64
+    )
+
+
+# ----------------------------------------------------------------------------- batching, dtypes
+@pytest.mark.parametrize("name", NAMES)
+def test_batching_over_leading_dims(name):
+    cam = CAMS[name]
+    X = directions(4 * 2 * 3, 0.9 * min(cam.max_angle, 2.0), seed=11).reshape(2, 3, 4, 3)
+    uv, valid = cam.project(X)
+    assert uv.shape == (2, 3, 4, 2) and valid.shape == (2, 3, 4)
+    uv_flat, _ = cam.project(X.reshape(-1, 3))
+    torch.testing.assert_close(uv.reshape(-1, 2), uv_flat, rtol=0, atol=0)
+    rays, valid = cam.unproject(uv)
+    assert rays.shape == (2, 3, 4, 3) and valid.shape == (2, 3, 4)
+    torch.testing.assert_close(rays.reshape(-1, 3), cam.unproject(uv_flat)[0], rtol=0, atol=0)
+    # A single point (no batch dims).
+    assert cam.project(X[0, 0, 0])[0].shape == (2,)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_float32_agrees_with_float64(name):
+    cam = CAMS[name]
+    r32, v32 = cam.ray_table(dtype=torch.float32)
+    r64, v64 = cam.ray_table(dtype=torch.float64)
+    assert r32.dtype == torch.float32
+    both = v32 & v64
+    assert (v32 != v64).sum() <= 2  # only pixels on the domain boundary may differ
+    torch.testing.assert_close(r32[both].double(), r64[both], rtol=0, atol=2e-5)
+    X = directions(50, 0.9 * min(cam.max_angle, 2.0), seed=12)
+    torch.testing.assert_close(
+        cam.project(X.float())[0].double(), cam.project(X)[0], rtol=1e-5, atol=1e-3
+    )
+    with pytest.raises(CameraError):
+        cam.project(torch.zeros(4, 2))
+    with pytest.raises(CameraError):
+        cam.unproject(torch.zeros(4, 3))
+
+
+# ----------------------------------------------------------------------------- image helpers
+def test_ray_table_cache_and_valid_mask():
+    cam = make_cameras()["mei"]
+    a = cam.ray_table()
+    assert cam.ray_table() is a
+    assert cam.ray_table(dtype=torch.float64) is not a
+    assert cam.ray_table(device="cpu") is a
+    assert a[0].shape == (cam.height, cam.width, 3) and a[1].shape == (cam.height, cam.width)
+    mask = cam.valid_mask()
+    assert mask.dtype == torch.bool and mask.shape == (cam.height, cam.width)
+    assert torch.equal(mask, cam.ray_table(dtype=torch.float64)[1])
+    assert cam.valid_mask() is mask
+    # Pixel (u, v) of the table is the ray of pixel centre (u, v).
+    r, _ = cam.unproject(torch.tensor([[17.0, 42.0]]))
+    torch.testing.assert_close(a[0][42, 17], r[0])
+
+
+def test_fov_deg():
+    pin = Pinhole(200, 100, [100.0, 100.0, 99.5, 49.5])
+    corner = math.degrees(math.atan(math.hypot(99.5, 49.5) / 100.0))
+    assert math.isclose(pin.fov_deg, 2 * corner, rel_tol=1e-12)
+    assert CAMS["kb4"].fov_deg > 180.0
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_crop_and_scale_keep_rays(name):
+    cam = CAMS[name]
+    g = torch.Generator().manual_seed(13)
+    uv = torch.rand(300, 2, generator=g, dtype=torch.float64) * torch.tensor(
+        [cam.width - 1.0, cam.height - 1.0]
+    )
+    rays, valid = cam.unproject(uv)
+    crop = cam.cropped(13, 7, 150, 120)
+    assert (crop.width, crop.height) == (150, 120)
+    r2, v2 = crop.unproject(uv - torch.tensor([13.0, 7.0], dtype=torch.float64))
+    assert torch.equal(valid, v2) and valid.sum() > 200
+    torch.testing.assert_close(r2[valid], rays[valid], rtol=0, atol=1e-12)
+    for sx, sy in [(0.5, 0.5), (2.0, 2.0), (0.7, 1.3)]:
+        sc = cam.scaled(sx, sy)
+        assert (sc.width, sc.height) == (round(cam.width * sx), round(cam.height * sy))
+        uv_s = (uv + 0.5) * torch.tensor([sx, sy], dtype=torch.float64) - 0.5
+        r3, v3 = sc.unproject(uv_s)
+        assert torch.equal(valid, v3)
+        torch.testing.assert_close(r3[valid], rays[valid], rtol=0, atol=1e-10)
+    rs = cam.resized(100, 80)
+    assert (rs.width, rs.height) == (100, 80)
+    assert math.isclose(rs.values["cx"], (cam.values["cx"] + 0.5) * 100 / cam.width - 0.5)
+    # Scaling keeps the lens cap; the grid of a 2x resize covers the same field of view.
+    assert cam.scaled(2.0, 2.0).max_angle == cam.max_angle
+
+
+def test_scaled_is_differentiable():
+    leaf = torch.tensor(TUMVI_KB4, dtype=torch.float64, requires_grad=True)
+    cam = KannalaBrandt4(512, 512, leaf).resized(256, 256).cropped(10, 10, 200, 200)
+    cam.fx.backward()
+    assert float(leaf.grad[0]) == 0.5
+
+
+# ----------------------------------------------------------------------------- identity, JSON
+@pytest.mark.parametrize("name", NAMES)
+def test_json_round_trip_exact(name):
+    cam = CAMS[name]
+    back = Camera.from_json(cam.to_json())
+    assert type(back) is type(cam) and back == cam and hash(back) == hash(cam)
+    assert torch.equal(back.params, cam.params)
+    assert back.to_json() == cam.to_json()
+    assert from_dict(cam.to_dict()) == cam
+    assert pickle.loads(pickle.dumps(cam)) == cam
+
+
+def test_json_floats_exact_and_format():
+    cam = KannalaBrandt4(
+        512,
+        512,
+        [0.1 + 0.2, 1 / 3, 255.5, 2**-30, 1e-300, -1.2345678901234567e-7, 0, 5e-324],
+        max_fov_deg=195,
+    )
+    d = cam.to_dict()
+    assert d == {
+        "model": "kb4",
+        "width": 512,
+        "height": 512,
+        "params": dict(zip(cam.param_names, cam.params.tolist(), strict=True)),
+        "max_fov_deg": 195.0,
+    }
+    back = KannalaBrandt4.from_json(cam.to_json())
+    assert (
+        back.values["fx"] == 0.1 + 0.2 and back.values["k4"] == 5e-324 and back.max_fov_deg == 195.0
+    )
+    with pytest.raises(CameraError, match="expected a 'pinhole' camera"):
+        Pinhole.from_json(cam.to_json())
+    assert "max_fov_deg" not in CAMS["kb4"].to_dict()
+
+
+def test_identity_and_repr():
+    a = KannalaBrandt4(1400, 1400, [700.0, 700.0, 699.5, 699.5, 0.01, 0.0, 0.0, 0.0])
+    b = KannalaBrandt4(
+        1400,
+        1400,
+        {"fx": 700.0, "fy": 700.0, "cx": 699.5, "cy": 699.5, "k1": 0.01, "k2": 0, "k3": 0, "k4": 0},
+    )
+    assert a == b and hash(a) == hash(b) and len({a, b}) == 1
+    assert a.key() == ("kb4", 1400, 1400, (700.0, 700.0, 699.5, 699.5, 0.01, 0.0, 0.0, 0.0), None)
+    assert a != KannalaBrandt4(1400, 1400, [700.0, 700.0, 699.5, 699.5, 0.01, 0.0, 0.0, 1e-12])
+    assert a != a.cropped(0, 0, 1400, 1399)
+    assert a != KannalaBrandt4(1400, 1400, a.params, max_fov_deg=190)
+    assert (
+        repr(a)
+        == "KannalaBrandt4(1400x1400, fx=700, fy=700, cx=699.5, cy=699.5, k1=0.01, k2=0, k3=0, k4=0)"
+    )
+    assert float(a.fx) == 700.0 and float(a.cy) == 699.5 and a.fx.ndim == 0
+    with pytest.raises(AttributeError):
+        a.width = 3
+    with pytest.raises(TypeError):
+        Camera(10, 10, [1.0, 1.0, 0.0, 0.0])
+
+
+# ----------------------------------------------------------------------------- validation
+@pytest.mark.parametrize(
+    "cls,params,field",
+    [
+        (Pinhole, [-1.0, 1.0, 0.0, 0.0], "fx"),
+        (Pinhole, [1.0, 0.0, 0.0, 0.0], "fy"),
+        (Pinhole, [1.0, 1.0, float("nan"), 0.0], "cx"),
+        (KannalaBrandt4, [1.0, 1.0, 0.0, 0.0, 0.0, float("inf"), 0.0, 0.0], "k2"),
+        (UCM, [1.0, 1.0, 0.0, 0.0, 1.5], "alpha"),
+        (UCM, [1.0, 1.0, 0.0, 0.0, -0.1], "alpha"),
+        (EUCM, [1.0, 1.0, 0.0, 0.0, 0.5, 0.0], "beta"),
+        (EUCM, [1.0, 1.0, 0.0, 0.0, 1.2, 1.0], "alpha"),
+        (DoubleSphere, [1.0, 1.0, 0.0, 0.0, 1.5, 0.5], "xi"),
+        (DoubleSphere, [1.0, 1.0, 0.0, 0.0, 0.0, 2.0], "alpha"),
+        (MEI, [1.0, 1.0, 0.0, 0.0, -0.5, 0.0, 0.0, 0.0, 0.0], "xi"),
+    ],
+)
+def test_parameter_validation_names_the_parameter(cls, params, field):
+    with pytest.raises(CameraError, match=f"'{field}'") as ei:
+        cls(10, 10, params)
+    assert ei.value.param == field
+
+
+def test_parameter_count_and_names():
+    with pytest.raises(CameraError, match="expected 8 parameters"):
+        KannalaBrandt4(10, 10, [1.0] * 9)
+    with pytest.raises(CameraError, match="'k4' is missing"):
+        KannalaBrandt4(10, 10, {"fx": 1, "fy": 1, "cx": 0, "cy": 0, "k1": 0, "k2": 0, "k3": 0})
+    with pytest.raises(CameraError, match="unexpected parameter 'k5'"):
+        Pinhole(10, 10, {"fx": 1, "fy": 1, "cx": 0, "cy": 0, "k5": 0})
+    for w in (0, -1, 2.5, True, "10"):
+        with pytest.raises(CameraError, match="width"):
+            Pinhole(w, 10, [1, 1, 0, 0])
+    with pytest.raises(CameraError, match="max_fov_deg"):
+        Pinhole(10, 10, [1, 1, 0, 0], max_fov_deg=0)
+    with pytest.raises(CameraError, match="unknown camera model"):
+        from_dict({"model": "fisheye9", "width": 1, "height": 1, "params": {}})
+    with pytest.raises(CameraError, match="'params.fx'"):
+        from_dict(
+            {
+                "model": "pinhole",
+                "width": 1,
+                "height": 1,
+                "params": {"fx": -1, "fy": 1, "cx": 0, "cy": 0},
+            }
+        )
+    with pytest.raises(CameraError, match="unexpected field 'extra'"):
+        from_dict({**CAMS["pinhole"].to_dict(), "extra": 1})
+
+
+@pytest.mark.parametrize("n_k,prism", [(1, False), (2, False), (4, True)])
+def test_distortion_jacobians(n_k, prism):
+    from raytun3r_plugin.cameras._math import RadTan
+
+    g = torch.Generator().manual_seed(14)
+    ks = (0.3 * torch.randn(n_k, generator=g, dtype=torch.float64)).tolist()
+    s = (1e-3, -2e-3) if prism else (None, None)
+    dist = RadTan(ks, 1.3e-3, -7e-4, *s)
+    xy = 0.7 * torch.randn(2, 50, generator=g, dtype=torch.float64)
+    xd, yd, a, b, c, d = dist.with_jacobian(*xy)
+    for got, ref in zip(dist.with_jacobian_fast(*xy), (xd, yd, a, b, c, d), strict=True):
+        torch.testing.assert_close(got, ref, rtol=1e-14, atol=1e-14)
+    torch.testing.assert_close(torch.stack([xd, yd]), torch.stack(dist(*xy)), rtol=0, atol=1e-15)
+    for i in range(3):  # against autograd's Jacobian of the distortion itself
+        jac = torch.autograd.functional.jacobian(lambda p: torch.stack(dist(p[0], p[1])), xy[:, i])
+        ref = torch.tensor([[a[i], b[i]], [c[i], d[i]]], dtype=torch.float64)
+        torch.testing.assert_close(jac, ref, rtol=1e-12, atol=1e-12)
