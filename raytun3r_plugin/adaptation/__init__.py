@@ -36,3 +36,28 @@ __all__ = [
     "prepare_adaptation_set",
     "register_matcher",
 ]
+
+# Losses and training (issue 6).
+from raytun3r_plugin.adaptation.losses import LossWeights  # noqa: E402
+from raytun3r_plugin.adaptation.train import (  # noqa: E402
+    AdaptationProblem,
+    AdaptConfig,
+    InputLayout,
+    adapt,
+    adaptation_step,
+    input_layout,
+    prepare_problem,
+    read_loss_log,
+)
+
+__all__ += [
+    "AdaptConfig",
+    "AdaptationProblem",
+    "InputLayout",
+    "LossWeights",
+    "adapt",
+    "adaptation_step",
+    "input_layout",
+    "prepare_problem",
+    "read_loss_log",
+]

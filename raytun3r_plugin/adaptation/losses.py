@@ -1,0 +1,404 @@
+"""Self-supervised adaptation losses (DESIGN.md section 7, paper "Adapter training").
+
+Every term is a small function of plain tensors, so it can be tested on ground truth and reused
+by other trainers (LoRA and calibration-token baselines use the same objective).
+
+Conventions (DESIGN.md section 2):
+
+* pixels ``(u, v)`` have the centre of the top-left pixel at ``(0, 0)``; every pixel argument of
+  the functions here is in the pixels of the *network input* (the image the depth map belongs
+  to); :func:`to_input_pixels` converts matcher output from the native image;
+* depth is range along the unit ray (``X = D * ray``), or z-depth with ``depth_convention="z"``
+  (``X = D * ray / ray_z``, only meaningful for rays in front of the camera);
+* poses are 4x4 rigid transforms; the relative pose of frame ``j`` w.r.t. ``i`` is
+  ``cam_j_from_cam_i = cam_j_from_world @ inv(cam_i_from_world)`` (:func:`relative_pose`);
+* angles inside the losses are radians.
+
+Weights (paper, "Implementation details"): reprojection 1, smoothness 10, PE L2 2, PE TV 20,
+pose 1 (:class:`LossWeights`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from raytun3r_plugin.errors import InputError
+
+__all__ = [
+    "LossWeights",
+    "backproject",
+    "fit_translation_scale",
+    "pe_correction_grid",
+    "pe_l2",
+    "pe_tv",
+    "pose_loss",
+    "relative_pose",
+    "reprojection_loss",
+    "rotation_angle",
+    "sample_bilinear",
+    "smoothness_loss",
+    "to_input_pixels",
+    "total_loss",
+    "translation_angle",
+]
+
+#: Small constant keeping norms and divisions differentiable at zero.
+_EPS = 1e-12
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Weights of the adaptation objective (paper: pose 1, smooth 10, L2 2, TV 20; reproj 1)."""
+
+    reproj: float = 1.0
+    smooth: float = 10.0
+    l2: float = 2.0
+    tv: float = 20.0
+    pose: float = 1.0
+
+    def as_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+# --------------------------------------------------------------------------------------------
+# Pixels, sampling, back-projection
+# --------------------------------------------------------------------------------------------
+
+
+def to_input_pixels(
+    uv: torch.Tensor, native_size: tuple[int, int], input_size: tuple[int, int], offset: tuple[float, float] = (0.0, 0.0)
+) -> torch.Tensor:
+    """Map native-image pixels to network-input pixels (pure resize, after an optional crop).
+
+    Args:
+        uv: (..., 2) pixel positions ``(u, v)`` in the native image.
+        native_size: ``(width, height)`` of the (cropped) native image the input was resized from.
+        input_size: ``(width, height)`` of the network input.
+        offset: ``(x0, y0)`` top-left pixel of the crop in the native image (0, 0 for none).
+
+    Returns:
+        (..., 2) positions in input pixels: ``u' = (u - x0 + 0.5) * W_in / W - 0.5`` (same for v),
+        the mapping of :meth:`raytun3r_plugin.cameras.Camera.scaled`.
+    """
+    scale = uv.new_tensor([input_size[0] / native_size[0], input_size[1] / native_size[1]])
+    shift = uv.new_tensor([float(offset[0]), float(offset[1])])
+    return (uv - shift + 0.5) * scale - 0.5
+
+
+def sample_bilinear(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of ``image`` at pixel positions, border-clamped, differentiable in both.
+
+    Args:
+        image: (H, W) or (C, H, W).
+        uv: (M, 2) pixel positions (pixel-centre convention, (0, 0) = top-left pixel centre).
+
+    Returns:
+        (M,) for a 2-D image, (C, M) otherwise.
+    """
+    squeeze = image.ndim == 2
+    planes = image[None, None] if squeeze else image[None]
+    height, width = planes.shape[-2:]
+    grid = torch.stack(((2 * uv[:, 0] + 1) / width - 1, (2 * uv[:, 1] + 1) / height - 1), dim=-1)
+    out = F.grid_sample(planes, grid.to(planes.dtype)[None, None], mode="bilinear", padding_mode="border", align_corners=False)
+    out = out[0, :, 0, :]
+    return out[0] if squeeze else out
+
+
+def _inside_mask(uv: torch.Tensor, mask: torch.Tensor | None, width: int, height: int) -> torch.Tensor:
+    """(M,) bool: inside the image and, when given, the nearest pixel of ``mask`` (H, W) is set."""
+    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= height - 0.5)
+    inside &= torch.isfinite(uv).all(dim=-1)
+    if mask is not None:
+        col = torch.round(uv[:, 0].detach()).clamp(0, width - 1).long()
+        row = torch.round(uv[:, 1].detach()).clamp(0, height - 1).long()
+        inside &= mask.to(uv.device)[row, col]
+    return inside
+
+
+def backproject(depth: torch.Tensor, rays: torch.Tensor, depth_convention: str = "range") -> torch.Tensor:
+    """3-D points in the camera frame from depth values and unit rays.
+
+    Args:
+        depth: (...,) depth per ray (range along the ray, or z-depth).
+        rays: (..., 3) unit rays.
+        depth_convention: ``"range"`` (X = D ray) or ``"z"`` (X = D ray / ray_z).
+
+    Returns:
+        (..., 3) points, same unit as ``depth``.
+    """
+    if depth_convention == "range":
+        return depth[..., None] * rays
+    if depth_convention == "z":
+        z = rays[..., 2:3]
+        safe = torch.where(z.abs() > 1e-6, z, torch.full_like(z, 1e-6))
+        return depth[..., None] * rays / safe
+    raise InputError(f"depth_convention must be 'range' or 'z', got {depth_convention!r}")
+
+
+def relative_pose(cam_from_world: torch.Tensor, i: int, j: int) -> torch.Tensor:
+    """``cam_j_from_cam_i = cam_j_from_world @ inv(cam_i_from_world)`` from (S, 4, 4) poses."""
+    return cam_from_world[j] @ torch.linalg.inv(cam_from_world[i])
+
+
+# --------------------------------------------------------------------------------------------
+# Reprojection
+# --------------------------------------------------------------------------------------------
+
+
+def reprojection_loss(
+    depth_i: torch.Tensor,
+    cam_j_from_cam_i: torch.Tensor,
+    uv_i: torch.Tensor,
+    uv_j: torch.Tensor,
+    confidence: torch.Tensor | None,
+    camera: Any,
+    valid: torch.Tensor | None = None,
+    depth_convention: str = "range",
+    rays_i: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> tuple[torch.Tensor, int]:
+    """Confidence-weighted L1 reprojection error of matched pixels (paper eq. L_reproj).
+
+    For every match, the point ``X_i = D_i(uv_i) * ray(uv_i)`` (depth sampled bilinearly) is
+    moved by ``cam_j_from_cam_i``, projected with ``camera`` and compared with ``uv_j``:
+    ``sum_k w_k |kappa(T X_k) - uv_j,k|_1 / N_valid``.
+
+    Args:
+        depth_i: (H, W) predicted depth of frame ``i`` at network-input size.
+        cam_j_from_cam_i: (4, 4) relative pose (same length unit as the depth).
+        uv_i, uv_j: (M, 2) matched pixels in input pixels of frames ``i`` and ``j``.
+        confidence: (M,) weights in [0, 1], or None for 1.
+        camera: the camera of the network input (``camera.width == W``, ``camera.height == H``).
+        valid: (H, W) bool valid region (lens circle / user mask); default the camera's.
+        depth_convention: ``"range"`` (fisheye default) or ``"z"``.
+        rays_i: optional precomputed ``camera.unproject(uv_i)`` (rays (M, 3), valid (M,)); the
+            camera is fixed during adaptation, so a trainer lifts every match once.
+
+    Returns:
+        (loss, n_valid): the mean weighted L1 error in input pixels (a 0-d tensor, zero but
+        still attached to the graph when no term is valid) and the number of valid terms. A
+        term is valid when both pixels lie in the image and inside ``valid``, the ray of
+        ``uv_i`` exists, the depth is positive and finite and the moved point projects validly.
+    """
+    height, width = depth_i.shape[-2:]
+    if (int(camera.width), int(camera.height)) != (width, height):
+        raise InputError(f"camera is {camera.width}x{camera.height} px but the depth map is {width}x{height}")
+    if uv_i.shape != uv_j.shape or uv_i.ndim != 2 or uv_i.shape[-1] != 2:
+        raise InputError(f"uv_i and uv_j must both be (M, 2), got {tuple(uv_i.shape)} and {tuple(uv_j.shape)}")
+    dtype, device = depth_i.dtype, depth_i.device
+    uv_i = uv_i.to(device=device, dtype=dtype)
+    uv_j = uv_j.to(device=device, dtype=dtype)
+    weights = torch.ones_like(uv_i[:, 0]) if confidence is None else confidence.to(device=device, dtype=dtype)
+    if valid is None:
+        valid = camera.valid_mask()
+    valid = valid.to(device).bool()
+
+    ok = _inside_mask(uv_i, valid, width, height) & _inside_mask(uv_j, valid, width, height)
+    if rays_i is None:
+        with torch.no_grad():
+            rays_i = camera.unproject(uv_i)
+    rays, ray_ok = rays_i
+    depth = sample_bilinear(depth_i, uv_i)
+    ok = ok & ray_ok.to(device) & torch.isfinite(depth) & (depth > 0)
+    points = backproject(torch.where(ok, depth, torch.ones_like(depth)), rays.to(device=device, dtype=dtype), depth_convention)
+    rotation, translation = cam_j_from_cam_i[:3, :3].to(dtype), cam_j_from_cam_i[:3, 3].to(dtype)
+    moved = points @ rotation.T + translation
+    # Terms already known to be invalid project a harmless point, so no NaN/inf can reach the
+    # backward pass through them (a zero gradient times an infinite Jacobian is NaN).
+    moved = torch.where(ok[:, None], moved, moved.new_tensor([0.0, 0.0, 1.0]).expand_as(moved))
+    projected, proj_ok = camera.project(moved)
+    ok = ok & proj_ok & torch.isfinite(projected).all(dim=-1)
+    n_valid = int(ok.sum())
+    if n_valid == 0:
+        return depth_i.sum() * 0.0 + cam_j_from_cam_i.sum().to(dtype) * 0.0, 0
+    error = (projected[ok] - uv_j[ok]).abs().sum(dim=-1)
+    return (weights[ok] * error).sum() / n_valid, n_valid
+
+
+# --------------------------------------------------------------------------------------------
+# Edge-aware smoothness (Godard et al. 2017)
+# --------------------------------------------------------------------------------------------
+
+
+def smoothness_loss(depth: torch.Tensor, image: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+    """Edge-aware smoothness of mean-normalised depth, averaged over frames.
+
+    ``mean_x(exp(-|d_x I|) |d_x D*|) + mean_y(exp(-|d_y I|) |d_y D*|)`` with ``D* = D / mean(D)``
+    (mean over the valid pixels of each frame) and ``|d I|`` the mean absolute difference of
+    neighbouring pixels over the colour channels; a difference counts when both pixels are valid.
+
+    Args:
+        depth: (H, W) or (N, H, W) depth.
+        image: (3, H, W) or (N, 3, H, W) the network's input image(s), values in [0, 1].
+        valid: (H, W) bool valid region, or None for every pixel.
+
+    Returns:
+        0-d tensor (dimensionless).
+    """
+    if depth.ndim == 2:
+        depth, image = depth[None], image[None]
+    if depth.ndim != 3 or image.ndim != 4 or image.shape[0] != depth.shape[0] or image.shape[-2:] != depth.shape[-2:]:
+        raise InputError(f"depth (N, H, W) and image (N, 3, H, W) must match, got {tuple(depth.shape)} and {tuple(image.shape)}")
+    image = image.to(depth.dtype)
+    mask = torch.ones(depth.shape[-2:], dtype=torch.bool, device=depth.device) if valid is None else valid.to(depth.device).bool()
+    maskf = mask.to(depth.dtype)
+    mean = (depth * maskf).sum(dim=(-2, -1), keepdim=True) / maskf.sum().clamp_min(1.0)
+    normalised = depth / mean.clamp_min(_EPS)
+
+    pair_x = (mask[:, 1:] & mask[:, :-1]).to(depth.dtype)
+    pair_y = (mask[1:, :] & mask[:-1, :]).to(depth.dtype)
+    grad_dx = (normalised[..., :, 1:] - normalised[..., :, :-1]).abs()
+    grad_dy = (normalised[..., 1:, :] - normalised[..., :-1, :]).abs()
+    grad_ix = (image[..., :, 1:] - image[..., :, :-1]).abs().mean(dim=1)
+    grad_iy = (image[..., 1:, :] - image[..., :-1, :]).abs().mean(dim=1)
+    term_x = (torch.exp(-grad_ix) * grad_dx * pair_x).sum(dim=(-2, -1)) / pair_x.sum().clamp_min(1.0)
+    term_y = (torch.exp(-grad_iy) * grad_dy * pair_y).sum(dim=(-2, -1)) / pair_y.sum().clamp_min(1.0)
+    return (term_x + term_y).mean()
+
+
+# --------------------------------------------------------------------------------------------
+# PE regularisers
+# --------------------------------------------------------------------------------------------
+
+
+def pe_correction_grid(adapter: Any, geometry: Any, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """The adapter's PE correction ``P' - P_A`` over the token grid, differentiable in the tables.
+
+    Uses the geometry's interpolation matrices (the same ones the patched PE hook uses), so it
+    depends only on the adapter and the (camera, input size), never on the backbone's table.
+
+    Args:
+        adapter: a :class:`raytun3r_plugin.adapter.Adapter`.
+        geometry: a :class:`raytun3r_plugin.geometry.SizeGeometry` (camera at the input size).
+        device, dtype: of the result (default: the adapter's device, float32).
+
+    Returns:
+        (h, w, C) correction, ``t_r(rho) + rho d_theta(theta)`` per token, h x w the patch grid.
+    """
+    device = adapter.pe["radial"].device if device is None else device
+    radial, angular = geometry.pe_weights(adapter.n_r, adapter.n_theta, device, dtype)
+    correction = radial @ adapter.pe["radial"].to(device, dtype) + angular @ adapter.pe["angular"].to(device, dtype)
+    rows, cols = geometry.height // geometry.patch, geometry.width // geometry.patch
+    return correction.reshape(rows, cols, -1)
+
+
+def pe_l2(correction: torch.Tensor) -> torch.Tensor:
+    """``mean over tokens of ||P' - P_A||^2`` for a (h, w, C) correction (PE units squared)."""
+    return correction.pow(2).sum(dim=-1).mean()
+
+
+def pe_tv(correction: torch.Tensor) -> torch.Tensor:
+    """Squared total variation of a (h, w, C) correction over the token grid.
+
+    ``(1 / (h w)) sum (||c[y, x+1] - c[y, x]||^2 + ||c[y+1, x] - c[y, x]||^2)``, neighbours
+    inside the grid only (paper eq. L_TV).
+    """
+    rows, cols = correction.shape[:2]
+    horizontal = (correction[:, 1:] - correction[:, :-1]).pow(2).sum()
+    vertical = (correction[1:, :] - correction[:-1, :]).pow(2).sum()
+    return (horizontal + vertical) / (rows * cols)
+
+
+# --------------------------------------------------------------------------------------------
+# Pose term
+# --------------------------------------------------------------------------------------------
+
+
+def rotation_angle(rotation_a: torch.Tensor, rotation_b: torch.Tensor) -> torch.Tensor:
+    """Geodesic angle (radians) between rotations (..., 3, 3): ``arccos((tr(A^T B) - 1) / 2)``.
+
+    Evaluated as ``atan2(|vee(M - M^T)| / 2, (tr M - 1) / 2)`` with ``M = A^T B``, the same
+    angle as the paper's arccos but accurate near 0 and pi and with finite gradients everywhere
+    (the vector norm carries a tiny epsilon, so the gradient at exactly zero is zero, not NaN).
+    """
+    m = rotation_a.transpose(-1, -2) @ rotation_b
+    cos = (m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2] - 1) / 2
+    axis = torch.stack((m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]), dim=-1)
+    sin = torch.sqrt(axis.pow(2).sum(dim=-1) + _EPS**2) / 2
+    return torch.atan2(sin, cos)
+
+
+def translation_angle(t_a: torch.Tensor, t_b: torch.Tensor) -> torch.Tensor:
+    """Angle (radians) between translation directions (..., 3): ``arccos(<a, b> / (|a| |b|))``.
+
+    Evaluated as ``atan2(|a x b|, <a, b>)`` (scale-free, finite gradients, accurate near 0).
+    Returns 0 when either vector is zero (no direction to compare).
+    """
+    cross = torch.linalg.cross(t_a, t_b, dim=-1)
+    sin = torch.sqrt(cross.pow(2).sum(dim=-1) + _EPS**2)
+    cos = (t_a * t_b).sum(dim=-1)
+    return torch.atan2(sin, cos)
+
+
+def pose_loss(cam_j_from_cam_i: torch.Tensor, target_rotation: torch.Tensor, target_translation: torch.Tensor) -> torch.Tensor:
+    """Rotation geodesic + translation-direction angle (radians) against a MAGSAC++ target.
+
+    Args:
+        cam_j_from_cam_i: (4, 4) predicted relative pose.
+        target_rotation: (3, 3) target rotation ``R~`` (``X_j = R~ X_i + t~``).
+        target_translation: (3,) target translation direction (any positive scale).
+
+    Returns:
+        0-d tensor in radians, computed in float64 and cast back to the pose's dtype.
+    """
+    dtype = cam_j_from_cam_i.dtype
+    pose = cam_j_from_cam_i.double()
+    rotation = target_rotation.to(pose.device, torch.float64)
+    translation = target_translation.to(pose.device, torch.float64)
+    loss = rotation_angle(rotation, pose[:3, :3]) + translation_angle(translation, pose[:3, 3])
+    return loss.to(dtype)
+
+
+def fit_translation_scale(
+    points_i: torch.Tensor, rays_j: torch.Tensor, rotation: torch.Tensor, direction: torch.Tensor, weights: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Scale ``s`` making ``R X_i + s t`` parallel to the rays of the matches in frame ``j``.
+
+    Used when the relative pose comes from a MAGSAC++ target (unit translation) instead of the
+    network: the scale of the translation must agree with the predicted depth. Weighted linear
+    least squares on ``r_j x (R X_i + s t) = 0``:
+    ``s = -sum w <r_j x R X_i, r_j x t> / sum w |r_j x t|^2``, clamped at 0 (no motion rather
+    than a flipped direction). Differentiable in the points, so the reprojection error it feeds
+    is invariant to the global depth scale.
+
+    Args:
+        points_i: (M, 3) points in camera ``i`` (same unit as the depth).
+        rays_j: (M, 3) unit rays of the matched pixels in camera ``j``.
+        rotation: (3, 3) ``R`` of ``cam_j_from_cam_i``; direction: (3,) translation direction.
+        weights: (M,) non-negative weights, or None.
+
+    Returns:
+        0-d tensor ``s`` (depth unit per unit of ``direction``).
+    """
+    weights = torch.ones_like(points_i[:, 0]) if weights is None else weights.to(points_i.dtype)
+    rotated = points_i @ rotation.to(points_i.dtype).T
+    direction = direction.to(points_i.dtype).expand_as(rotated)
+    a = torch.linalg.cross(rays_j, rotated, dim=-1)
+    b = torch.linalg.cross(rays_j, direction, dim=-1)
+    numerator = -(weights * (a * b).sum(dim=-1)).sum()
+    denominator = (weights * b.pow(2).sum(dim=-1)).sum().clamp_min(_EPS)
+    return (numerator / denominator).clamp_min(0.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Total
+# --------------------------------------------------------------------------------------------
+
+
+def total_loss(terms: Mapping[str, torch.Tensor], weights: LossWeights) -> torch.Tensor:
+    """``reproj + w_smooth smooth + w_l2 l2 + w_tv tv + w_pose pose`` over the terms present."""
+    factors = weights.as_dict()
+    unknown = set(terms) - set(factors)
+    if unknown:
+        raise InputError(f"unknown loss terms {sorted(unknown)}; known: {sorted(factors)}")
+    total = None
+    for name, value in terms.items():
+        contribution = factors[name] * value
+        total = contribution if total is None else total + contribution
+    if total is None:
+        raise InputError("no loss term given")
+    return total

@@ -1,0 +1,788 @@
+"""Online adaptation: fit an adapter to a fisheye segment without ground truth.
+
+``adapt(model, camera, frames, config)`` (DESIGN.md section 7, paper "Adapter training"):
+
+1. picks the network input size (long side ``config.input_size``, multiples of the patch size;
+   a centred crop only when a pure resize would change the aspect ratio by more than 1%);
+2. prepares the adaptation set once (windows of 3 frames, matches and MAGSAC++ targets for every
+   ordered pair, cached on disk with ``config.cache_dir``);
+3. patches the model with a zero adapter, freezes every backbone parameter and runs Adam on the
+   adapter tables only, one window per step, with gradient clipping;
+4. logs every loss term per step (JSON lines), checkpoints (safetensors + JSON metadata, never
+   pickle) and resumes, saves what it has on Ctrl-C, and finally removes the patch and restores
+   the model's ``requires_grad`` flags and train/eval modes.
+
+Files next to ``out_path`` (e.g. ``run/indoor.safetensors``): the adapter itself,
+``run/indoor.log.jsonl`` (one JSON object per step) and ``run/indoor.ckpt.safetensors`` (adapter
+tables, Adam moments and step counters as tensors; step, configuration and identity checks as
+string metadata).
+
+Determinism: the window of step ``k`` and the match subset it uses are functions of
+``(seed, k)`` only, so the same seed gives identical tables, and a resumed run continues exactly
+where the interrupted one stopped.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from raytun3r_plugin.adaptation.losses import (
+    LossWeights,
+    backproject,
+    fit_translation_scale,
+    pe_correction_grid,
+    pe_l2,
+    pe_tv,
+    pose_loss,
+    relative_pose,
+    reprojection_loss,
+    sample_bilinear,
+    smoothness_loss,
+    to_input_pixels,
+    total_loss,
+)
+from raytun3r_plugin.adaptation.matchers import get_matcher
+from raytun3r_plugin.adaptation.windows import AdaptationSet, Window, prepare_adaptation_set
+from raytun3r_plugin.adapter import Adapter
+from raytun3r_plugin.errors import AdapterError, AlreadyAppliedError, InputError
+from raytun3r_plugin.geometry import ASPECT_TOLERANCE, GeometryCache
+from raytun3r_plugin.patching import apply, handle_of
+from raytun3r_plugin.prediction import predict
+
+__all__ = [
+    "AdaptConfig",
+    "AdaptationProblem",
+    "InputLayout",
+    "adapt",
+    "adaptation_step",
+    "artifact_paths",
+    "input_layout",
+    "load_checkpoint",
+    "prepare_problem",
+    "read_loss_log",
+    "window_of_step",
+    "window_terms",
+]
+
+CHECKPOINT_FORMAT = "raytun3r-adapt-checkpoint"
+CHECKPOINT_VERSION = "1"
+POSE_SOURCES = ("model", "targets")
+TERMS = ("reproj", "smooth", "l2", "tv", "pose")
+
+# Configuration fields that may change between an interrupted run and its resumption.
+_RESUMABLE_CHANGES = {"steps", "checkpoint_every", "cache_dir"}
+
+
+@dataclass
+class AdaptConfig:
+    """Settings of :func:`adapt`. Defaults follow DESIGN.md section 7 and the paper.
+
+    Attributes:
+        steps: optimisation steps, one 3-frame window each (300 = 10 passes over 30 windows).
+        lr: Adam learning rate.
+        clip: gradient-norm clipping threshold (None = no clipping).
+        weights: loss weights (reproj 1, smooth 10, L2 2, TV 20, pose 1).
+        input_size: long side of the network input in pixels (rounded to the patch size);
+            504 as in the paper, smaller for CPU runs.
+        n_windows: number of 3-frame windows spread over the segment.
+        window_size: frames per window.
+        stride: frame step inside a window.
+        min_motion_px: windows whose mean correspondence displacement is below this (native
+            pixels) are static and skipped.
+        matcher: name of a registered matcher (``"dis"``, ``"sift"``, ...).
+        matcher_options: keyword arguments of the matcher factory.
+        max_matches: matches per ordered pair used in one step (a seeded random subset, drawn
+            again every step); 0 = all.
+        seed: seeds the window order, the match subsets and the MAGSAC++ estimation.
+        checkpoint_every: write a checkpoint every this many steps (0 = only at the end and
+            on interruption); needs ``out_path``.
+        cache_dir: folder of the adaptation-set cache (matches + targets); None = no cache.
+        sequence_id: identity of the frames for the cache key (None hashes the image bytes).
+        pose_source: ``"model"`` uses the network's predicted relative poses (the paper);
+            ``"targets"`` takes them from the MAGSAC++ targets instead, for backbones whose pose
+            head is unusable: the unit translation is scaled per pair in closed form to agree
+            with the predicted depth, only pairs with a usable target contribute to the
+            reprojection term, and the pose term is dropped (it would compare the targets with
+            themselves).
+        depth_convention: ``"range"`` (depth = distance along the unit ray, the fisheye
+            default) or ``"z"`` (z-depth; FOV below 180 degrees only).
+        components: corrections switched on during adaptation (None = all).
+    """
+
+    steps: int = 300
+    lr: float = 1e-3
+    clip: float | None = 1.0
+    weights: LossWeights = field(default_factory=LossWeights)
+    input_size: int = 504
+    n_windows: int = 30
+    window_size: int = 3
+    stride: int = 1
+    min_motion_px: float = 2.0
+    matcher: str = "dis"
+    matcher_options: dict = field(default_factory=dict)
+    max_matches: int = 4096
+    seed: int = 0
+    checkpoint_every: int = 50
+    cache_dir: str | None = None
+    sequence_id: str | None = None
+    pose_source: str = "model"
+    depth_convention: str = "range"
+    components: list[str] | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.weights, Mapping):
+            self.weights = LossWeights(**self.weights)
+        if self.cache_dir is not None:
+            self.cache_dir = str(self.cache_dir)
+        checks = (
+            ("steps", self.steps >= 0),
+            ("lr", self.lr > 0),
+            ("clip", self.clip is None or self.clip > 0),
+            ("input_size", self.input_size >= 1),
+            ("n_windows", self.n_windows >= 1),
+            ("window_size", self.window_size >= 2),
+            ("stride", self.stride >= 1),
+            ("max_matches", self.max_matches >= 0),
+            ("checkpoint_every", self.checkpoint_every >= 0),
+            ("pose_source", self.pose_source in POSE_SOURCES),
+            ("depth_convention", self.depth_convention in ("range", "z")),
+        )
+        for name, ok in checks:
+            if not ok:
+                raise InputError(f"AdaptConfig.{name} = {getattr(self, name)!r} is not allowed")
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form (``AdaptConfig(**d)`` rebuilds it)."""
+        return asdict(self)
+
+    def identity(self) -> str:
+        """Hash of the settings that must not change when a checkpoint is resumed."""
+        kept = {k: v for k, v in self.to_dict().items() if k not in _RESUMABLE_CHANGES}
+        return hashlib.sha256(json.dumps(kept, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+# --------------------------------------------------------------------------------------------
+# Input size
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class InputLayout:
+    """How native frames become network input.
+
+    Attributes:
+        width, height: network input size in pixels (multiples of the patch size).
+        crop: ``(x0, y0, w, h)`` centred crop of the native image applied before resizing, or
+            None (pure resize).
+        native_camera: camera of the (cropped) native image; what the model is patched with.
+        camera: the same camera at the network input size.
+    """
+
+    width: int
+    height: int
+    crop: tuple[int, int, int, int] | None
+    native_camera: Any
+    camera: Any
+
+    @property
+    def native_size(self) -> tuple[int, int]:
+        return int(self.native_camera.width), int(self.native_camera.height)
+
+    @property
+    def offset(self) -> tuple[int, int]:
+        return (0, 0) if self.crop is None else (self.crop[0], self.crop[1])
+
+
+def input_layout(camera: Any, long_side: int, patch: int = 14) -> InputLayout:
+    """Network input size for frames of ``camera``: long side ``long_side`` rounded to ``patch``.
+
+    Each side is ``round(side * long_side / max(W, H) / patch) * patch`` (at least one patch). If
+    that changes the aspect ratio by more than 1% (DESIGN.md section 3 forbids a silent
+    stretch), the native image is centre-cropped to the input's aspect ratio first.
+    """
+    width, height = int(camera.width), int(camera.height)
+    scale = long_side / max(width, height)
+    in_w = max(patch, round(width * scale / patch) * patch)
+    in_h = max(patch, round(height * scale / patch) * patch)
+    native_aspect, input_aspect = width / height, in_w / in_h
+    crop = None
+    native = camera
+    if abs(input_aspect - native_aspect) / native_aspect > ASPECT_TOLERANCE:
+        if native_aspect > input_aspect:
+            crop_w, crop_h = round(height * input_aspect), height
+        else:
+            crop_w, crop_h = width, round(width / input_aspect)
+        crop = ((width - crop_w) // 2, (height - crop_h) // 2, crop_w, crop_h)
+        native = camera.cropped(*crop)
+    return InputLayout(in_w, in_h, crop, native, native.resized(in_w, in_h))
+
+
+def _resize_frames(images: np.ndarray, layout: InputLayout) -> torch.Tensor:
+    """(N, H, W, 3) float32 native frames -> (N, 3, h, w) network input in [0, 1]."""
+    tensor = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float()
+    if layout.crop is not None:
+        x0, y0, w, h = layout.crop
+        tensor = tensor[..., y0 : y0 + h, x0 : x0 + w]
+    if tuple(tensor.shape[-2:]) != (layout.height, layout.width):
+        tensor = F.interpolate(tensor, size=(layout.height, layout.width), mode="bilinear", align_corners=False, antialias=True)
+    return tensor.clamp(0.0, 1.0).contiguous()
+
+
+# --------------------------------------------------------------------------------------------
+# Frames and pairs
+# --------------------------------------------------------------------------------------------
+
+
+def _frames_array(frames: Any) -> tuple[np.ndarray, dict[str, Any]]:
+    """Accept (N, H, W, 3) float32 arrays/tensors or a ``datasets.Sequence``; return the array
+    and a description of the segment."""
+    info: dict[str, Any] = {}
+    if hasattr(frames, "images") and hasattr(frames, "camera"):
+        info["name"] = str(getattr(frames, "name", ""))
+        images = frames.images
+        if images is None:
+            images = np.stack([frames.image(i) for i in range(len(frames))])
+        frames = images
+    if isinstance(frames, torch.Tensor):
+        frames = frames.detach().cpu().numpy()
+    array = np.asarray(frames)
+    if array.ndim != 4 or array.shape[-1] != 3:
+        raise InputError(f"frames must be (N, H, W, 3) RGB in [0, 1], got shape {array.shape}")
+    array = array.astype(np.float32, copy=False)
+    info.update(n_frames=int(array.shape[0]), width=int(array.shape[2]), height=int(array.shape[1]))
+    return array, info
+
+
+@dataclass
+class _Pair:
+    """One ordered pair of a window, in network-input pixels, filtered to usable matches."""
+
+    a: int
+    b: int
+    uv_i: torch.Tensor  # (M, 2) input pixels in frame a
+    uv_j: torch.Tensor  # (M, 2) input pixels in frame b
+    confidence: torch.Tensor  # (M,)
+    rays_i: torch.Tensor  # (M, 3) unit rays of uv_i
+    rays_j: torch.Tensor  # (M, 3) unit rays of uv_j
+    rotation: torch.Tensor | None  # (3, 3) float64 target R (cam_b_from_cam_a), None if unusable
+    direction: torch.Tensor | None  # (3,) float64 unit target translation
+
+
+def _inside(uv: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    height, width = valid.shape
+    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= height - 0.5)
+    col = torch.round(uv[:, 0]).clamp(0, width - 1).long()
+    row = torch.round(uv[:, 1]).clamp(0, height - 1).long()
+    return inside & valid[row, col]
+
+
+def _prepare_pairs(window: Window, layout: InputLayout, valid: torch.Tensor) -> list[_Pair]:
+    camera = layout.camera
+    pairs = []
+    for (a, b), matches in window.pairs.items():
+        uv_i = to_input_pixels(torch.from_numpy(matches.uv_i).float(), layout.native_size, (layout.width, layout.height), layout.offset)
+        uv_j = to_input_pixels(torch.from_numpy(matches.uv_j).float(), layout.native_size, (layout.width, layout.height), layout.offset)
+        with torch.no_grad():
+            rays_i, ok_i = camera.unproject(uv_i)
+            rays_j, ok_j = camera.unproject(uv_j)
+        keep = ok_i & ok_j & _inside(uv_i, valid) & _inside(uv_j, valid)
+        target = window.targets.get((a, b))
+        usable = target is not None and target.ok
+        pairs.append(
+            _Pair(
+                a, b, uv_i[keep], uv_j[keep], torch.from_numpy(matches.confidence).float()[keep],
+                rays_i[keep].float(), rays_j[keep].float(),
+                torch.from_numpy(target.R).double() if usable else None,
+                torch.from_numpy(target.t).double() if usable else None,
+            )
+        )
+    return pairs
+
+
+# --------------------------------------------------------------------------------------------
+# Files: log, checkpoint
+# --------------------------------------------------------------------------------------------
+
+
+def artifact_paths(out_path: str | os.PathLike) -> dict[str, Path]:
+    """``{"adapter", "log", "checkpoint"}`` paths for an adapter file ``out_path``."""
+    out = Path(out_path)
+    stem = out.name[: -len(".safetensors")] if out.name.endswith(".safetensors") else out.name
+    return {"adapter": out, "log": out.with_name(f"{stem}.log.jsonl"), "checkpoint": out.with_name(f"{stem}.ckpt.safetensors")}
+
+
+def read_loss_log(path: str | os.PathLike) -> list[dict[str, Any]]:
+    """The per-step records of a loss log (``*.log.jsonl``), or of the log next to an adapter."""
+    path = Path(path)
+    if not path.name.endswith(".jsonl"):
+        path = artifact_paths(path)["log"]
+    with open(path, encoding="utf-8") as handle:
+        return [json.loads(line) for line in handle if line.strip()]
+
+
+def _atomic_save(tensors: dict[str, torch.Tensor], metadata: dict[str, str], path: Path) -> None:
+    from safetensors.torch import save_file
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(handle)
+    try:
+        save_file(tensors, temporary, metadata=metadata)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
+def _save_checkpoint(path: Path, adapter: Adapter, optimizer: torch.optim.Optimizer, step: int, identity: dict[str, str]) -> None:
+    names = [name for name, _ in adapter.named_parameters()]
+    tensors = {f"adapter.{name}": value for name, value in adapter.tensors().items()}
+    state = optimizer.state_dict()["state"]
+    for index, name in enumerate(names):
+        for key, value in state.get(index, {}).items():
+            tensors[f"adam.{name}.{key}"] = torch.as_tensor(value).detach().to("cpu", torch.float32).reshape(-1).clone()
+    metadata = {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_VERSION, "step": str(step), **identity}
+    _atomic_save(tensors, metadata, path)
+
+
+def load_checkpoint(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Tensors and metadata of an adaptation checkpoint (safetensors; nothing is unpickled)."""
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as handle:
+        metadata = dict(handle.metadata() or {})
+        tensors = {name: handle.get_tensor(name) for name in handle.keys()}  # noqa: SIM118
+    if metadata.get("format") != CHECKPOINT_FORMAT:
+        raise AdapterError(f"{path}: not a raytun3r adaptation checkpoint (format {metadata.get('format')!r})")
+    return tensors, metadata
+
+
+def _restore_checkpoint(path: Path, adapter: Adapter, optimizer: torch.optim.Optimizer, identity: dict[str, str]) -> int:
+    tensors, metadata = load_checkpoint(path)
+    for key, expected in identity.items():
+        if metadata.get(key) != expected:
+            raise AdapterError(
+                f"{path}: checkpoint was written for another run ({key} {metadata.get(key)!r}, this run {expected!r}); "
+                "pass resume=False to start over"
+            )
+    with torch.no_grad():
+        for name, parameter in adapter.named_parameters():
+            stored = tensors.get(f"adapter.{name}")
+            if stored is None or stored.shape != parameter.shape:
+                raise AdapterError(f"{path}: checkpoint has no table {name!r} of shape {tuple(parameter.shape)}")
+            parameter.copy_(stored)
+    state: dict[int, dict[str, torch.Tensor]] = {}
+    for index, (name, parameter) in enumerate(adapter.named_parameters()):
+        entry = {}
+        for key in ("step", "exp_avg", "exp_avg_sq"):
+            stored = tensors.get(f"adam.{name}.{key}")
+            if stored is not None:
+                entry[key] = stored.reshape(()) if key == "step" else stored.reshape(parameter.shape).clone()
+        if entry:
+            state[index] = entry
+    optimizer.load_state_dict({"state": state, "param_groups": optimizer.state_dict()["param_groups"]})
+    return int(metadata["step"])
+
+
+def _rewrite_log(path: Path, keep_before: int) -> None:
+    """Drop records of steps >= ``keep_before`` (they are redone after a resume)."""
+    if not path.is_file():
+        return
+    kept = [line for line in path.read_text(encoding="utf-8").splitlines() if line.strip() and json.loads(line)["step"] < keep_before]
+    path.write_text("".join(line + "\n" for line in kept), encoding="utf-8")
+
+
+# --------------------------------------------------------------------------------------------
+# Model state: frozen backbone, eval mode
+# --------------------------------------------------------------------------------------------
+
+
+@contextmanager
+def _frozen(model: nn.Module) -> Iterator[None]:
+    """Backbone parameters without gradients and every module in eval mode; restored after."""
+    flags = [(parameter, parameter.requires_grad) for parameter in model.parameters()]
+    modes = [(module, module.training) for module in model.modules()]
+    try:
+        for parameter, _ in flags:
+            parameter.requires_grad_(False)
+        model.eval()
+        yield
+    finally:
+        for parameter, flag in flags:
+            parameter.requires_grad_(flag)
+        for module, mode in modes:
+            module.training = mode
+
+
+class _Progress:
+    """tqdm when available, otherwise a line to stderr every ~5% of the run."""
+
+    def __init__(self, total: int, initial: int, enabled: bool) -> None:
+        self.enabled = enabled
+        self.total = total
+        self.bar = None
+        if enabled:
+            try:
+                from tqdm.auto import tqdm
+
+                self.bar = tqdm(total=total, initial=initial, desc="adapt", unit="step", dynamic_ncols=True)
+            except ImportError:
+                self.bar = None
+        self.every = max(1, total // 20)
+
+    def update(self, step: int, loss: float) -> None:
+        if not self.enabled:
+            return
+        if self.bar is not None:
+            self.bar.update(1)
+            self.bar.set_postfix(loss=f"{loss:.4g}", refresh=False)
+        elif (step + 1) % self.every == 0 or step + 1 == self.total:
+            print(f"adapt: step {step + 1}/{self.total} loss {loss:.4g}", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+# --------------------------------------------------------------------------------------------
+# One step
+# --------------------------------------------------------------------------------------------
+
+
+def _subset(pair: _Pair, max_matches: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
+    count = pair.uv_i.shape[0]
+    if max_matches and count > max_matches:
+        index = torch.randperm(count, generator=generator)[:max_matches]
+        return pair.uv_i[index], pair.uv_j[index], pair.confidence[index], pair.rays_i[index], pair.rays_j[index]
+    return pair.uv_i, pair.uv_j, pair.confidence, pair.rays_i, pair.rays_j
+
+
+def _targets_pose(pair: _Pair, depth_i: torch.Tensor, uv_i, confidence, rays_i, rays_j, convention: str) -> torch.Tensor:
+    """``cam_j_from_cam_i`` from the MAGSAC++ target, translation scaled to the predicted depth."""
+    depth = sample_bilinear(depth_i, uv_i)
+    usable = torch.isfinite(depth) & (depth > 0)
+    points = backproject(torch.where(usable, depth, torch.ones_like(depth)), rays_i, convention)
+    rotation = pair.rotation.to(depth_i.dtype)
+    direction = pair.direction.to(depth_i.dtype)
+    scale = fit_translation_scale(points[usable], rays_j[usable], rotation, direction, confidence[usable])
+    pose = torch.eye(4, dtype=depth_i.dtype)
+    return torch.cat((torch.cat((rotation, (scale * direction)[:, None]), dim=1), pose[3:]), dim=0)
+
+
+def window_terms(
+    model: nn.Module,
+    adapter: Adapter,
+    images: torch.Tensor,
+    pairs: list[_Pair],
+    layout: InputLayout,
+    valid: torch.Tensor,
+    geometry: Any,
+    config: AdaptConfig,
+    generator: torch.Generator,
+) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
+    """Forward one window through the patched model and compute every loss term.
+
+    Args:
+        images: (S, 3, h, w) network input in [0, 1].
+        pairs: the window's ordered pairs (network-input pixels).
+        valid: (h, w) bool valid region at the input size.
+        geometry: :class:`raytun3r_plugin.geometry.SizeGeometry` at the input size.
+
+    Returns:
+        (terms, counts): 0-d tensors per term name (pose absent in ``targets`` mode) and the
+        numbers of reprojection matches / pose targets that entered them.
+    """
+    prediction = predict(model, images[None])
+    depth, poses = prediction.depth[0], prediction.cam_from_world[0]
+    reproj, pose_terms, n_matches = [], [], 0
+    for pair in pairs:
+        if config.pose_source == "model":
+            relative = relative_pose(poses, pair.a, pair.b)
+            if pair.rotation is not None:
+                pose_terms.append(pose_loss(relative, pair.rotation, pair.direction))
+        if pair.uv_i.shape[0] == 0 or (config.pose_source == "targets" and pair.rotation is None):
+            continue
+        uv_i, uv_j, confidence, rays_i, rays_j = _subset(pair, config.max_matches, generator)
+        if config.pose_source == "targets":
+            relative = _targets_pose(pair, depth[pair.a], uv_i, confidence, rays_i, rays_j, config.depth_convention)
+        loss, count = reprojection_loss(
+            depth[pair.a], relative, uv_i, uv_j, confidence, layout.camera, valid, config.depth_convention,
+            rays_i=(rays_i, torch.ones_like(confidence, dtype=torch.bool)),
+        )
+        if count:
+            reproj.append(loss)
+            n_matches += count
+    zero = depth.sum() * 0.0
+    correction = pe_correction_grid(adapter, geometry)
+    terms = {
+        "reproj": torch.stack(reproj).mean() if reproj else zero,
+        "smooth": smoothness_loss(depth, images.to(depth.dtype), valid),
+        "l2": pe_l2(correction),
+        "tv": pe_tv(correction),
+    }
+    if config.pose_source == "model":
+        terms["pose"] = torch.stack(pose_terms).mean() if pose_terms else zero
+    return terms, {"n_matches": n_matches, "n_pose": len(pose_terms)}
+
+
+# --------------------------------------------------------------------------------------------
+# Prepared problem and one optimisation step
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class AdaptationProblem:
+    """Everything a step needs, prepared once: input layout, windows with their pairs in
+    network-input pixels, resized frames, valid region and token geometry.
+
+    Attributes:
+        layout: :class:`InputLayout` of the frames.
+        adaptation: the :class:`~raytun3r_plugin.adaptation.windows.AdaptationSet`.
+        windows: ``[(window, pairs)]`` with the pairs filtered to usable matches.
+        inputs: ``{frame index: (3, h, w) network input in [0, 1]}`` for every used frame.
+        valid: (h, w) bool valid region at the input size.
+        geometry: :class:`raytun3r_plugin.geometry.SizeGeometry` at the input size.
+        segment: description of the frames (name, count, size).
+    """
+
+    layout: InputLayout
+    adaptation: AdaptationSet
+    windows: list[tuple[Window, list[_Pair]]]
+    inputs: dict[int, torch.Tensor]
+    valid: torch.Tensor
+    geometry: Any
+    segment: dict[str, Any]
+
+    def batch(self, index: int) -> torch.Tensor:
+        """(S, 3, h, w) network input of window ``index``."""
+        return torch.stack([self.inputs[frame] for frame in self.windows[index][0].frames])
+
+
+def prepare_problem(camera: Any, frames: Any, config: AdaptConfig, patch: int = 14) -> AdaptationProblem:
+    """Match, estimate targets (or load them from the cache) and lay the segment out for training."""
+    images, segment = _frames_array(frames)
+    if (segment["width"], segment["height"]) != (int(camera.width), int(camera.height)):
+        raise InputError(f"frames are {segment['width']}x{segment['height']} px but the camera is {camera.width}x{camera.height}")
+    segment["sequence_id"] = config.sequence_id
+    layout = input_layout(camera, config.input_size, patch)
+    adaptation = prepare_adaptation_set(
+        images, camera, get_matcher(config.matcher, **config.matcher_options), n_windows=config.n_windows,
+        stride=config.stride, cache_dir=config.cache_dir, sequence_id=config.sequence_id,
+        min_motion_px=config.min_motion_px, window_size=config.window_size, seed=config.seed,
+    )
+    if len(adaptation) == 0:
+        raise InputError(
+            f"no usable adaptation window: all {adaptation.skipped_static} candidate windows are static "
+            f"(mean correspondence displacement below {config.min_motion_px} px)"
+        )
+    valid = layout.camera.valid_mask().bool()
+    used = sorted({frame for window in adaptation.windows for frame in window.frames})
+    inputs = dict(zip(used, _resize_frames(images[used], layout), strict=True))
+    windows = [(window, _prepare_pairs(window, layout, valid)) for window in adaptation.windows]
+    geometry = GeometryCache(layout.native_camera, patch).at(layout.height, layout.width)
+    return AdaptationProblem(layout, adaptation, windows, inputs, valid, geometry, segment)
+
+
+def window_of_step(step: int, n_windows: int, seed: int) -> int:
+    """Window index of a step: a seeded permutation of the windows per pass (epoch)."""
+    epoch, position = divmod(step, n_windows)
+    generator = torch.Generator().manual_seed(int(seed) * 1_000_003 + epoch)
+    return int(torch.randperm(n_windows, generator=generator)[position])
+
+
+def adaptation_step(
+    model: nn.Module,
+    adapter: Adapter,
+    optimizer: torch.optim.Optimizer,
+    problem: AdaptationProblem,
+    config: AdaptConfig,
+    step: int,
+    index: int | None = None,
+) -> dict[str, Any]:
+    """One step on a model already patched with ``adapter``: forward a window, every loss term,
+    backward, gradient clipping, Adam step. A non-finite loss or gradient skips the update.
+
+    Args:
+        step: global step number (selects the window unless ``index`` is given, and seeds the
+            match subsets).
+        index: window index to use instead of the scheduled one.
+
+    Returns:
+        The step's log record: loss, every term, gradient norm, counts, wall time.
+    """
+    began = time.perf_counter()
+    index = window_of_step(step, len(problem.windows), config.seed) if index is None else index
+    window, pairs = problem.windows[index]
+    generator = torch.Generator().manual_seed(int(config.seed) * 7_919 + step)
+    terms, counts = window_terms(
+        model, adapter, problem.batch(index), pairs, problem.layout, problem.valid, problem.geometry, config, generator
+    )
+    loss = total_loss(terms, config.weights)
+    parameters = [p for group in optimizer.param_groups for p in group["params"]]
+    optimizer.zero_grad(set_to_none=True)
+    grad_norm = float("nan")
+    if bool(torch.isfinite(loss)):
+        loss.backward()
+        grads = [p.grad for p in parameters if p.grad is not None]
+        if config.clip is not None:
+            grad_norm = float(torch.nn.utils.clip_grad_norm_(parameters, config.clip))
+        elif grads:
+            grad_norm = float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads])))
+        if math.isfinite(grad_norm):
+            optimizer.step()
+    return {
+        "step": step,
+        "window": index,
+        "frames": list(window.frames),
+        "loss": float(loss.detach()),
+        **{name: float(value.detach()) for name, value in terms.items()},
+        "grad_norm": grad_norm,
+        "skipped": not math.isfinite(grad_norm),
+        **counts,
+        "time_s": round(time.perf_counter() - began, 4),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Entry point
+# --------------------------------------------------------------------------------------------
+
+
+def adapt(
+    model: nn.Module,
+    camera: Any,
+    frames: Any,
+    config: AdaptConfig | None = None,
+    *,
+    out_path: str | os.PathLike | None = None,
+    adapter: Adapter | None = None,
+    resume: bool = True,
+    progress: bool = True,
+) -> Adapter:
+    """Fit an adapter for ``model`` on a fisheye segment, without ground truth.
+
+    Args:
+        model: a supported backbone (not already patched); its weights are never changed.
+        camera: camera of the native frames.
+        frames: (N, H, W, 3) float32 RGB in [0, 1] (numpy or torch), or a
+            ``raytun3r_plugin.datasets.Sequence``.
+        config: :class:`AdaptConfig` (defaults if None).
+        out_path: adapter file to write (``.safetensors``); the loss log and the checkpoint go
+            next to it (:func:`artifact_paths`). None keeps everything in memory (no log file,
+            no checkpoint).
+        adapter: start from this adapter (copied) instead of a zero one.
+        resume: continue from the checkpoint next to ``out_path`` when there is one.
+        progress: show a progress bar (tqdm, or a line to stderr every 5% without it).
+
+    Returns:
+        The fitted :class:`Adapter` (camera: the camera of the frames, cropped if the input
+        layout needed a crop); ``adapter.training_info`` records the steps done, the final
+        losses (mean over the last pass over the windows), the segment, the input layout and the
+        configuration. On Ctrl-C the adapter of the last completed step is saved (with a
+        checkpoint) and returned, with ``training_info["interrupted"] = True``.
+
+    Raises:
+        AlreadyAppliedError: the model already carries a raytun3r patch.
+        InputError: frames/camera mismatch, or no moving window in the segment.
+        AdapterError: the checkpoint next to ``out_path`` belongs to another run.
+    """
+    config = AdaptConfig() if config is None else config
+    if handle_of(model) is not None:
+        raise AlreadyAppliedError("adapt needs an unpatched model; remove the existing raytun3r patch first")
+    adapter = Adapter.for_model(model, None, components=config.components) if adapter is None else copy.deepcopy(adapter)
+    problem = prepare_problem(camera, frames, config, adapter.patch_size)
+    adapter.camera = problem.layout.native_camera
+    optimizer = torch.optim.Adam(list(adapter.parameters()), lr=config.lr)
+
+    paths = artifact_paths(out_path) if out_path is not None else None
+    identity = {
+        "config": config.identity(),
+        "adaptation_set": problem.adaptation.cache_key,
+        "backbone": adapter.backbone,
+        "pe_fingerprint": adapter.pe_fingerprint,
+    }
+    start = 0
+    if paths is not None and resume and paths["checkpoint"].is_file():
+        start = _restore_checkpoint(paths["checkpoint"], adapter, optimizer, identity)
+    if paths is not None:
+        paths["log"].parent.mkdir(parents=True, exist_ok=True)
+        if start == 0:
+            paths["log"].write_text("", encoding="utf-8")
+        else:
+            _rewrite_log(paths["log"], start)
+    metadata = {**identity, "config_json": json.dumps(config.to_dict(), sort_keys=True, default=str)}
+
+    history: list[dict[str, Any]] = []
+    completed, interrupted, began = start, False, time.perf_counter()
+    bar = _Progress(config.steps, start, progress)
+    log = open(paths["log"], "a", encoding="utf-8") if paths is not None else None  # noqa: SIM115
+    try:
+        with _frozen(model), torch.random.fork_rng(devices=[]):
+            torch.manual_seed(config.seed)
+            handle = apply(model, problem.layout.native_camera, adapter, components=config.components, strict=False)
+            try:
+                for step in range(start, config.steps):
+                    record = adaptation_step(model, adapter, optimizer, problem, config, step)
+                    completed = step + 1
+                    history.append(record)
+                    if log is not None:
+                        log.write(json.dumps(record) + "\n")
+                        log.flush()
+                    bar.update(step, record["loss"])
+                    if paths is not None and config.checkpoint_every and completed % config.checkpoint_every == 0 and completed < config.steps:
+                        _save_checkpoint(paths["checkpoint"], adapter, optimizer, completed, metadata)
+            except KeyboardInterrupt:
+                interrupted = True
+            finally:
+                handle.remove()
+    finally:
+        bar.close()
+        if log is not None:
+            log.close()
+
+    adapter.training_info = _training_info(config, problem, completed, history, interrupted, time.perf_counter() - began, start)
+    if paths is not None:
+        _save_checkpoint(paths["checkpoint"], adapter, optimizer, completed, metadata)
+        adapter.save(paths["adapter"])
+    return adapter
+
+
+def _training_info(
+    config: AdaptConfig, problem: AdaptationProblem, steps_done: int, history: list[dict[str, Any]],
+    interrupted: bool, seconds: float, start: int,
+) -> dict[str, Any]:
+    """What an adapter file records about its fitting (metadata ``training``)."""
+    tail = history[-len(problem.windows) :]
+    final = {name: float(np.mean([r[name] for r in tail])) for name in ("loss", *TERMS) if tail and name in tail[0]}
+    adaptation, layout = problem.adaptation, problem.layout
+    return {
+        "method": "raytun3r online adaptation",
+        "steps": steps_done,
+        "requested_steps": config.steps,
+        "resumed_from": start,
+        "interrupted": interrupted,
+        "final_losses": final,
+        "final_losses_over_steps": len(tail),
+        "segment": {**problem.segment, "windows": [list(w.frames) for w in adaptation.windows], "skipped_static": adaptation.skipped_static},
+        "input": {"width": layout.width, "height": layout.height, "crop": list(layout.crop) if layout.crop else None},
+        "adaptation_set": adaptation.cache_key,
+        "config": config.to_dict(),
+        "wall_time_s": round(seconds, 3),
+    }
