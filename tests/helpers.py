@@ -51,3 +51,35 @@ def randomise_(adapter, scale: float = 0.05, seed: int = 0):
             bins = adapter.rope["radial"].shape[0]
             adapter.rope["radial"].copy_(torch.linspace(0, 1, bins) ** 2 * 0.8)
     return adapter
+
+
+def snapshot(model):
+    """Everything remove() must restore: parameters/buffers and every module's attributes."""
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    attributes = {name: sorted(vars(module)) for name, module in model.named_modules()}
+    return state, attributes
+
+
+def assert_same_snapshot(model, snap):
+    state, attributes = snap
+    now_state, now_attributes = snapshot(model)
+    assert now_state.keys() == state.keys()
+    assert all(torch.equal(now_state[k], state[k]) for k in state)
+    assert now_attributes == attributes
+
+
+def fail_install_at(monkeypatch, call: int = 3) -> dict:
+    """Make the ``call``-th replacement install raise; returns the call counter."""
+    from raytun3r_plugin import patching
+
+    calls = {"n": 0}
+    real_install = patching._install
+
+    def flaky_install(*args):
+        calls["n"] += 1
+        if calls["n"] == call:
+            raise RuntimeError("injected failure")
+        real_install(*args)
+
+    monkeypatch.setattr(patching, "_install", flaky_install)
+    return calls

@@ -9,7 +9,6 @@ import pytest
 import torch
 
 import raytun3r_plugin as rt
-from raytun3r_plugin import patching
 from raytun3r_plugin.errors import (
     AdapterError,
     AlreadyAppliedError,
@@ -18,7 +17,16 @@ from raytun3r_plugin.errors import (
     Raytun3rError,
     UnsupportedUpstreamError,
 )
-from tests.helpers import fisheye, max_relative_difference, outputs, pinhole, randomise_
+from tests.helpers import (
+    assert_same_snapshot,
+    fail_install_at,
+    fisheye,
+    max_relative_difference,
+    outputs,
+    pinhole,
+    randomise_,
+    snapshot,
+)
 
 pytest.importorskip("depth_anything_3")
 from raytun3r_plugin.patches.da3 import build_tiny_network  # noqa: E402
@@ -36,19 +44,6 @@ def net():
     return build_tiny_network(seed=0)
 
 
-def snapshot(model):
-    """Everything remove() must restore: parameters/buffers and every module's attributes."""
-    state = {k: v.clone() for k, v in model.state_dict().items()}
-    attributes = {name: sorted(vars(module)) for name, module in model.named_modules()}
-    return state, attributes
-
-
-def assert_same_snapshot(model, snap):
-    state, attributes = snap
-    now_state, now_attributes = snapshot(model)
-    assert now_state.keys() == state.keys()
-    assert all(torch.equal(now_state[k], state[k]) for k in state)
-    assert now_attributes == attributes
 
 
 def test_pinhole_zero_adapter_reproduces_upstream(net, images):
@@ -142,16 +137,7 @@ def test_failure_part_way_rolls_back(net, images, monkeypatch):
     """Invariant 3: a failure while installing leaves the model untouched."""
     reference = outputs(net, images)
     snap = snapshot(net)
-    calls = {"n": 0}
-    real_install = patching._install
-
-    def flaky_install(*args):
-        calls["n"] += 1
-        if calls["n"] == 3:
-            raise RuntimeError("injected failure")
-        real_install(*args)
-
-    monkeypatch.setattr(patching, "_install", flaky_install)
+    calls = fail_install_at(monkeypatch, 3)
     with pytest.raises(RuntimeError, match="injected"):
         rt.apply(net, fisheye(W, H), randomise_(rt.Adapter.for_model(net)))
     assert calls["n"] == 3

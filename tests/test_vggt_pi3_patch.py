@@ -21,11 +21,20 @@ import torch
 from torch import nn
 
 import raytun3r_plugin as rt
-from raytun3r_plugin import hooks, patching
+from raytun3r_plugin import hooks
 from raytun3r_plugin.adapter import COMPONENTS
 from raytun3r_plugin.errors import MissingDependencyError, UnsupportedUpstreamError, WeightsError
 from raytun3r_plugin.registry import HOOK_KINDS, resolve_targets, spec_for
-from tests.helpers import fisheye, max_relative_difference, outputs, pinhole, randomise_
+from tests.helpers import (
+    assert_same_snapshot,
+    fail_install_at,
+    fisheye,
+    max_relative_difference,
+    outputs,
+    pinhole,
+    randomise_,
+    snapshot,
+)
 
 pytest.importorskip("vggt")
 pytest.importorskip("pi3")
@@ -218,18 +227,6 @@ def reference(net, images):
     return outputs(net, images)
 
 
-def snapshot(model):
-    state = {k: v.clone() for k, v in model.state_dict().items()}
-    attributes = {name: sorted(vars(module)) for name, module in model.named_modules()}
-    return state, attributes
-
-
-def assert_same_snapshot(model, snap):
-    state, attributes = snap
-    now_state, now_attributes = snapshot(model)
-    assert now_state.keys() == state.keys()
-    assert all(torch.equal(now_state[k], state[k]) for k in state)
-    assert now_attributes == attributes
 
 
 def conv_head_module():
@@ -381,16 +378,7 @@ def test_failure_part_way_rolls_back(net, images, reference, monkeypatch):
     """Invariant 3: a failure while installing leaves the model untouched."""
     snap = snapshot(net)
     uv_function = conv_head_module().normalized_view_plane_uv
-    calls = {"n": 0}
-    real_install = patching._install
-
-    def flaky_install(*args):
-        calls["n"] += 1
-        if calls["n"] == 3:
-            raise RuntimeError("injected failure")
-        real_install(*args)
-
-    monkeypatch.setattr(patching, "_install", flaky_install)
+    calls = fail_install_at(monkeypatch, 3)
     with pytest.raises(RuntimeError, match="injected"):
         rt.apply(net, fisheye(W, H), randomise_(rt.Adapter.for_model(net)))
     assert calls["n"] == 3

@@ -1,0 +1,463 @@
+#!/usr/bin/env python
+"""Train raytun3r's built-in default network ``raytun3r-da3-tiny`` from scratch (issue 7).
+
+A small ``DepthAnything3Net`` made of the real ``depth_anything_3`` classes
+(``raytun3r_plugin.patches.da3.build_tiny_network``) is trained on procedurally rendered
+PINHOLE sequences only (fields of view 50-90 degrees, indoor rooms and outdoor streets from
+``raytun3r_plugin.synthetic``), so it carries exactly the pinhole bias raytun3r is meant to remove.
+
+Supervision (all in the frame of the first view of a sample, DA3's convention):
+
+* depth: z-depth (upstream's pinhole convention), normalised per sample by the median valid
+  z-depth of the first view; loss = scale-invariant L1 of log depth + 0.25 x plain L1 of log
+  depth (keeps the normalised scale, which the translations share) + a small aleatoric term
+  that trains ``depth_conf``. Sky pixels are excluded;
+* rays: DualDPT's auxiliary 6-channel ray map (direction ``R_c2w K^-1 (u, v, 1)`` and camera
+  centre, both in the first view's frame; translation in the normalised scale), L1;
+* pose: the camera decoder's 9-number encoding (translation, quaternion, field of view) decoded
+  with DA3's own ``pose_encoding_to_extri_intri``: chordal rotation loss, L1 translation, L1 fov.
+
+Phases: (1) render a training set into ``<out>/train_data.npz`` (re-used when it exists and
+matches the arguments), (2) train. Every batch is a pure function of (seed, step), so a run is
+deterministic for a seed and resuming from a checkpoint gives the same result as not stopping.
+Checkpoints: ``<out>/checkpoint.safetensors`` (weights), ``<out>/optimizer.safetensors``
+(AdamW moments) and ``<out>/checkpoint.json`` (step, arguments, optimizer hyper-parameters);
+nothing is ever unpickled. Progress goes to ``<out>/log.csv`` (one row per logged step).
+
+Example (the shipped run, see docs/model_card_raytun3r_da3_tiny.md)::
+
+    python scripts/train_default_network.py --out runs/da3_tiny --n-seq 300 --steps 2800 \
+        --warmup 100 --w-pose 2 --threads 1 --ckpt-every 100 --log-every 20 \
+        --export raytun3r_plugin/data/raytun3r-da3-tiny.safetensors
+    (the same command again resumes an interrupted run from its last checkpoint)
+
+Smoke test::
+
+    python scripts/train_default_network.py --out /tmp/smoke --steps 2 --tiny
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+TRAIN_SEED_BASE = 10_000  # training scenes use seeds TRAIN_SEED_BASE + k; held-out ones are below 10_000
+MODEL_KWARGS = dict(
+    embed_dim=128,
+    depth=6,
+    num_heads=4,
+    alt_start=2,
+    out_layers=[2, 3, 4, 5],
+    head_features=32,
+    head_channels=[16, 32, 64, 64],
+    seed=0,
+)
+TINY_KWARGS = dict(
+    embed_dim=32, depth=4, num_heads=2, alt_start=2, out_layers=[0, 1, 2, 3],
+    head_features=8, head_channels=[8, 8, 16, 16], seed=0,
+)
+
+
+def log(msg: str) -> None:
+    print(time.strftime("%H:%M:%S"), msg, flush=True)
+
+
+# ----------------------------------------------------------------------------------------------
+# Data
+# ----------------------------------------------------------------------------------------------
+
+
+def pinhole_camera(size: int, fov_deg: float):
+    """Square pinhole camera of ``size`` px with horizontal = vertical field of view ``fov_deg``."""
+    from raytun3r_plugin.cameras import Pinhole
+
+    f = (size / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
+    c = (size - 1) / 2.0  # pixel centres at integers (DESIGN.md section 2)
+    return Pinhole(size, size, {"fx": f, "fy": f, "cx": c, "cy": c})
+
+
+def sequence_spec(seed: int, outdoor_fraction: float = 0.3) -> dict:
+    """Deterministic rendering parameters of scene ``seed``."""
+    rng = np.random.default_rng([int(seed), 77])
+    return {
+        "kind": "outdoor" if rng.uniform() < outdoor_fraction else "indoor",
+        "fov": float(rng.uniform(50.0, 90.0)),
+        "flow_px": float(rng.uniform(6.0, 14.0)),
+    }
+
+
+def render_one(seed: int, size: int, n_frames: int) -> dict:
+    """One pinhole sequence as plain arrays (images uint8, z-depth with 0 = invalid/sky)."""
+    from raytun3r_plugin.synthetic import render_sequence
+
+    spec = sequence_spec(seed)
+    cam = pinhole_camera(size, spec["fov"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        seq = render_sequence(spec["kind"], cam, n_frames=n_frames, seed=seed, flow_px=spec["flow_px"], supersample=2)
+    z = seq.meta["per_frame"]["z_depth"].astype(np.float32)
+    valid = seq.mask & ~seq.meta["per_frame"]["sky"] & (z > 0)
+    return {
+        "images": np.clip(np.round(seq.images * 255.0), 0, 255).astype(np.uint8),
+        "depth": np.where(valid, z, 0.0).astype(np.float32),
+        "poses": seq.cam_from_world.astype(np.float64),
+        "fov": spec["fov"],
+    }
+
+
+def build_dataset(path: Path, n_seq: int, size: int, n_frames: int, seed_base: int) -> dict:
+    """Render ``n_seq`` sequences (or read the cached file when it matches)."""
+    meta = {"n_seq": n_seq, "size": size, "n_frames": n_frames, "seed_base": seed_base, "version": 1}
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as data:
+            if json.loads(str(data["meta"])) == meta:
+                log(f"training set: cached {path}")
+                return {k: data[k] for k in ("images", "depth", "poses", "fov")}
+    log(f"rendering {n_seq} sequences x {n_frames} frames at {size} px ...")
+    t0 = time.time()
+    images = np.zeros((n_seq, n_frames, size, size, 3), np.uint8)
+    depth = np.zeros((n_seq, n_frames, size, size), np.float32)
+    poses = np.zeros((n_seq, n_frames, 4, 4), np.float64)
+    fov = np.zeros(n_seq, np.float64)
+    for k in range(n_seq):
+        r = render_one(seed_base + k, size, n_frames)
+        images[k], depth[k], poses[k], fov[k] = r["images"], r["depth"], r["poses"], r["fov"]
+        if (k + 1) % 50 == 0:
+            log(f"  rendered {k + 1}/{n_seq} ({time.time() - t0:.0f} s)")
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, images=images, depth=depth, poses=poses, fov=fov, meta=np.array(json.dumps(meta)))
+    os.replace(tmp, path)
+    log(f"training set rendered in {time.time() - t0:.0f} s -> {path}")
+    return {"images": images, "depth": depth, "poses": poses, "fov": fov}
+
+
+_FLIP = np.diag([-1.0, 1.0, 1.0, 1.0])
+
+
+def make_batch(data: dict, seed: int, step: int, batch: int, views: int, max_gap: int) -> dict:
+    """Batch ``step``: ``batch`` samples of ``views`` frames each (a pure function of seed, step).
+
+    Each sample: a random sequence, an ordered frame subset (gaps 1..max_gap, random direction),
+    random horizontal flip (pose conjugated by diag(-1, 1, 1)) and a mild colour jitter.
+    """
+    rng = np.random.default_rng([int(seed), int(step), 5])
+    n_seq, n_frames, size = data["images"].shape[:3]
+    imgs, deps, poses, fovs = [], [], [], []
+    for _ in range(batch):
+        s = int(rng.integers(n_seq))
+        idx = [int(rng.integers(n_frames))]
+        direction = 1 if rng.uniform() < 0.5 else -1
+        for _v in range(views - 1):
+            nxt = idx[-1] + direction * int(rng.integers(1, max_gap + 1))
+            if not 0 <= nxt < n_frames:
+                direction = -direction
+                nxt = idx[-1] + direction * int(rng.integers(1, max_gap + 1))
+                nxt = int(np.clip(nxt, 0, n_frames - 1))
+            idx.append(nxt)
+        im = data["images"][s, idx].astype(np.float32) / 255.0
+        de = data["depth"][s, idx]
+        po = data["poses"][s, idx]
+        if rng.uniform() < 0.5:
+            im, de = im[:, :, ::-1], de[:, :, ::-1]
+            po = _FLIP @ po @ _FLIP
+        gain = rng.uniform(0.8, 1.2, size=3).astype(np.float32)
+        bias = np.float32(rng.uniform(-0.05, 0.05))
+        im = np.clip(im * gain + bias, 0.0, 1.0)
+        imgs.append(np.ascontiguousarray(im))
+        deps.append(np.ascontiguousarray(de))
+        poses.append(po)
+        fovs.append(data["fov"][s])
+    return {
+        "images": torch.from_numpy(np.stack(imgs)).permute(0, 1, 4, 2, 3).contiguous(),  # B,S,3,H,W
+        "depth": torch.from_numpy(np.stack(deps)),  # B,S,H,W z-depth, 0 = invalid
+        "cam_from_world": torch.from_numpy(np.stack(poses)),  # B,S,4,4 float64
+        "fov": torch.tensor(fovs, dtype=torch.float64),  # B
+    }
+
+
+# ----------------------------------------------------------------------------------------------
+# Targets and losses
+# ----------------------------------------------------------------------------------------------
+
+
+def relative_c2w(cam_from_world: torch.Tensor) -> torch.Tensor:
+    """``world_from_cam`` of every view with the world = the first view: ``T_0 inv(T_k)``."""
+    inv = torch.linalg.inv(cam_from_world)
+    return cam_from_world[:, :1] @ inv
+
+
+def targets(batch: dict) -> dict:
+    """Normalised depth, c2w poses (first view = identity) and ray maps for a batch."""
+    depth = batch["depth"].float()
+    B, S, H, W = depth.shape
+    valid = depth > 0
+    scale = torch.stack(
+        [depth[b, 0][valid[b, 0]].median() if valid[b, 0].any() else depth.new_tensor(1.0) for b in range(B)]
+    ).clamp(min=1e-3)
+    c2w = relative_c2w(batch["cam_from_world"])  # float64
+    c2w[..., :3, 3] /= scale.double()[:, None, None]
+    fov = torch.deg2rad(batch["fov"])
+    focal = (W / 2.0) / torch.tan(fov / 2.0)
+    return {
+        "depth": depth / scale[:, None, None, None],
+        "valid": valid,
+        "c2w": c2w.float(),
+        "fov": fov.float(),
+        "focal": focal.float(),
+        "scale": scale,
+    }
+
+
+def ray_targets(tg: dict, h_r: int, w_r: int, H: int, W: int) -> torch.Tensor:
+    """(B, S, h_r, w_r, 6): world (= first view) direction ``R K^-1 (u, v, 1)`` and centre."""
+    c2w, f = tg["c2w"], tg["focal"]
+    u = (torch.arange(w_r, dtype=torch.float32) + 0.5) * (W / w_r) - 0.5
+    v = (torch.arange(h_r, dtype=torch.float32) + 0.5) * (H / h_r) - 0.5
+    vv, uu = torch.meshgrid(v, u, indexing="ij")
+    cx, cy = (W - 1) / 2.0, (H - 1) / 2.0
+    fb = f[:, None, None]
+    x, y = (uu - cx) / fb, (vv - cy) / fb  # B,h,w
+    d_cam = torch.stack([x, y, torch.ones_like(x)], -1)  # B,h,w,3
+    R = c2w[..., :3, :3]  # B,S,3,3
+    d = torch.einsum("bsij,bhwj->bshwi", R, d_cam)
+    o = c2w[..., :3, 3][:, :, None, None, :].expand_as(d)
+    return torch.cat([d, o], -1)
+
+
+def forward_train(model, images: torch.Tensor) -> tuple[dict, torch.Tensor]:
+    """The network's own forward, split to keep DualDPT's ray map and the raw pose encoding."""
+    from raytun3r_plugin.prediction import imagenet_normalise
+
+    H, W = images.shape[-2:]
+    feats, _ = model.backbone(imagenet_normalise(images), cam_token=None, export_feat_layers=[])
+    out = model.head(feats, H, W, patch_start_idx=0)
+    pose_enc = model.cam_dec(feats[-1][1])
+    return out, pose_enc
+
+
+def losses(out: dict, pose_enc: torch.Tensor, tg: dict, weights: dict) -> dict:
+    from depth_anything_3.model.utils.transform import pose_encoding_to_extri_intri
+
+    pred, gt, valid = out["depth"], tg["depth"], tg["valid"]
+    H, W = pred.shape[-2:]
+    n = valid.sum(dim=(-1, -2)).clamp(min=1)
+    diff = torch.where(valid, torch.log(pred.clamp(min=1e-6)) - torch.log(gt.clamp(min=1e-6)), torch.zeros_like(pred))
+    mean = diff.sum(dim=(-1, -2)) / n
+    l_si = (torch.where(valid, (diff - mean[..., None, None]).abs(), torch.zeros_like(diff)).sum(dim=(-1, -2)) / n).mean()
+    l_abs = (diff.abs().sum(dim=(-1, -2)) / n).mean()
+    conf = out["depth_conf"]
+    err = diff.abs().detach()
+    l_conf = (torch.where(valid, conf * err - 0.05 * torch.log(conf), torch.zeros_like(conf)).sum(dim=(-1, -2)) / n).mean()
+
+    ray = out["ray"]  # B,S,h,w,6
+    ray_gt = ray_targets(tg, ray.shape[2], ray.shape[3], H, W)
+    l_ray = (ray - ray_gt).abs().mean()
+
+    c2w_pred, _ = pose_encoding_to_extri_intri(pose_enc, (H, W))  # B,S,3,4 world_from_cam
+    R_p, t_p = c2w_pred[..., :3, :3], c2w_pred[..., :3, 3]
+    R_g, t_g = tg["c2w"][..., :3, :3], tg["c2w"][..., :3, 3]
+    l_rot = (R_p - R_g).pow(2).sum(dim=(-1, -2)).add(1e-8).sqrt().mean()
+    l_trans = (t_p - t_g).abs().sum(-1).mean()
+    l_fov = (pose_enc[..., 7:9] - tg["fov"][:, None, None]).abs().mean()
+    total = (
+        weights["depth"] * (l_si + 0.25 * l_abs)
+        + weights["conf"] * l_conf
+        + weights["ray"] * l_ray
+        + weights["pose"] * (l_rot + l_trans + 0.5 * l_fov)
+    )
+    with torch.no_grad():
+        from raytun3r_plugin.metrics import rotation_error_deg
+
+        rot_deg = rotation_error_deg(R_p[:, 1:].double(), R_g[:, 1:].double()).mean()
+        rot_gt_deg = rotation_error_deg(torch.eye(3, dtype=torch.float64).expand_as(R_g[:, 1:]), R_g[:, 1:].double()).mean()
+    return {
+        "loss": total, "depth_si": l_si, "depth_abs": l_abs, "conf": l_conf, "ray": l_ray,
+        "rot": l_rot, "trans": l_trans, "fov": l_fov, "rot_deg": rot_deg, "rot_gt_deg": rot_gt_deg,
+    }
+
+
+# ----------------------------------------------------------------------------------------------
+# Checkpoints (safetensors + JSON, never pickle)
+# ----------------------------------------------------------------------------------------------
+
+
+def save_checkpoint(out: Path, model, opt, step: int, args: dict) -> None:
+    from safetensors.torch import save_file, save_model
+
+    tmp = out / "checkpoint.tmp.safetensors"
+    save_model(model, str(tmp))
+    os.replace(tmp, out / "checkpoint.safetensors")
+    names = {id(p): name for name, p in model.named_parameters()}
+    tensors = {}
+    for group in opt.param_groups:
+        for p in group["params"]:
+            st = opt.state.get(p)
+            if not st:
+                continue
+            for key, value in st.items():
+                tensors[f"{names[id(p)]}::{key}"] = value.detach().clone().contiguous()
+    tmp = out / "optimizer.tmp.safetensors"
+    save_file(tensors, str(tmp))
+    os.replace(tmp, out / "optimizer.safetensors")
+    hyper = [{k: v for k, v in g.items() if k != "params"} for g in opt.param_groups]
+    tmp = out / "checkpoint.tmp.json"
+    tmp.write_text(json.dumps({"step": step, "args": args, "param_groups": hyper}, indent=1, default=list))
+    os.replace(tmp, out / "checkpoint.json")
+
+
+def load_checkpoint(out: Path, model, opt) -> int:
+    from raytun3r_plugin.patches.da3 import load_weights
+    from safetensors.torch import load_file
+
+    meta = json.loads((out / "checkpoint.json").read_text())
+    load_weights(model, out / "checkpoint.safetensors")
+    state = load_file(str(out / "optimizer.safetensors"))
+    params = dict(model.named_parameters())
+    for key, value in state.items():
+        name, field = key.split("::")
+        opt.state[params[name]][field] = value
+    for group, saved in zip(opt.param_groups, meta["param_groups"], strict=True):
+        group.update({k: (tuple(v) if isinstance(v, list) else v) for k, v in saved.items()})
+    return int(meta["step"])
+
+
+def lr_at(step: int, total: int, base: float, warmup: int) -> float:
+    if step < warmup:
+        return base * (step + 1) / warmup
+    p = (step - warmup) / max(1, total - warmup)
+    return base * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * min(1.0, p))))
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", required=True, help="run directory (checkpoints, log.csv, cached data)")
+    ap.add_argument("--steps", type=int, default=900)
+    ap.add_argument("--batch", type=int, default=4, help="samples (sequences) per step")
+    ap.add_argument("--views", type=int, default=2, help="views per sample")
+    ap.add_argument("--size", type=int, default=112, help="square input size (multiple of 14)")
+    ap.add_argument("--n-seq", type=int, default=400, help="training sequences to render")
+    ap.add_argument("--n-frames", type=int, default=5, help="frames per training sequence")
+    ap.add_argument("--max-gap", type=int, default=3, help="largest frame gap inside a sample")
+    ap.add_argument("--lr", type=float, default=4e-4)
+    ap.add_argument("--warmup", type=int, default=40)
+    ap.add_argument("--weight-decay", type=float, default=0.02)
+    ap.add_argument("--w-depth", type=float, default=1.0)
+    ap.add_argument("--w-conf", type=float, default=0.1)
+    ap.add_argument("--w-ray", type=float, default=1.0)
+    ap.add_argument("--w-pose", type=float, default=1.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--ckpt-every", type=int, default=50)
+    ap.add_argument("--log-every", type=int, default=5)
+    ap.add_argument("--stop-after", type=int, default=None, help="stop (after checkpointing) at this step; the schedule still targets --steps")
+    ap.add_argument("--tiny", action="store_true", help="a very small network (smoke tests)")
+    ap.add_argument("--export", default=None, help="after training, write weights + kwargs JSON to this .safetensors path")
+    return ap.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    torch.set_num_threads(args.threads)
+    warnings.filterwarnings("ignore")
+    from raytun3r_plugin.patches.da3 import build_tiny_network
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    kwargs = dict(TINY_KWARGS if args.tiny else MODEL_KWARGS)
+    kwargs["seed"] = args.seed
+    record = {k: v for k, v in vars(args).items() if k not in ("out", "stop_after", "export", "threads")}
+    if (out / "checkpoint.json").is_file():
+        saved = json.loads((out / "checkpoint.json").read_text())["args"]
+        if saved != record:
+            raise SystemExit(f"{out} holds a run with other arguments: {saved} != {record}")
+    data = build_dataset(out / "train_data.npz", args.n_seq, args.size, args.n_frames, TRAIN_SEED_BASE)
+    model = build_tiny_network(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in kwargs.items()}).train()
+    n_params = sum(p.numel() for p in model.parameters())
+    decay = [p for n, p in model.named_parameters() if p.ndim >= 2 and "pos_embed" not in n and "token" not in n]
+    no_decay = [p for n, p in model.named_parameters() if not (p.ndim >= 2 and "pos_embed" not in n and "token" not in n)]
+    opt = torch.optim.AdamW(
+        [{"params": decay, "weight_decay": args.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
+        lr=args.lr, betas=(0.9, 0.99),
+    )
+    step = 0
+    if (out / "checkpoint.json").is_file():
+        step = load_checkpoint(out, model, opt)
+        log(f"resumed from step {step}")
+    log(f"network: {n_params / 1e6:.3f} M parameters, kwargs {kwargs}")
+    weights = {"depth": args.w_depth, "conf": args.w_conf, "ray": args.w_ray, "pose": args.w_pose}
+    log_path = out / "log.csv"
+    fields = ["step", "time_s", "lr", "loss", "depth_si", "depth_abs", "conf", "ray", "rot", "trans", "fov", "rot_deg", "rot_gt_deg"]
+    if not log_path.is_file():
+        with log_path.open("w", newline="") as fh:
+            csv.writer(fh).writerow(fields)
+    stop = args.steps if args.stop_after is None else min(args.steps, args.stop_after)
+    t0 = time.time()
+    acc: dict[str, float] = {}
+    n_acc = 0
+    while step < stop:
+        lr = lr_at(step, args.steps, args.lr, args.warmup)
+        for g in opt.param_groups:
+            g["lr"] = lr
+        batch = make_batch(data, args.seed, step, args.batch, args.views, args.max_gap)
+        tg = targets(batch)
+        out_d, pose_enc = forward_train(model, batch["images"])
+        ls = losses(out_d, pose_enc, tg, weights)
+        if not torch.isfinite(ls["loss"]):
+            raise SystemExit(f"non-finite loss at step {step}: { {k: float(v) for k, v in ls.items()} }")
+        opt.zero_grad(set_to_none=True)
+        ls["loss"].backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        step += 1
+        for k, v in ls.items():
+            acc[k] = acc.get(k, 0.0) + float(v)
+        n_acc += 1
+        if step % args.log_every == 0 or step == stop:
+            row = {k: acc[k] / n_acc for k in acc}
+            with log_path.open("a", newline="") as fh:
+                csv.writer(fh).writerow(
+                    [step, f"{time.time() - t0:.1f}", f"{lr:.3g}"] + [f"{row[k]:.5f}" for k in fields[3:]]
+                )
+            log(
+                f"step {step}/{args.steps} loss {row['loss']:.4f} si {row['depth_si']:.4f} ray {row['ray']:.4f} "
+                f"rot {row['rot_deg']:.2f}/{row['rot_gt_deg']:.2f} deg trans {row['trans']:.3f} "
+                f"({(time.time() - t0) / max(1, n_acc):.2f} s/step)"
+            )
+            acc, n_acc = {}, 0
+            t0 = time.time()
+        if step % args.ckpt_every == 0 or step == stop:
+            save_checkpoint(out, model, opt, step, record)
+    if args.export and step >= args.steps:
+        export(model, kwargs, Path(args.export), {"steps": step, "args": record})
+    return 0
+
+
+def export(model, kwargs: dict, path: Path, training: dict) -> None:
+    """Write the shipped weights (safetensors, float32) and the build-kwargs JSON next to them."""
+    from safetensors.torch import save_model
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    save_model(model.eval(), str(tmp), metadata={"format": "raytun3r-da3-tiny", "build_kwargs": json.dumps(kwargs)})
+    os.chmod(tmp, 0o644)  # a package data file: world-readable
+    os.replace(tmp, path)
+    side = path.with_suffix(".json")
+    side.write_text(json.dumps({"build_kwargs": kwargs, "training": training}, indent=1) + "\n")
+    log(f"exported {path} ({path.stat().st_size / 1e6:.2f} MB) and {side}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
