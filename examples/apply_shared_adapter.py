@@ -21,7 +21,7 @@ def main() -> None:
     parser.add_argument("--adapter", required=True)
     parser.add_argument("--backbone", help="backbone name (default: the built-in network)")
     parser.add_argument("--weights", help="local weight file of --backbone")
-    parser.add_argument("--size", type=int, default=140, help="network input long side (px)")
+    parser.add_argument("--size", type=int, default=112, help="network input long side (px)")
     args = parser.parse_args()
 
     model = rt.load_backbone(args.backbone, args.weights) if args.backbone else default_network()[0]

@@ -17,7 +17,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--adapter", required=True)
     parser.add_argument("--frames", type=int, default=12)
-    parser.add_argument("--size", type=int, default=140)
+    parser.add_argument("--size", type=int, default=112)
     args = parser.parse_args()
 
     model = default_network()[0]

@@ -12,7 +12,7 @@ import argparse
 import raytun3r_plugin as rt
 from raytun3r_plugin import cameras, synthetic
 from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
-from raytun3r_plugin.demo import default_network, demo_camera
+from raytun3r_plugin.demo import POSE_SOURCE, default_network, demo_camera
 from raytun3r_plugin.images import read_frames
 
 
@@ -23,7 +23,7 @@ def main() -> None:
     parser.add_argument("--camera", help="calibration file of the frames")
     parser.add_argument("--backbone", help="backbone name (default: the built-in network)")
     parser.add_argument("--weights", help="local weight file of --backbone")
-    parser.add_argument("--size", type=int, default=140, help="network input long side (px)")
+    parser.add_argument("--size", type=int, default=112, help="network input long side (px)")
     parser.add_argument("--steps", type=int, default=150)
     parser.add_argument("--n-frames", type=int, default=24)
     args = parser.parse_args()
@@ -35,7 +35,8 @@ def main() -> None:
     else:
         camera = demo_camera(args.size)
         frames = synthetic.render_sequence("indoor", camera, n_frames=args.n_frames, seed=7).images
-    config = AdaptConfig(steps=args.steps, input_size=args.size, seed=0)
+    # The built-in network's pose head is at chance: take relative poses from MAGSAC++ targets.
+    config = AdaptConfig(steps=args.steps, input_size=args.size, seed=0, pose_source="model" if args.backbone else POSE_SOURCE)
     adapter = adapt(model, camera, frames, config, out_path=args.out, progress=False)
     print(f"saved {args.out}: {adapter.num_parameters()['total']:,} parameters, final losses {adapter.training_info.get('final_losses')}")
 

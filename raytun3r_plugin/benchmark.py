@@ -14,6 +14,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from raytun3r_plugin.demo import POSE_SOURCE
 from raytun3r_plugin.evaluation import format_table, headline, run_method, score
 
 HELD_OUT_SEED = 90_000  # training of the default network uses seeds far below this
@@ -56,7 +57,7 @@ def make_camera(spec: BenchCamera, size: int):
     return DoubleSphere(size, size, {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "xi": xi, "alpha": alpha}, max_fov_deg=spec.fov_deg)
 
 
-def run_benchmark(model, out_dir: str | Path, *, size: int = 140, n_adapt: int = 24, n_eval: int = 12, steps: int = 150, cameras=CAMERAS, scenes=SCENES, network: str = "", progress: bool = False) -> str:
+def run_benchmark(model, out_dir: str | Path, *, size: int = 112, n_adapt: int = 24, n_eval: int = 12, steps: int = 150, cameras=CAMERAS, scenes=SCENES, network: str = "", progress: bool = False) -> str:
     """Run every (camera, scene) and return the markdown table (also written to ``out_dir``)."""
     from raytun3r_plugin import synthetic
     from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
@@ -72,7 +73,7 @@ def run_benchmark(model, out_dir: str | Path, *, size: int = 140, n_adapt: int =
             held_out = list(range(n_adapt, len(seq)))
             for method in ("vanilla", "center-ph"):
                 rows.append({"camera": spec.label, "scene": scene, "method": method, **headline(score(seq, run_method(model, seq, method, frames=held_out))), "adapt_s": math.nan})
-            config = AdaptConfig(steps=steps, input_size=size, n_windows=30, seed=0, checkpoint_every=0)
+            config = AdaptConfig(steps=steps, input_size=size, n_windows=30, seed=0, checkpoint_every=0, pose_source=POSE_SOURCE)
             start = time.perf_counter()
             adapter = adapt(model, camera, seq.images[:n_adapt], config, out_path=out / f"{spec.label.replace(' ', '_')}_{scene}.safetensors", resume=False, progress=progress)
             seconds = time.perf_counter() - start
