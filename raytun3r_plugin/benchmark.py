@@ -57,7 +57,7 @@ def make_camera(spec: BenchCamera, size: int):
     return DoubleSphere(size, size, {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "xi": xi, "alpha": alpha}, max_fov_deg=spec.fov_deg)
 
 
-def run_benchmark(model, out_dir: str | Path, *, size: int = 112, n_adapt: int = 24, n_eval: int = 12, steps: int = 150, cameras=CAMERAS, scenes=SCENES, network: str = "", progress: bool = False) -> str:
+def run_benchmark(model, out_dir: str | Path, *, size: int = 112, n_adapt: int = 24, n_eval: int = 12, steps: int = 300, cameras=CAMERAS, scenes=SCENES, network: str = "", progress: bool = False) -> str:
     """Run every (camera, scene) and return the markdown table (also written to ``out_dir``)."""
     from raytun3r_plugin import synthetic
     from raytun3r_plugin.adaptation.train import AdaptConfig, adapt

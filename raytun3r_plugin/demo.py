@@ -53,7 +53,7 @@ def run_demo(args: argparse.Namespace) -> int:
 
     started = time.perf_counter()
     size = args.size or 112  # the default network's training resolution
-    steps = args.steps if args.steps is not None else 150
+    steps = args.steps if args.steps is not None else 300
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     model, description = default_network()
