@@ -83,3 +83,21 @@ def fail_install_at(monkeypatch, call: int = 3) -> dict:
 
     monkeypatch.setattr(patching, "_install", flaky_install)
     return calls
+
+
+def outputs_from_threads(models: dict, images, repeats: int = 1) -> dict:
+    """Run ``outputs`` for every named model, each in its own thread at the same time."""
+    import threading
+
+    results = {}
+
+    def run(name, model):
+        for _ in range(repeats):
+            results[name] = outputs(model, images)
+
+    threads = [threading.Thread(target=run, args=item) for item in models.items()]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    return results

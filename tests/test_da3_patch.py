@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import inspect
-import threading
 
 import pytest
 import torch
@@ -23,6 +22,7 @@ from tests.helpers import (
     fisheye,
     max_relative_difference,
     outputs,
+    outputs_from_threads,
     pinhole,
     randomise_,
     snapshot,
@@ -200,17 +200,7 @@ def test_two_models_different_cameras_side_by_side(images):
         assert max_relative_difference(alone_a, outputs(net_a, images)) == 0.0
         assert max_relative_difference(alone_b, outputs(net_b, images)) == 0.0
         assert max_relative_difference(plain, outputs(other, images)) == 0.0  # untouched instance
-        results = {}
-
-        def run(name, model):
-            for _ in range(3):
-                results[name] = outputs(model, images)
-
-        threads = [threading.Thread(target=run, args=("a", net_a)), threading.Thread(target=run, args=("b", net_b))]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
+        results = outputs_from_threads({"a": net_a, "b": net_b}, images, repeats=3)
     assert max_relative_difference(alone_a, results["a"]) == 0.0
     assert max_relative_difference(alone_b, results["b"]) == 0.0
 

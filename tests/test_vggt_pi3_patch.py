@@ -13,7 +13,6 @@ import gc
 import importlib
 import inspect
 import sys
-import threading
 from functools import partial
 
 import pytest
@@ -31,6 +30,7 @@ from tests.helpers import (
     fisheye,
     max_relative_difference,
     outputs,
+    outputs_from_threads,
     pinhole,
     randomise_,
     snapshot,
@@ -404,16 +404,7 @@ def test_two_models_different_cameras_side_by_side(kind, images):
         assert max_relative_difference(alone_b, outputs(net_b, images)) == 0.0
         assert max_relative_difference(plain, outputs(bystander, images)) == 0.0  # untouched instance
         assert not any(attribute in vars(module) for module in bystander.modules() for attribute in ("forward", "interpolate_pos_encoding", "_apply_pos_embed"))
-        results = {}
-
-        def run(name, model):
-            results[name] = outputs(model, images)
-
-        threads = [threading.Thread(target=run, args=("a", net_a)), threading.Thread(target=run, args=("b", net_b))]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
+        results = outputs_from_threads({"a": net_a, "b": net_b}, images, repeats=1)
     assert max_relative_difference(alone_a, results["a"]) == 0.0
     assert max_relative_difference(alone_b, results["b"]) == 0.0
 
