@@ -259,6 +259,22 @@ def test_other_model_instances_are_untouched(images):
         assert "interpolate_pos_encoding" not in vars(bystander.backbone.pretrained)
 
 
-def test_da3_wrapper_is_accepted_when_it_imports():
+def test_da3_wrapper_is_unwrapped_to_its_network(net, images):
+    """The ``depth_anything_3.api.DepthAnything3`` wrapper keeps the network at ``.model``."""
+    wrapper_class = type("DepthAnything3", (torch.nn.Module,), {"__module__": "depth_anything_3.api"})
+    wrapper = wrapper_class()
+    wrapper.model = net
+    reference = outputs(net, images)
+    with rt.apply(wrapper, fisheye(W, H), randomise_(rt.Adapter.for_model(wrapper))) as handle:
+        assert handle.root is net and rt.handle_of(wrapper) is handle
+        assert max_relative_difference(reference, outputs(net, images)) > 1e-4
+        with pytest.raises(AlreadyAppliedError):  # the inner network is already wrapped
+            rt.apply(net, fisheye(W, H))
+    assert max_relative_difference(reference, outputs(net, images)) == 0.0
+
+
+def test_real_da3_wrapper_when_it_imports():
     api = pytest.importorskip("depth_anything_3.api", reason="depth_anything_3.api needs moviepy, not installed here", exc_type=ImportError)
-    assert hasattr(api, "DepthAnything3")
+    wrapper = api.DepthAnything3(model_name="da3-small")
+    with rt.apply(wrapper, fisheye(W, H)) as handle:
+        assert handle.root is wrapper.model
