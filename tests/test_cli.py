@@ -90,3 +90,12 @@ def test_bench_quick(tmp_path, capsys):
     for method in ("vanilla", "center-ph", "raytun3r"):
         assert f"| {method} |" in out
     assert (tmp_path / "results.md").is_file()
+
+
+def test_demo_runs_on_the_built_in_default(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path), "--steps", "3", "--size", "84"]) == 0
+    out = capsys.readouterr().out
+    assert "raytun3r-da3-tiny" in out and "trained by raytun3r on pinhole renders only" in out
+    for label in ("vanilla (unpatched)", "Center-PH", "raytun3r, no adapter", "raytun3r, adapted (3 steps"):
+        assert label in out
+    assert (tmp_path / "adapter.safetensors").is_file() and (tmp_path / "metrics.json").is_file()
