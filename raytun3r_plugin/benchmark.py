@@ -33,6 +33,7 @@ CAMERAS = (
     BenchCamera("DS 195", "ds", 195.0),
 )
 SCENES = ("indoor", "outdoor")
+ZERO_ADAPTER = "raytun3r, no adapter"
 COLUMNS = ["camera", "scene", "method", "rot_deg", "trans_deg", "d_reproj_px", "abs_rel", "delta_1.25", "coverage", "adapt_s"]
 
 
@@ -73,6 +74,10 @@ def run_benchmark(model, out_dir: str | Path, *, size: int = 112, n_adapt: int =
             held_out = list(range(n_adapt, len(seq)))
             for method in ("vanilla", "center-ph"):
                 rows.append({"camera": spec.label, "scene": scene, "method": method, **headline(score(seq, run_method(model, seq, method, frames=held_out))), "adapt_s": math.nan})
+            # The patch with a zero adapter: the parameter-free corrections alone, so the table
+            # shows what the fitted tables add on top of them.
+            zero = headline(score(seq, run_method(model, seq, "raytun3r", frames=held_out)))
+            rows.append({"camera": spec.label, "scene": scene, "method": ZERO_ADAPTER, **zero, "adapt_s": math.nan})
             config = AdaptConfig(steps=steps, input_size=size, n_windows=30, seed=0, checkpoint_every=0, pose_source=POSE_SOURCE)
             start = time.perf_counter()
             adapter = adapt(model, camera, seq.images[:n_adapt], config, out_path=out / f"{spec.label.replace(' ', '_')}_{scene}.safetensors", resume=False, progress=progress)
@@ -85,7 +90,8 @@ def run_benchmark(model, out_dir: str | Path, *, size: int = 112, n_adapt: int =
         f"(30 windows, {steps} steps) and {n_eval} held-out frames per sequence; seeds from {HELD_OUT_SEED}.\n"
         "rot/trans: mean relative-pose errors (deg, signed translation direction) on consecutive held-out pairs; "
         "d_reproj: mean px with GT pose and a robust per-pair scale; AbsRel, delta<1.25: per-image median scale, "
-        "range depth, sky excluded; coverage: fraction of the fisheye's valid pixels with a depth; adapt_s: wall time of adaptation.\n"
+        "range depth, sky excluded; coverage: fraction of the fisheye's valid pixels with a depth; adapt_s: wall time of adaptation; "
+        f"'{ZERO_ADAPTER}': the patch without fitting (parameter-free corrections only).\n"
     )
     (out / "results.md").write_text(header + "\n" + table + "\n")
     (out / "results.json").write_text(json.dumps(rows, indent=2, default=float))

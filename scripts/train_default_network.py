@@ -15,7 +15,13 @@ Supervision (all in the frame of the first view of a sample, DA3's convention):
 * rays: DualDPT's auxiliary 6-channel ray map (direction ``R_c2w K^-1 (u, v, 1)`` and camera
   centre, both in the first view's frame; translation in the normalised scale), L1;
 * pose: the camera decoder's 9-number encoding (translation, quaternion, field of view) decoded
-  with DA3's own ``pose_encoding_to_extri_intri``: chordal rotation loss, L1 translation, L1 fov.
+  with DA3's own ``pose_encoding_to_extri_intri``: chordal rotation loss, L1 translation, L1 fov,
+  plus (``--w-quat``) an L1 loss on the raw quaternion, which keeps its norm at 1.
+
+``--pe-std`` starts the absolute PE table as a low-frequency 2D sin-cos map instead of DA3's
+zeros (or the builder's tiny random init): a network trained from scratch otherwise learns to
+ignore absolute position, and then the PE adapter has nothing to act on
+(``benchmarks/leverage.py`` measures this).
 
 Phases: (1) render a training set into ``<out>/train_data.npz`` (re-used when it exists and
 matches the arguments), (2) train. Every batch is a pure function of (seed, step), so a run is
@@ -26,9 +32,9 @@ nothing is ever unpickled. Progress goes to ``<out>/log.csv`` (one row per logge
 
 Example (the shipped run, see docs/model_card_raytun3r_da3_tiny.md)::
 
-    python scripts/train_default_network.py --out runs/da3_tiny --n-seq 300 --steps 2800 \
-        --warmup 100 --w-pose 2 --threads 1 --ckpt-every 100 --log-every 20 \
-        --export raytun3r_plugin/data/raytun3r-da3-tiny.safetensors
+    python scripts/train_default_network.py --out runs/da3_tiny --n-seq 300 --steps 6000 \
+        --warmup 100 --w-pose 2 --w-quat 10 --pe-std 0.5 --threads 1 --ckpt-every 200 \
+        --log-every 50 --export raytun3r_plugin/data/raytun3r-da3-tiny.safetensors
     (the same command again resumes an interrupted run from its last checkpoint)
 
 Smoke test::
@@ -269,11 +275,17 @@ def losses(out: dict, pose_enc: torch.Tensor, tg: dict, weights: dict) -> dict:
     l_rot = (R_p - R_g).pow(2).sum(dim=(-1, -2)).add(1e-8).sqrt().mean()
     l_trans = (t_p - t_g).abs().sum(-1).mean()
     l_fov = (pose_enc[..., 7:9] - tg["fov"][:, None, None]).abs().mean()
+    # The decoder normalises the raw quaternion, so a loss on the rotation matrix alone lets its
+    # norm grow, which shrinks the gradient of the imaginary part and locks the head at the
+    # identity (all earlier runs: raw w about 9.5, rotation error = no-rotation error). A loss on
+    # the raw encoding, as VGGT's camera loss does, pins the norm to 1 and keeps that gradient.
+    l_quat = (pose_enc[..., 3:7] - quaternion_target(R_g)).abs().sum(-1).mean()
     total = (
         weights["depth"] * (l_si + 0.25 * l_abs)
         + weights["conf"] * l_conf
         + weights["ray"] * l_ray
         + weights["pose"] * (l_rot + l_trans + 0.5 * l_fov)
+        + weights["quat"] * l_quat
     )
     with torch.no_grad():
         from raytun3r_plugin.metrics import rotation_error_deg
@@ -282,8 +294,15 @@ def losses(out: dict, pose_enc: torch.Tensor, tg: dict, weights: dict) -> dict:
         rot_gt_deg = rotation_error_deg(torch.eye(3, dtype=torch.float64).expand_as(R_g[:, 1:]), R_g[:, 1:].double()).mean()
     return {
         "loss": total, "depth_si": l_si, "depth_abs": l_abs, "conf": l_conf, "ray": l_ray,
-        "rot": l_rot, "trans": l_trans, "fov": l_fov, "rot_deg": rot_deg, "rot_gt_deg": rot_gt_deg,
+        "rot": l_rot, "trans": l_trans, "fov": l_fov, "quat": l_quat, "rot_deg": rot_deg, "rot_gt_deg": rot_gt_deg,
     }
+
+
+def quaternion_target(rotation: torch.Tensor) -> torch.Tensor:
+    """(..., 4) unit quaternions (x, y, z, w; w >= 0, DA3's encoding order) of (..., 3, 3) rotations."""
+    from depth_anything_3.model.utils.transform import mat_to_quat
+
+    return mat_to_quat(rotation)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -331,6 +350,28 @@ def load_checkpoint(out: Path, model, opt) -> int:
     return int(meta["step"])
 
 
+def sincos_table(side: int, dim: int, std: float, max_cycles: float = 3.0) -> torch.Tensor:
+    """(side * side, dim) 2D sin-cos PE with 0.5..``max_cycles`` cycles across the image, scaled to ``std``.
+
+    A freshly built DA3 has an all-zero PE, and a small random one is ignored by a network trained
+    from scratch (it learns position from RoPE and content instead): the PE adapter would then have
+    nothing to correct. Starting from a map whose magnitude is comparable to the patch tokens, with
+    frequencies the 8x8 token grid of a 112 px input resolves, makes the network rely on absolute
+    position the way pretrained DINOv2 backbones do.
+    """
+    n_freq = dim // 4
+    cycles = torch.logspace(math.log10(0.5), math.log10(max_cycles), n_freq, dtype=torch.float64)
+    coords = (torch.arange(side, dtype=torch.float64) + 0.5) / side
+    yy, xx = torch.meshgrid(coords, coords, indexing="ij")
+    parts = []
+    for axis in (xx.reshape(-1), yy.reshape(-1)):
+        phase = 2 * math.pi * axis[:, None] * cycles[None, :]
+        parts += [torch.sin(phase), torch.cos(phase)]
+    table = torch.cat(parts, dim=1)
+    table = torch.nn.functional.pad(table, (0, dim - table.shape[1]))
+    return (table / table.std() * std).float()
+
+
 def lr_at(step: int, total: int, base: float, warmup: int) -> float:
     if step < warmup:
         return base * (step + 1) / warmup
@@ -358,6 +399,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--w-conf", type=float, default=0.1)
     ap.add_argument("--w-ray", type=float, default=1.0)
     ap.add_argument("--w-pose", type=float, default=1.0)
+    ap.add_argument("--w-quat", type=float, default=0.0, help="weight of the L1 loss on the raw quaternion of the pose encoding")
+    ap.add_argument("--pe-std", type=float, default=0.0, help="start the PE table as a low-frequency 2D sin-cos map of this std (0 = trunc-normal 0.02)")
+    ap.add_argument("--init", default=None, help="start from these weights (a stage-2 run); the optimizer starts fresh")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--ckpt-every", type=int, default=50)
@@ -385,6 +429,11 @@ def main(argv=None) -> int:
             raise SystemExit(f"{out} holds a run with other arguments: {saved} != {record}")
     data = build_dataset(out / "train_data.npz", args.n_seq, args.size, args.n_frames, TRAIN_SEED_BASE)
     model = build_tiny_network(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in kwargs.items()}).train()
+    if args.pe_std > 0:
+        with torch.no_grad():
+            table = model.backbone.pretrained.pos_embed
+            table[0, 1:] = sincos_table(int(round(math.sqrt(table.shape[1] - 1))), table.shape[2], args.pe_std)
+            table[0, :1] = 0.0
     n_params = sum(p.numel() for p in model.parameters())
     decay = [p for n, p in model.named_parameters() if p.ndim >= 2 and "pos_embed" not in n and "token" not in n]
     no_decay = [p for n, p in model.named_parameters() if not (p.ndim >= 2 and "pos_embed" not in n and "token" not in n)]
@@ -393,13 +442,18 @@ def main(argv=None) -> int:
         lr=args.lr, betas=(0.9, 0.99),
     )
     step = 0
+    if args.init and not (out / "checkpoint.json").is_file():
+        from raytun3r_plugin.patches.da3 import load_weights
+
+        load_weights(model, args.init)
+        log(f"initialised from {args.init}")
     if (out / "checkpoint.json").is_file():
         step = load_checkpoint(out, model, opt)
         log(f"resumed from step {step}")
     log(f"network: {n_params / 1e6:.3f} M parameters, kwargs {kwargs}")
-    weights = {"depth": args.w_depth, "conf": args.w_conf, "ray": args.w_ray, "pose": args.w_pose}
+    weights = {"depth": args.w_depth, "conf": args.w_conf, "ray": args.w_ray, "pose": args.w_pose, "quat": args.w_quat}
     log_path = out / "log.csv"
-    fields = ["step", "time_s", "lr", "loss", "depth_si", "depth_abs", "conf", "ray", "rot", "trans", "fov", "rot_deg", "rot_gt_deg"]
+    fields = ["step", "time_s", "lr", "loss", "depth_si", "depth_abs", "conf", "ray", "rot", "trans", "fov", "quat", "rot_deg", "rot_gt_deg"]
     if not log_path.is_file():
         with log_path.open("w", newline="") as fh:
             csv.writer(fh).writerow(fields)

@@ -87,7 +87,7 @@ def test_errors_are_reported_not_raised(setup, tmp_path, capsys):
 def test_bench_quick(tmp_path, capsys):
     assert main(["bench", "--quick", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    for method in ("vanilla", "center-ph", "raytun3r"):
+    for method in ("vanilla", "center-ph", "raytun3r, no adapter", "raytun3r"):
         assert f"| {method} |" in out
     assert (tmp_path / "results.md").is_file()
 

@@ -148,3 +148,53 @@ def test_training_smoke_run_resumes_exactly(tmp_path):
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
     rows = (a / "log.csv").read_text().strip().splitlines()
     assert rows[0].startswith("step,") and len(rows) == 3
+
+
+def test_quaternion_target_is_da3s_encoding_of_the_rotation():
+    train = _script("train_default_network")
+    from depth_anything_3.model.utils.transform import quat_to_mat
+
+    angles = torch.tensor([[0.0, 0.0, 0.0], [0.3, -0.2, 0.1], [2.5, 0.4, -1.0]], dtype=torch.float64)
+    def rot(a):
+        cx, cy, cz = torch.cos(a)
+        sx, sy, sz = torch.sin(a)
+        rx = torch.tensor([[1, 0, 0], [0, cx, -sx], [0, sx, cx]], dtype=torch.float64)
+        ry = torch.tensor([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]], dtype=torch.float64)
+        rz = torch.tensor([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]], dtype=torch.float64)
+        return rz @ ry @ rx
+
+    rotations = torch.stack([rot(a) for a in angles])
+    quat = train.quaternion_target(rotations)
+    assert torch.allclose(quat.norm(dim=-1), torch.ones(3, dtype=torch.float64), atol=1e-9)
+    assert (quat[:, 3] >= 0).all()  # real part last and non-negative: one encoding per rotation
+    assert torch.allclose(quat_to_mat(quat), rotations, atol=1e-9)
+
+
+def test_sincos_pe_init_has_the_requested_std_and_is_resolved_by_the_token_grid():
+    train = _script("train_default_network")
+    table = train.sincos_table(37, 128, 0.5)
+    assert table.shape == (37 * 37, 128)
+    assert float(table.std()) == pytest.approx(0.5, rel=1e-4)
+    # DA3 resizes the 37x37 table to the token grid (8x8 at 112 px): the map must survive that,
+    # so neighbouring tokens of the 8x8 grid still differ.
+    grid = table.reshape(1, 37, 37, 128).permute(0, 3, 1, 2)
+    small = torch.nn.functional.interpolate(grid, size=(8, 8), mode="bicubic", align_corners=False)[0]
+    step = (small[:, :, 1:] - small[:, :, :-1]).norm(dim=0)
+    assert float(step.min()) > 0.1 * float(small.norm(dim=0).mean())
+
+
+def test_training_with_pe_init_and_quaternion_loss_starts_from_the_sincos_table(tmp_path):
+    train = _script("train_default_network")
+    common = ["--tiny", "--size", "28", "--n-seq", "1", "--n-frames", "2", "--max-gap", "1", "--batch", "1",
+              "--steps", "1", "--warmup", "1", "--log-every", "1", "--ckpt-every", "1", "--threads", "1",
+              "--pe-std", "0.5", "--w-quat", "10", "--lr", "0"]
+    assert train.main(["--out", str(tmp_path), *common]) == 0
+    from safetensors.torch import load_file
+
+    weights = load_file(str(tmp_path / "checkpoint.safetensors"))
+    key = next(k for k in weights if k.endswith("pretrained.pos_embed"))
+    table = weights[key][0]
+    assert torch.allclose(table[1:], train.sincos_table(int(round((table.shape[0] - 1) ** 0.5)), table.shape[1], 0.5), atol=1e-6)
+    header, row = (tmp_path / "log.csv").read_text().strip().splitlines()[:2]
+    quat_loss = float(row.split(",")[header.split(",").index("quat")])
+    assert quat_loss > 0
