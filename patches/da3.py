@@ -190,6 +190,7 @@ def build_tiny_network(
     head_features: int = 32,
     head_channels: tuple[int, ...] = (16, 32, 64, 64),
     camera_decoder: bool = True,
+    camera_encoder: bool = True,
     seed: int | None = 0,
 ) -> nn.Module:
     """A small ``DepthAnything3Net`` made of DA3's own classes (for tests and CPU training).
@@ -198,6 +199,8 @@ def build_tiny_network(
     518 px, q/k-norm, RoPE and alternating frame/global attention from ``alt_start``, DualDPT head,
     camera decoder and encoder. Unlike DA3's own constructor (which leaves ``pos_embed`` and
     ``cls_token`` at zero), the PE table gets a trunc-normal init so the PE hook is exercised.
+    ``camera_encoder=False`` leaves out the encoder of known poses (upstream accepts ``cam_enc=None``;
+    passing extrinsics then raises), e.g. for a network never trained with known poses.
     """
     _import_upstream()
     from depth_anything_3.model.cam_dec import CameraDec
@@ -225,8 +228,12 @@ def build_tiny_network(
         nn.init.trunc_normal_(backbone.pretrained.cls_token, std=0.02)
         head = DualDPT(dim_in=2 * embed_dim, output_dim=2, features=head_features, out_channels=list(head_channels))
         cam_dec = CameraDec(dim_in=2 * embed_dim) if camera_decoder else None
+        # Built last, so dropping it (camera_encoder=False) leaves every other initial weight as it is.
         cam_enc = CameraEnc(dim_out=embed_dim, num_heads=num_heads) if camera_decoder else None
-        return DepthAnything3Net(backbone, head, cam_dec=cam_dec, cam_enc=cam_enc).eval()
+        model = DepthAnything3Net(backbone, head, cam_dec=cam_dec, cam_enc=cam_enc)
+        if not camera_encoder:
+            model.cam_enc = None  # upstream's constructor insists on an encoder next to a decoder
+        return model.eval()
     finally:
         if seed is not None:
             torch.random.set_rng_state(generator_state)
