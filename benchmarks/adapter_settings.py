@@ -17,9 +17,9 @@ import time
 import torch
 
 from raytun3r_plugin import synthetic
-from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.benchmark import CAMERAS, make_camera
-from raytun3r_plugin.demo import POSE_SOURCE, default_network
+from raytun3r_plugin.demo import adapt_config, default_network
 from raytun3r_plugin.evaluation import format_table, headline, run_method, score
 
 SETTINGS = {
@@ -50,7 +50,7 @@ def main() -> None:
         {"method": "raytun3r, no adapter", **headline(score(seq, run_method(model, seq, "raytun3r", frames=held_out)))},
     ]
     for name, override in SETTINGS.items():
-        config = AdaptConfig(steps=args.steps, input_size=112, n_windows=30, seed=0, checkpoint_every=0, pose_source=POSE_SOURCE, **override)
+        config = adapt_config(112, args.steps, seed=0, **override)
         began = time.perf_counter()
         adapter = adapt(model, camera, seq.images[:24], config, progress=False)
         seconds = time.perf_counter() - began

@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from raytun3r_plugin.demo import POSE_SOURCE
+from raytun3r_plugin.demo import adapt_config
 from raytun3r_plugin.evaluation import format_table, headline, run_method, score
 
 HELD_OUT_SEED = 90_000  # training of the default network uses seeds far below this
@@ -61,7 +61,7 @@ def make_camera(spec: BenchCamera, size: int):
 def run_benchmark(model, out_dir: str | Path, *, size: int = 112, n_adapt: int = 24, n_eval: int = 12, steps: int = 300, cameras=CAMERAS, scenes=SCENES, network: str = "", progress: bool = False) -> str:
     """Run every (camera, scene) and return the markdown table (also written to ``out_dir``)."""
     from raytun3r_plugin import synthetic
-    from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+    from raytun3r_plugin.adaptation.train import adapt
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -78,7 +78,7 @@ def run_benchmark(model, out_dir: str | Path, *, size: int = 112, n_adapt: int =
             # shows what the fitted tables add on top of them.
             zero = headline(score(seq, run_method(model, seq, "raytun3r", frames=held_out)))
             rows.append({"camera": spec.label, "scene": scene, "method": ZERO_ADAPTER, **zero, "adapt_s": math.nan})
-            config = AdaptConfig(steps=steps, input_size=size, n_windows=30, seed=0, checkpoint_every=0, pose_source=POSE_SOURCE)
+            config = adapt_config(size, steps, seed=0)
             start = time.perf_counter()
             adapter = adapt(model, camera, seq.images[:n_adapt], config, out_path=out / f"{spec.label.replace(' ', '_')}_{scene}.safetensors", resume=False, progress=progress)
             seconds = time.perf_counter() - start

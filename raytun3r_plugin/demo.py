@@ -21,6 +21,17 @@ DEFAULT_NETWORK = "raytun3r-da3-tiny"
 POSE_SOURCE = "targets"
 
 
+def adapt_config(size: int, steps: int, **changes):
+    """The adaptation settings the demo and the benchmark use with the built-in network.
+
+    Defaults of :class:`AdaptConfig` (30 windows) at input ``size`` px, no intermediate checkpoints,
+    relative poses from the MAGSAC++ targets (:data:`POSE_SOURCE`); ``changes`` override any field.
+    """
+    from raytun3r_plugin.adaptation.train import AdaptConfig
+
+    return AdaptConfig(**{"steps": steps, "input_size": size, "checkpoint_every": 0, "pose_source": POSE_SOURCE, **changes})
+
+
 def default_network():
     """(model, description) of the built-in network; honest about what it is."""
     from raytun3r_plugin.errors import WeightsError
@@ -48,7 +59,7 @@ def demo_camera(size: int):
 
 def run_demo(args: argparse.Namespace) -> int:
     from raytun3r_plugin import synthetic
-    from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+    from raytun3r_plugin.adaptation.train import adapt
     from raytun3r_plugin.evaluation import format_table, headline, run_method, score
 
     started = time.perf_counter()
@@ -71,7 +82,7 @@ def run_demo(args: argparse.Namespace) -> int:
 
     # The default network's pose head is at chance (model card), so adaptation takes relative poses
     # from the MAGSAC++ targets (AdaptConfig.pose_source); the depth path is what it adapts.
-    config = AdaptConfig(steps=steps, input_size=size, n_windows=30, seed=args.seed, cache_dir=str(out / "cache"), checkpoint_every=0, pose_source=POSE_SOURCE)
+    config = adapt_config(size, steps, seed=args.seed, cache_dir=str(out / "cache"))
     began = time.perf_counter()
     adapter = adapt(model, camera, seq.images[:n_adapt], config, out_path=out / "adapter.safetensors", resume=False)
     adapt_seconds = time.perf_counter() - began
