@@ -13,7 +13,7 @@ import argparse
 import re
 from pathlib import Path
 
-from raytun3r_plugin.benchmark import run_benchmark
+from raytun3r_plugin.benchmark import SEQUENCES_PER_CELL, run_benchmark
 from raytun3r_plugin.demo import default_network
 
 START, END = "<!-- bench:start -->", "<!-- bench:end -->"
@@ -24,10 +24,11 @@ def main() -> None:
     parser.add_argument("--out", default="runs/bench")
     parser.add_argument("--size", type=int, default=112)
     parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--sequences", type=int, default=SEQUENCES_PER_CELL, help="held-out sequences per camera and scene")
     parser.add_argument("--readme", default=None)
     args = parser.parse_args()
     model, description = default_network()
-    table = run_benchmark(model, args.out, size=args.size, steps=args.steps, network=description, progress=False)
+    table = run_benchmark(model, args.out, size=args.size, steps=args.steps, sequences=args.sequences, network=description, progress=False)
     print(table)
     if args.readme:
         readme = Path(args.readme)

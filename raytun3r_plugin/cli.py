@@ -81,14 +81,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from raytun3r_plugin.benchmark import CAMERAS, run_benchmark
+    from raytun3r_plugin.benchmark import CAMERAS, SEQUENCES_PER_CELL, run_benchmark
     from raytun3r_plugin.demo import default_network
 
     model, description = default_network()
     if args.quick:
-        table = run_benchmark(model, args.out, size=84, n_adapt=6, n_eval=4, steps=3, cameras=CAMERAS[-1:], scenes=("indoor",), network=description)
+        table = run_benchmark(model, args.out, size=84, n_adapt=6, n_eval=4, steps=3, sequences=1, cameras=CAMERAS[-1:], scenes=("indoor",), network=description)
     else:
-        table = run_benchmark(model, args.out, network=description, progress=True)
+        table = run_benchmark(model, args.out, sequences=args.sequences or SEQUENCES_PER_CELL, network=description, progress=True)
     print(table)
     return 0
 
@@ -156,6 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="the synthetic fisheye benchmark (vanilla vs Center-PH vs raytun3r)")
     p.add_argument("--out", default="runs/bench")
+    p.add_argument("--sequences", type=int, default=None, help="held-out sequences per camera and scene (default 5)")
     p.add_argument("--quick", action="store_true")
     p.set_defaults(func=cmd_bench)
 

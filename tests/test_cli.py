@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -89,7 +91,11 @@ def test_bench_quick(tmp_path, capsys):
     out = capsys.readouterr().out
     for method in ("vanilla", "center-ph", "raytun3r, no adapter", "raytun3r"):
         assert f"| {method} |" in out
+    assert "lower_than_vanilla" in out and "Target (raytun3r's mean d_reproj and AbsRel below vanilla's): met in" in out
     assert (tmp_path / "results.md").is_file()
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert {r["method"] for r in results["sequences"]} == {"vanilla", "center-ph", "raytun3r, no adapter", "raytun3r"}
+    assert all(r["sequences"] == 1 for r in results["summary"])
 
 
 def test_demo_runs_on_the_built_in_default(tmp_path, capsys):
