@@ -24,7 +24,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 def cmd_infer(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adapter import Adapter
     from raytun3r_plugin.cameras import load as load_camera
-    from raytun3r_plugin.images import fit_to_network, read_frames
+    from raytun3r_plugin.images import fit_mask_to_network, fit_to_network, read_frames, read_mask
     from raytun3r_plugin.inference import predict_with_camera, write_outputs
 
     adapter = Adapter.load(args.adapter) if args.adapter else None
@@ -35,9 +35,10 @@ def cmd_infer(args: argparse.Namespace) -> int:
     else:
         raise Raytun3rError("infer needs --camera, or an --adapter that carries its camera")
     frames, names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
+    mask = fit_mask_to_network(read_mask(args.mask, frames.shape[2], frames.shape[1]), args.size) if args.mask else None
     model = _load_model(args.backbone, args.weights)
     images, input_camera = fit_to_network(frames, camera, args.size)
-    prediction = predict_with_camera(model, input_camera, adapter, images, strict=not args.no_strict)
+    prediction = predict_with_camera(model, input_camera, adapter, images, strict=not args.no_strict, mask=mask)
     summary = write_outputs(args.out, prediction, images, input_camera, names)
     print(f"wrote depth for {summary['frames']} frames, trajectory.txt and points.ply ({summary['points']:,} points) to {args.out}")
     return 0
@@ -46,13 +47,14 @@ def cmd_infer(args: argparse.Namespace) -> int:
 def cmd_adapt(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
     from raytun3r_plugin.cameras import load as load_camera
-    from raytun3r_plugin.images import read_frames
+    from raytun3r_plugin.images import read_frames, read_mask
 
     camera = load_camera(args.camera, camera=args.camera_id)
     frames, _names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
+    mask = read_mask(args.mask, frames.shape[2], frames.shape[1]) if args.mask else None
     model = _load_model(args.backbone, args.weights)
     config = AdaptConfig(steps=args.steps, input_size=args.size, n_windows=args.windows, matcher=args.matcher, seed=args.seed, pose_source=args.pose_source, cache_dir=args.cache_dir)
-    adapter = adapt(model, camera, frames, config, out_path=args.out)
+    adapter = adapt(model, camera, frames, config, out_path=args.out, mask=mask)
     print(f"saved adapter to {args.out} ({adapter.num_parameters()['total']:,} parameters)")
     return 0
 
@@ -103,6 +105,7 @@ def _add_frame_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stride", type=int, default=1, help="use every n-th frame")
     parser.add_argument("--max-frames", type=int, default=None)
     parser.add_argument("--size", type=int, default=504, help="network input long side in pixels (a multiple of 14 after cropping)")
+    parser.add_argument("--mask", default=None, help="scene mask image at the frames' size: 255 = scene, 0 = excluded (vehicle body, mount)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -65,6 +65,42 @@ def network_size(width: int, height: int, long_side: int, patch: int = 14) -> tu
     return resized_w, resized_h, resized_w - resized_w % patch, resized_h - resized_h % patch
 
 
+def _network_box(width: int, height: int, long_side: int, patch: int) -> tuple[int, int, int, int, int, int]:
+    """(resized w, h, crop x0, y0, crop w, h) of :func:`fit_to_network`: one place for its geometry."""
+    resized_w, resized_h, crop_w, crop_h = network_size(width, height, long_side, patch)
+    return resized_w, resized_h, (resized_w - crop_w) // 2, (resized_h - crop_h) // 2, crop_w, crop_h
+
+
+def read_mask(path: str | os.PathLike, width: int, height: int) -> np.ndarray:
+    """A scene mask image: (H, W) bool, True where the pixel value is above 127 (255 = the scene
+    is seen, 0 = excluded, e.g. the vehicle's body); the first channel of a colour image.
+
+    Raises:
+        InputError: unreadable file, or a size other than ``width`` x ``height``.
+    """
+    import cv2
+
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError(f"{path}: mask file missing or unreadable")
+    if image.ndim == 3:
+        image = image[..., 0]
+    if image.shape != (height, width):
+        raise InputError(f"{path}: mask is {image.shape[1]}x{image.shape[0]} px, the frames are {width}x{height}")
+    return image > 127
+
+
+def fit_mask_to_network(mask: np.ndarray, long_side: int = 504, patch: int = 14) -> torch.Tensor:
+    """Resize and crop an (H, W) mask exactly as :func:`fit_to_network` does the frames
+    (nearest neighbour, so it stays binary); returns (h, w) bool."""
+    import cv2
+
+    height, width = mask.shape
+    resized_w, resized_h, x0, y0, crop_w, crop_h = _network_box(width, height, long_side, patch)
+    resized = cv2.resize(mask.astype(np.uint8), (resized_w, resized_h), interpolation=cv2.INTER_NEAREST)
+    return torch.from_numpy(np.ascontiguousarray(resized[y0 : y0 + crop_h, x0 : x0 + crop_w] > 0))
+
+
 def fit_to_network(images: np.ndarray, camera, long_side: int = 504, patch: int = 14) -> tuple[torch.Tensor, object]:
     """Resize (N, H, W, 3) images so the long side is ``long_side``, centre-crop to patch multiples.
 
@@ -78,8 +114,7 @@ def fit_to_network(images: np.ndarray, camera, long_side: int = 504, patch: int 
     height, width = images.shape[1:3]
     if (camera.width, camera.height) != (width, height):
         raise InputError(f"frames are {width}x{height} px but the camera describes {camera.width}x{camera.height} px")
-    resized_w, resized_h, crop_w, crop_h = network_size(width, height, long_side, patch)
-    x0, y0 = (resized_w - crop_w) // 2, (resized_h - crop_h) // 2
+    resized_w, resized_h, x0, y0, crop_w, crop_h = _network_box(width, height, long_side, patch)
     interpolation = cv2.INTER_AREA if resized_w < width else cv2.INTER_CUBIC
     resized = np.stack([cv2.resize(image, (resized_w, resized_h), interpolation=interpolation) for image in images])
     cropped = np.clip(resized[:, y0 : y0 + crop_h, x0 : x0 + crop_w], 0.0, 1.0)

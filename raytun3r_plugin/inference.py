@@ -24,9 +24,10 @@ def points_from_depth(depth: torch.Tensor, rays: torch.Tensor, depth_convention:
     raise ValueError(f"depth_convention must be 'range' or 'z', got {depth_convention!r}")
 
 
-def predict_with_camera(model, camera, adapter, images: torch.Tensor, components=None, strict: bool = True) -> Prediction:
-    """Apply raytun3r for ``camera`` (+ ``adapter``), predict, remove again."""
-    with apply(model, camera, adapter, components=components, strict=strict), torch.no_grad():
+def predict_with_camera(model, camera, adapter, images: torch.Tensor, components=None, strict: bool = True, mask: torch.Tensor | None = None) -> Prediction:
+    """Apply raytun3r for ``camera`` (+ ``adapter``, + an optional (h, w) scene ``mask``), predict,
+    remove again."""
+    with apply(model, camera, adapter, components=components, strict=strict, mask=mask), torch.no_grad():
         return predict(model, images)
 
 

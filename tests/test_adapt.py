@@ -314,3 +314,67 @@ def test_gradients_reach_every_table_through_the_patched_hooks(camera):
     rope_corr = _pearson(student.rope["radial"].detach(), teacher.rope["radial"].detach())
     assert pe_corr >= 0.9, f"PE tables: Pearson {pe_corr:.3f} (final loss {float(loss.detach()):.3g})"
     assert rope_corr >= 0.9, f"RoPE table: Pearson {rope_corr:.3f} (final loss {float(loss.detach()):.3g})"
+
+
+# --------------------------------------------------------------------------------------------
+# User mask (a vehicle's body or a lens mount in view)
+# --------------------------------------------------------------------------------------------
+
+
+def body_mask(camera) -> torch.Tensor:
+    """The bottom 30 % of the image is the vehicle: never the scene."""
+    mask = torch.ones(camera.height, camera.width, dtype=torch.bool)
+    mask[int(0.7 * camera.height) :] = False
+    return mask
+
+
+def test_mask_keeps_matches_and_losses_off_the_excluded_pixels(camera, frames, cache_dir):
+    from raytun3r_plugin.adaptation.train import prepare_problem
+
+    mask = body_mask(camera)
+    plain = prepare_problem(camera, frames, config(cache_dir))
+    masked = prepare_problem(camera, frames, config(cache_dir), mask=mask)
+    cut = 0.7 * camera.height * masked.layout.height / camera.height - 0.5  # first excluded row, input px
+    plain_rows = torch.cat([torch.cat((p.uv_i[:, 1], p.uv_j[:, 1])) for _, pairs in plain.windows for p in pairs])
+    masked_rows = torch.cat([torch.cat((p.uv_i[:, 1], p.uv_j[:, 1])) for _, pairs in masked.windows for p in pairs])
+    # Without the mask the body region is matched; with it, no match lands there.
+    assert bool((plain_rows > cut + 1).any()) and not bool((masked_rows > cut + 1).any())
+    assert masked.adaptation.cache_key != plain.adaptation.cache_key
+    assert not bool(masked.valid[-1].any()) and bool(plain.valid[plain.valid.shape[0] // 2].any())
+    assert torch.equal(masked.valid, masked.valid & plain.valid)
+    assert masked.mask is not None and tuple(masked.mask.shape) == (camera.height, camera.width) and plain.mask is None
+
+
+def test_adapt_patches_with_the_mask_and_records_it(camera, frames, cache_dir, monkeypatch):
+    import raytun3r_plugin.adaptation.train as train
+
+    seen = []
+
+    def recording_apply(*args, **kwargs):
+        seen.append(kwargs.get("mask"))
+        return apply(*args, **kwargs)
+
+    monkeypatch.setattr(train, "apply", recording_apply)
+    mask = body_mask(camera)
+    adapter = adapt(build_tiny_network(), camera, frames, config(cache_dir, steps=2), mask=mask.numpy(), progress=False)
+    assert len(seen) == 1 and torch.equal(seen[0], mask & camera.valid_mask().bool())
+    recorded = adapter.training_info["segment"]["mask"]
+    assert recorded["valid_fraction"] == pytest.approx(float((mask & camera.valid_mask().bool()).float().mean()), abs=1e-4)
+    assert len(recorded["sha256"]) == 64
+
+
+@pytest.mark.parametrize(
+    ("make_mask", "message"),
+    [
+        (lambda camera: torch.ones(camera.height + 1, camera.width, dtype=torch.bool), "like the frames, got shape"),
+        (lambda camera: torch.zeros(camera.height, camera.width, dtype=torch.bool), "no pixel inside"),
+    ],
+)
+def test_bad_mask_is_refused_before_anything_is_written(camera, frames, cache_dir, tmp_path, make_mask, message):
+    model = build_tiny_network()
+    before = {name: value.clone() for name, value in model.state_dict().items()}
+    out = tmp_path / "run" / "adapter.safetensors"
+    with pytest.raises(InputError, match=message):
+        adapt(model, camera, frames, config(cache_dir), out_path=out, mask=make_mask(camera), progress=False)
+    assert not out.parent.exists() and handle_of(model) is None
+    assert all(torch.equal(before[name], value) for name, value in model.state_dict().items())

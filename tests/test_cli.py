@@ -66,6 +66,36 @@ def test_adapt_inspect_infer(setup, capsys):
     assert len(points) > 1000 and np.isfinite(points).all() and colours.dtype == np.uint8
 
 
+def test_mask_reaches_adaptation_and_inference(setup, tmp_path, capsys):
+    import cv2
+
+    from raytun3r_plugin import Adapter
+
+    mask = np.full((SIZE, SIZE), 255, np.uint8)
+    mask[int(0.7 * SIZE) :] = 0  # the vehicle's body
+    cv2.imwrite(str(tmp_path / "mask.png"), mask)
+    common = ["--backbone", "da3-small", "--weights", str(setup["weights"]), "--frames", str(setup["frames"]), "--size", str(SIZE)]
+    adapter = tmp_path / "adapter.safetensors"
+    code = main(["adapt", *common, "--camera", str(setup["camera"]), "--steps", "1", "--windows", "2", "--mask", str(tmp_path / "mask.png"), "--out", str(adapter)])
+    assert code == 0
+    lens = fisheye(SIZE, SIZE, 190.0).valid_mask().numpy()
+    recorded = Adapter.load(adapter).training_info["segment"]["mask"]["valid_fraction"]
+    assert recorded == pytest.approx(float((lens & (mask > 0)).mean()), abs=1e-4)
+
+    depths = {}
+    for name, extra in (("plain", []), ("masked", ["--mask", str(tmp_path / "mask.png")])):
+        assert main(["infer", *common, "--camera", str(setup["camera"]), *extra, "--out", str(tmp_path / name)]) == 0
+        depths[name] = np.load(tmp_path / name / "depth" / "0000.npy")
+    # The masked patches become border tokens, so the prediction changes.
+    assert not np.allclose(depths["plain"], depths["masked"])
+
+    cv2.imwrite(str(tmp_path / "small.png"), mask[:-1])
+    capsys.readouterr()
+    assert main(["infer", *common, "--camera", str(setup["camera"]), "--mask", str(tmp_path / "small.png"), "--out", str(tmp_path / "bad")]) == 2
+    assert f"mask is {SIZE}x{SIZE - 1} px, the frames are {SIZE}x{SIZE}" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+
+
 def test_eval_prints_a_table_for_each_method(setup, capsys):
     code = main(["eval", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--dataset", str(setup["sequence"]),
                  "--size", str(SIZE), "--method", "vanilla,center-ph,raytun3r"])

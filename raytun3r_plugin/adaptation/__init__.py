@@ -48,6 +48,7 @@ from raytun3r_plugin.adaptation.train import (  # noqa: E402
     input_layout,
     prepare_problem,
     read_loss_log,
+    scene_mask,
 )
 
 __all__ += [
@@ -60,4 +61,5 @@ __all__ += [
     "input_layout",
     "prepare_problem",
     "read_loss_log",
+    "scene_mask",
 ]

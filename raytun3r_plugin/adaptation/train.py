@@ -77,6 +77,7 @@ __all__ = [
     "load_checkpoint",
     "prepare_problem",
     "read_loss_log",
+    "scene_mask",
     "window_of_step",
     "window_terms",
 ]
@@ -243,6 +244,41 @@ def _resize_frames(images: np.ndarray, layout: InputLayout) -> torch.Tensor:
     if tuple(tensor.shape[-2:]) != (layout.height, layout.width):
         tensor = F.interpolate(tensor, size=(layout.height, layout.width), mode="bilinear", align_corners=False, antialias=True)
     return tensor.clamp(0.0, 1.0).contiguous()
+
+
+def scene_mask(mask: Any, camera: Any) -> np.ndarray:
+    """A user mask of the native frames, checked and combined with the camera's valid region.
+
+    Args:
+        mask: (H, W) array-like, True (non-zero) where a pixel sees the scene; False marks what
+            never should be matched or supervised (the vehicle's body, a lens mount).
+        camera: camera of the native frames (``width == W``, ``height == H``).
+
+    Returns:
+        (H, W) bool: ``mask & camera.valid_mask()``.
+
+    Raises:
+        InputError: wrong shape, or no pixel left inside the lens.
+    """
+    array = np.asarray(mask.detach().cpu() if isinstance(mask, torch.Tensor) else mask)
+    expected = (int(camera.height), int(camera.width))
+    if array.shape != expected:
+        raise InputError(f"mask must be (H, W) = {expected} like the frames, got shape {array.shape}")
+    combined = (array != 0) & camera.valid_mask().cpu().numpy().astype(bool)
+    if not combined.any():
+        raise InputError("mask leaves no pixel inside the camera's valid region")
+    return combined
+
+
+def _mask_at_input(mask: np.ndarray, layout: InputLayout) -> tuple[torch.Tensor, torch.Tensor]:
+    """(native mask cropped like the frames, mask at the input size); nearest-neighbour resize,
+    as the patched model resizes an ``apply(mask=...)`` to its input."""
+    tensor = torch.from_numpy(mask)
+    if layout.crop is not None:
+        x0, y0, w, h = layout.crop
+        tensor = tensor[y0 : y0 + h, x0 : x0 + w]
+    resized = F.interpolate(tensor[None, None].float(), size=(layout.height, layout.width), mode="nearest")[0, 0] > 0.5
+    return tensor.contiguous(), resized
 
 
 # --------------------------------------------------------------------------------------------
@@ -560,6 +596,8 @@ class AdaptationProblem:
         valid: (h, w) bool valid region at the input size.
         geometry: :class:`raytun3r_plugin.geometry.SizeGeometry` at the input size.
         segment: description of the frames (name, count, size).
+        mask: the user mask of the (cropped) native frames, (H, W) bool, or None; the model is
+            patched with it during adaptation.
     """
 
     layout: InputLayout
@@ -569,23 +607,29 @@ class AdaptationProblem:
     valid: torch.Tensor
     geometry: Any
     segment: dict[str, Any]
+    mask: torch.Tensor | None = None
 
     def batch(self, index: int) -> torch.Tensor:
         """(S, 3, h, w) network input of window ``index``."""
         return torch.stack([self.inputs[frame] for frame in self.windows[index][0].frames])
 
 
-def prepare_problem(camera: Any, frames: Any, config: AdaptConfig, patch: int = 14) -> AdaptationProblem:
-    """Match, estimate targets (or load them from the cache) and lay the segment out for training."""
+def prepare_problem(camera: Any, frames: Any, config: AdaptConfig, patch: int = 14, mask: Any = None) -> AdaptationProblem:
+    """Match, estimate targets (or load them from the cache) and lay the segment out for training.
+
+    ``mask`` (optional, (H, W) like the frames, True where the scene is seen) keeps matches,
+    reprojection and smoothness off the pixels it excludes (:func:`scene_mask`).
+    """
     images, segment = _frames_array(frames)
     if (segment["width"], segment["height"]) != (int(camera.width), int(camera.height)):
         raise InputError(f"frames are {segment['width']}x{segment['height']} px but the camera is {camera.width}x{camera.height}")
+    native_valid = None if mask is None else scene_mask(mask, camera)
     segment["sequence_id"] = config.sequence_id
     layout = input_layout(camera, config.input_size, patch)
     adaptation = prepare_adaptation_set(
         images, camera, get_matcher(config.matcher, **config.matcher_options), n_windows=config.n_windows,
         stride=config.stride, cache_dir=config.cache_dir, sequence_id=config.sequence_id,
-        min_motion_px=config.min_motion_px, window_size=config.window_size, seed=config.seed,
+        min_motion_px=config.min_motion_px, window_size=config.window_size, seed=config.seed, valid=native_valid,
     )
     if len(adaptation) == 0:
         raise InputError(
@@ -593,11 +637,16 @@ def prepare_problem(camera: Any, frames: Any, config: AdaptConfig, patch: int = 
             f"(mean correspondence displacement below {config.min_motion_px} px)"
         )
     valid = layout.camera.valid_mask().bool()
+    native_mask = None
+    if native_valid is not None:
+        native_mask, input_mask = _mask_at_input(native_valid, layout)
+        valid = valid & input_mask
+        segment["mask"] = {"valid_fraction": round(float(native_valid.mean()), 4), "sha256": hashlib.sha256(np.packbits(native_valid).tobytes()).hexdigest()}
     used = sorted({frame for window in adaptation.windows for frame in window.frames})
     inputs = dict(zip(used, _resize_frames(images[used], layout), strict=True))
     windows = [(window, _prepare_pairs(window, layout, valid)) for window in adaptation.windows]
     geometry = GeometryCache(layout.native_camera, patch).at(layout.height, layout.width)
-    return AdaptationProblem(layout, adaptation, windows, inputs, valid, geometry, segment)
+    return AdaptationProblem(layout, adaptation, windows, inputs, valid, geometry, segment, native_mask)
 
 
 def window_of_step(step: int, n_windows: int, seed: int) -> int:
@@ -675,6 +724,7 @@ def adapt(
     adapter: Adapter | None = None,
     resume: bool = True,
     progress: bool = True,
+    mask: Any = None,
 ) -> Adapter:
     """Fit an adapter for ``model`` on a fisheye segment, without ground truth.
 
@@ -690,6 +740,12 @@ def adapt(
         adapter: start from this adapter (copied) instead of a zero one.
         resume: continue from the checkpoint next to ``out_path`` when there is one.
         progress: show a progress bar (tqdm, or a line to stderr every 5% without it).
+        mask: optional (H, W) bool (or 0/non-zero) mask of the native frames, True where the
+            scene is seen: pixels it excludes (a vehicle's body, a lens mount) get no matches,
+            no reprojection or smoothness terms, and their patches count as border tokens, as
+            ``apply(mask=...)`` does. The adapter file records its valid fraction and digest
+            (``training_info["segment"]["mask"]``), not the mask: pass the same mask to
+            ``apply`` at inference.
 
     Returns:
         The fitted :class:`Adapter` (camera: the camera of the frames, cropped if the input
@@ -700,14 +756,15 @@ def adapt(
 
     Raises:
         AlreadyAppliedError: the model already carries a raytun3r patch.
-        InputError: frames/camera mismatch, or no moving window in the segment.
+        InputError: frames/camera mismatch, a mask of the wrong shape or with nothing inside
+            the lens, or no moving window in the segment.
         AdapterError: the checkpoint next to ``out_path`` belongs to another run.
     """
     config = AdaptConfig() if config is None else config
     if handle_of(model) is not None:
         raise AlreadyAppliedError("adapt needs an unpatched model; remove the existing raytun3r patch first")
     adapter = Adapter.for_model(model, None, components=config.components) if adapter is None else copy.deepcopy(adapter)
-    problem = prepare_problem(camera, frames, config, adapter.patch_size)
+    problem = prepare_problem(camera, frames, config, adapter.patch_size, mask=mask)
     adapter.camera = problem.layout.native_camera
     optimizer = torch.optim.Adam(list(adapter.parameters()), lr=config.lr)
 
@@ -736,7 +793,7 @@ def adapt(
     try:
         with _frozen(model), torch.random.fork_rng(devices=[]):
             torch.manual_seed(config.seed)
-            handle = apply(model, problem.layout.native_camera, adapter, components=config.components, strict=False)
+            handle = apply(model, problem.layout.native_camera, adapter, components=config.components, strict=False, mask=problem.mask)
             try:
                 for step in range(start, config.steps):
                     record = adaptation_step(model, adapter, optimizer, problem, config, step)

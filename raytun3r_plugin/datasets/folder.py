@@ -33,7 +33,7 @@ import numpy as np
 
 from raytun3r_plugin.datasets._common import fail, load_camera, parse_floats
 from raytun3r_plugin.datasets.sequence import Sequence
-from raytun3r_plugin.errors import DatasetError
+from raytun3r_plugin.errors import DatasetError, InputError
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "load_synthetic", "write_sequence"]
 
@@ -238,13 +238,9 @@ def load_synthetic(folder: str | Path, load_images: bool = False) -> Sequence:
 
 
 def _read_mask(path: Path, h: int, w: int) -> np.ndarray:
-    import cv2
+    from raytun3r_plugin.images import read_mask
 
-    m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if m is None:
-        raise fail(path, None, "mask file missing or unreadable")
-    if m.ndim == 3:
-        m = m[..., 0]
-    if m.shape != (h, w):
-        raise fail(path, None, f"mask has shape {m.shape}, expected {(h, w)}")
-    return m > 127
+    try:
+        return read_mask(path, w, h)
+    except InputError as error:
+        raise fail(path, None, str(error).removeprefix(f"{path}: ")) from error
