@@ -22,6 +22,7 @@ from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.benchmark import CAMERAS, make_camera
 from raytun3r_plugin.demo import adapt_config, default_network
 from raytun3r_plugin.evaluation import format_table, headline, run_method, score
+from raytun3r_plugin.registry import quiet_upstream
 
 SETTINGS = {
     "defaults (lr 1e-3, L2 2, TV 20)": {},
@@ -65,4 +66,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with quiet_upstream():  # no per-forward INFO lines from the backbone's own logger
+        main()

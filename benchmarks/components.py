@@ -17,6 +17,7 @@ from raytun3r_plugin import synthetic
 from raytun3r_plugin.benchmark import CAMERAS, SCENES, make_camera
 from raytun3r_plugin.demo import default_network, demo_camera
 from raytun3r_plugin.evaluation import format_table, headline, run_method, score
+from raytun3r_plugin.registry import quiet_upstream
 
 SETS = (["patch_resample"], ["border_tokens"], ["grid"], ["patch_resample", "grid"], ["patch_resample", "border_tokens", "grid"])
 METRICS = ("d_reproj_px", "abs_rel", "delta_1.25")
@@ -65,4 +66,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with quiet_upstream():  # no per-forward INFO lines from the backbone's own logger
+        main()

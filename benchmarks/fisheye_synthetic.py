@@ -15,6 +15,7 @@ from pathlib import Path
 
 from raytun3r_plugin.benchmark import SEQUENCES_PER_CELL, run_benchmark
 from raytun3r_plugin.demo import default_network
+from raytun3r_plugin.registry import quiet_upstream
 
 START, END = "<!-- bench:start -->", "<!-- bench:end -->"
 
@@ -39,4 +40,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with quiet_upstream():  # no per-forward INFO lines from the backbone's own logger
+        main()

@@ -28,6 +28,7 @@ from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.benchmark import CAMERAS, make_camera
 from raytun3r_plugin.evaluation import format_table
 from raytun3r_plugin.prediction import predict
+from raytun3r_plugin.registry import quiet_upstream
 
 
 def relative_change(depth: torch.Tensor, reference: torch.Tensor) -> float:
@@ -89,4 +90,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with quiet_upstream():  # no per-forward INFO lines from the backbone's own logger
+        main()

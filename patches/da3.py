@@ -13,7 +13,10 @@ Hook map (UPSTREAM.md section 2), all patched per instance on the ``DepthAnythin
 
 from __future__ import annotations
 
+import os
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import torch
 from torch import nn
@@ -249,6 +252,25 @@ def _builders() -> dict:
     return builders | shipped
 
 
+@contextmanager
+def quiet_info() -> Iterator[None]:
+    """DA3 prints an INFO line on every forward with 3+ views (hundreds per adaptation run):
+    show its warnings only, unless the user chose a level with ``DA3_LOG_LEVEL``; restored on
+    exit."""
+    try:
+        from depth_anything_3.utils.logger import logger
+    except ImportError:
+        logger = None
+    if logger is None or "DA3_LOG_LEVEL" in os.environ:
+        yield
+        return
+    level, logger.level = logger.level, min(logger.level, 1)  # 1 = WARN in DA3's scale
+    try:
+        yield
+    finally:
+        logger.level = level
+
+
 SPEC = register(
     BackboneSpec(
         family=FAMILY,
@@ -258,5 +280,6 @@ SPEC = register(
         targets=TARGETS,
         predict=predict,
         builders=_builders(),
+        quiet=quiet_info,
     )
 )

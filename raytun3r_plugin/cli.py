@@ -172,7 +172,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        from raytun3r_plugin.registry import quiet_upstream
+
+        with quiet_upstream():
+            return int(args.func(args) or 0)
     except Raytun3rError as error:
         print(f"raytun3r: error: {error}", file=sys.stderr)
         return 2

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import importlib
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, ExitStack, contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -78,6 +79,9 @@ class BackboneSpec:
         builders: ``{model_name: build(path | None) -> nn.Module}`` for :func:`load_backbone`.
         check: extra structural checks run before anything is changed (raise
             :class:`UnsupportedUpstreamError`).
+        quiet: ``quiet() -> context manager`` that holds back the upstream's routine per-forward
+            output (not its warnings) while it is entered; used by the command line and the
+            benchmark scripts (:func:`quiet_upstream`), never by the library.
     """
 
     family: str
@@ -88,6 +92,7 @@ class BackboneSpec:
     predict: Callable[..., Any]
     builders: dict[str, Callable[..., nn.Module]] = field(default_factory=dict)
     check: Callable[[nn.Module], None] | None = None
+    quiet: Callable[[], AbstractContextManager] | None = None
 
 
 _SPECS: dict[str, BackboneSpec] = {}
@@ -110,6 +115,16 @@ def _load_builtins() -> None:
 def specs() -> dict[str, BackboneSpec]:
     _load_builtins()
     return dict(_SPECS)
+
+
+@contextmanager
+def quiet_upstream() -> Iterator[None]:
+    """Enter every registered backbone's ``quiet`` context (application code only)."""
+    with ExitStack() as stack:
+        for spec in specs().values():
+            if spec.quiet is not None:
+                stack.enter_context(spec.quiet())
+        yield
 
 
 def spec_for(model: nn.Module) -> tuple[BackboneSpec, nn.Module]:

@@ -116,9 +116,16 @@ def test_errors_are_reported_not_raised(setup, tmp_path, capsys):
     assert code == 2 and "pass strict=False" in capsys.readouterr().err
 
 
-def test_bench_quick(tmp_path, capsys):
+def test_bench_quick(tmp_path, capsys, monkeypatch):
+    from depth_anything_3.utils.logger import logger
+
+    monkeypatch.delenv("DA3_LOG_LEVEL", raising=False)
+    monkeypatch.setattr(logger, "level", 2)  # DA3's INFO
     assert main(["bench", "--quick", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
+    # Adaptation windows are 3-view forwards, on which DA3 logs at INFO: the CLI shows warnings only
+    # and gives library callers their level back.
+    assert "[INFO" not in out and logger.level == 2
     for method in ("vanilla", "center-ph", "raytun3r, no adapter", "raytun3r"):
         assert f"| {method} |" in out
     assert "lower_than_vanilla" in out and "Target (raytun3r's mean d_reproj and AbsRel below vanilla's): met in" in out
