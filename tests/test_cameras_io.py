@@ -11,6 +11,7 @@ import torch
 
 from raytun3r_plugin.cameras import (
     EUCM,
+    FOV,
     MEI,
     UCM,
     DoubleSphere,
@@ -132,6 +133,7 @@ COLMAP_LINES = [
     "2 OPENCV_FISHEYE 1752 1168 789.9080967683176 791.5566599926353 879.703786509326 585.2893145555763 -0.029473047856246333 -0.005769803970428537 -0.002148236771485755 0.00014840568362061509",
     "3 SIMPLE_PINHOLE 201 101 150.0 100.5 50.5",
     "7 OPENCV 752 480 458.654 457.296 367.715 248.875 -0.28340811 0.07395907 0.00019359 1.76187114e-05",
+    "8 FOV 640 480 256.1 255.7 320.5 240.25 0.9217",
 ]
 COLMAP_TXT = (
     "# Camera list with one line of data per camera:\n"
@@ -403,6 +405,41 @@ def test_colmap_export_round_trip(tmp_path):
         to_colmap_line(Pinhole(640, 480, [500.0, 501.0, 319.5, 239.5]), 1, model="SIMPLE_PINHOLE")
 
 
+@pytest.mark.parametrize(
+    ("line", "expected"),
+    [
+        ("10 SIMPLE_FISHEYE 640 480 300.0 320.0 240.0", (300.0, 300.0, 0.0, 0.0)),
+        ("11 FISHEYE 640 480 300.0 301.0 320.0 240.0", (300.0, 301.0, 0.0, 0.0)),
+        ("12 SIMPLE_RADIAL_FISHEYE 640 480 300.0 320.0 240.0 0.05", (300.0, 300.0, 0.05, 0.0)),
+        ("13 RADIAL_FISHEYE 640 480 300.0 320.0 240.0 0.05 -0.01", (300.0, 300.0, 0.05, -0.01)),
+    ],
+)
+def test_colmap_equidistant_family_is_kb4(tmp_path, line, expected):
+    camera = load(write(tmp_path, "cameras.txt", line + "\n"))
+    fx, fy, k1, k2 = expected
+    assert isinstance(camera, KannalaBrandt4)
+    assert camera.values == {"fx": fx, "fy": fy, "cx": 319.5, "cy": 239.5, "k1": k1, "k2": k2, "k3": 0.0, "k4": 0.0}
+    # COLMAP's own formula (normalised plane, theta = atan(r), theta_d = theta (1 + k1 theta^2
+    # + k2 theta^4)), pixel corner at 0: our pixels are 0.5 less.
+    points = torch.tensor([[0.3, -0.2, 1.0], [-0.9, 0.5, 1.0], [0.01, 0.02, 1.0]], dtype=torch.float64)
+    a, b = points[:, 0], points[:, 1]
+    r = torch.hypot(a, b)
+    theta = torch.atan(r)
+    scale = theta * (1 + k1 * theta**2 + k2 * theta**4) / r
+    colmap = torch.stack([fx * a * scale + 320.0, fy * b * scale + 240.0], -1)
+    uv, valid = camera.project(points)
+    assert valid.all() and torch.allclose(uv, colmap - 0.5, atol=1e-9)
+    # Exported as the general model.
+    assert to_colmap_line(camera, 1).split()[1] == "OPENCV_FISHEYE"
+
+
+def test_colmap_fov(tmp_path):
+    camera = load(write(tmp_path, "cameras.txt", COLMAP_TXT), camera=8)
+    assert isinstance(camera, FOV) and camera.values["omega"] == 0.9217 and camera.values["cx"] == 320.0
+    with pytest.raises(CameraError, match=r"param omega.*\(0, pi\)"):
+        load(write(tmp_path, "bad.txt", "1 FOV 640 480 256.1 255.7 320.5 240.25 0.0\n"))
+
+
 # ----------------------------------------------------------------------------- own JSON
 def test_save_load_own_json(tmp_path):
     cam = KannalaBrandt4(512, 512, TUMVI_CAM0, max_fov_deg=195.0)
@@ -572,7 +609,7 @@ def basalt_eucm(**changes: float) -> str:
             BASALT_EUCM.replace('"camera_type": "eucm"', '"camera_type": "fov"'),
             "value0.intrinsics[0].camera_type",
         ),
-        ("cameras.txt", "1 FOV 640 480 300 300 320 240 0.9\n", "camera 1 (line 1) MODEL"),
+        ("cameras.txt", "1 RAD_TAN_THIN_PRISM_FISHEYE 640 480 300 300 320 240" + " 0" * 12 + "\n", "camera 1 (line 1) MODEL"),
         ("camera.json", '{"model": "fisheye9", "width": 10, "height": 10, "params": {}}', "model"),
         # own JSON with a bad value
         (

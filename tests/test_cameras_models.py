@@ -13,6 +13,7 @@ import torch
 from raytun3r_plugin.cameras import (
     CAMERA_MODELS,
     EUCM,
+    FOV,
     MEI,
     UCM,
     Camera,
@@ -38,6 +39,8 @@ KITTI360_02 = [1336.3220825849971, 1335.7883350012958, 716.94323510126321, 705.7
                4.2223943394772046e-04, 4.2462134260997584e-04]  # fmt: skip
 ETH3D_TP = [3411.42, 3410.02, 3041.29 - 0.5, 2014.07 - 0.5, 0.21047, 0.21102, -5.36231e-06,
             0.00051541, -0.158023, 0.406856, -8.46499e-05, 0.000861313]  # fmt: skip
+# A Project-Tango-like FOV fisheye (640x480, omega about 53 degrees).
+TANGO_FOV = [256.1, 255.7, 319.8, 239.4, 0.9217]
 EUROC_RADTAN = [458.654, 457.296, 367.215, 248.375, -0.28340811, 0.07395907, 0.00019359,
                 1.76187114e-05]  # fmt: skip
 
@@ -58,6 +61,7 @@ def make_cameras() -> dict[str, Camera]:
         "ds": _small(DoubleSphere(512, 512, TUMVI_DS)),
         "mei": _small(MEI(1400, 1400, KITTI360_02)),
         "thin_prism_fisheye": _small(ThinPrismFisheye(6048, 4032, ETH3D_TP), 200, 133),
+        "fov": _small(FOV(640, 480, TANGO_FOV), 200, 150),
     }
 
 
@@ -119,6 +123,11 @@ def ref_project(cam: Camera, X: np.ndarray) -> np.ndarray:
         ud = u + u * rad + 2 * p["p1"] * u * v + p["p2"] * (r2 + 2 * u * u) + p["sx1"] * r2
         vd = v + v * rad + 2 * p["p2"] * u * v + p["p1"] * (r2 + 2 * v * v) + p["sy1"] * r2
         return np.stack([fx * ud + cx, fy * vd + cy], -1)
+    if cam.model == "fov":  # COLMAP's FOVCameraModel: normalised plane, atan(2 r tan(w/2)) / (r w)
+        a, b = x / z, y / z
+        R = np.hypot(a, b)
+        factor = np.arctan(2 * R * np.tan(p["omega"] / 2)) / (R * p["omega"])
+        return np.stack([fx * a * factor + cx, fy * b * factor + cy], -1)
     raise AssertionError(cam.model)
 
 
@@ -142,6 +151,7 @@ def test_registry_names():
         "ds",
         "mei",
         "thin_prism_fisheye",
+        "fov",
     }
     assert KannalaBrandt4.param_names == ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")
     for cls in CAMERA_MODELS.values():
@@ -156,7 +166,7 @@ def test_project_matches_reference(name):
     # Reference formulas of the perspective-based models only exist in front of the camera.
     lim = min(
         cam.max_angle,
-        math.radians(89) if name in ("pinhole", "opencv", "thin_prism_fisheye") else 10.0,
+        math.radians(89) if name in ("pinhole", "opencv", "thin_prism_fisheye", "fov") else 10.0,
     )
     X = directions(500, 0.98 * lim, seed=1, min_angle=1e-3)
     uv, valid = cam.project(X)
@@ -363,6 +373,27 @@ def test_thin_prism_only_front_hemisphere():
     assert valid.any() and not valid.all()
     assert (rays[valid][:, 2] > 0).all()
     assert not cam.project(torch.tensor([1.0, 0.0, -0.01], dtype=torch.float64))[1]
+
+
+def test_fov_image_circle_and_pinhole_limit():
+    omega, f = 1.2, 40.0
+    cam = FOV(200, 200, [f, f, 99.5, 99.5, omega])
+    assert cam.max_angle == math.pi / 2
+    # The 90-degree ray lands on the circle of radius f pi / (2 omega): inside it every pixel
+    # has a forward ray, outside none.
+    edge = f * math.pi / (2 * omega)
+    rays, valid = cam.ray_table(dtype=torch.float64)
+    v, u = torch.meshgrid(torch.arange(200.0), torch.arange(200.0), indexing="ij")
+    r = torch.hypot(u - 99.5, v - 99.5)
+    assert valid[r < edge - 0.5].all() and not valid[r > edge + 0.5].any()
+    assert (rays[valid][:, 2] > 0).all()
+    assert not cam.project(torch.tensor([1.0, 0.0, -0.01], dtype=torch.float64))[1]
+    # A small omega is almost a pinhole: factor atan(c r) / (omega r) -> 1.
+    near_pinhole = FOV(200, 200, [f, f, 99.5, 99.5, 1e-4])
+    points = directions(50, math.radians(60), seed=3)
+    uv, _ = near_pinhole.project(points)
+    uv_pinhole, _ = Pinhole(200, 200, [f, f, 99.5, 99.5]).project(points)
+    assert torch.allclose(uv, uv_pinhole, atol=1e-5)
 
 
 # ----------------------------------------------------------------------------- gradients
@@ -619,6 +650,8 @@ def test_identity_and_repr():
         (DoubleSphere, [1.0, 1.0, 0.0, 0.0, 1.5, 0.5], "xi"),
         (DoubleSphere, [1.0, 1.0, 0.0, 0.0, 0.0, 2.0], "alpha"),
         (MEI, [1.0, 1.0, 0.0, 0.0, -0.5, 0.0, 0.0, 0.0, 0.0], "xi"),
+        (FOV, [1.0, 1.0, 0.0, 0.0, 0.0], "omega"),
+        (FOV, [1.0, 1.0, 0.0, 0.0, math.pi], "omega"),
     ],
 )
 def test_parameter_validation_names_the_parameter(cls, params, field):

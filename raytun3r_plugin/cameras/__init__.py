@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from raytun3r_plugin.cameras.base import CAMERA_MODELS, Camera, from_dict, pixel_grid
 from raytun3r_plugin.cameras.formats import load, save, to_colmap_line
+from raytun3r_plugin.cameras.fov import FOV
 from raytun3r_plugin.cameras.kb import KannalaBrandt4, ThinPrismFisheye
 from raytun3r_plugin.cameras.pinhole import OpenCVRadTan, Pinhole
 from raytun3r_plugin.cameras.unified import EUCM, MEI, UCM, DoubleSphere
@@ -17,6 +18,7 @@ from raytun3r_plugin.cameras.unified import EUCM, MEI, UCM, DoubleSphere
 __all__ = [
     "CAMERA_MODELS",
     "EUCM",
+    "FOV",
     "MEI",
     "UCM",
     "Camera",

@@ -27,6 +27,7 @@ from typing import Any
 import yaml
 
 from raytun3r_plugin.cameras.base import Camera, from_dict
+from raytun3r_plugin.cameras.fov import FOV
 from raytun3r_plugin.cameras.kb import KannalaBrandt4, ThinPrismFisheye
 from raytun3r_plugin.cameras.pinhole import OpenCVRadTan, Pinhole
 from raytun3r_plugin.cameras.unified import EUCM, MEI, UCM, DoubleSphere
@@ -492,7 +493,21 @@ _COLMAP: dict[
         lambda p: dict(zip(ThinPrismFisheye.param_names, p, strict=True)),
     ),
     "EUCM": (EUCM, EUCM.param_names, lambda p: dict(zip(EUCM.param_names, p, strict=True))),
+    "FOV": (FOV, FOV.param_names, lambda p: dict(zip(FOV.param_names, p, strict=True))),
+    # COLMAP's equidistant family: theta_d = theta (1 + k1 theta^2 + k2 theta^4) on the angle
+    # from the axis, i.e. Kannala-Brandt with the remaining coefficients zero (import only; a
+    # KB4 camera exports as OPENCV_FISHEYE).
+    "SIMPLE_FISHEYE": (KannalaBrandt4, ("f", "cx", "cy"), lambda p: _kb4(p[0], p[0], p[1], p[2])),
+    "FISHEYE": (KannalaBrandt4, ("fx", "fy", "cx", "cy"), lambda p: _kb4(*p)),
+    "SIMPLE_RADIAL_FISHEYE": (KannalaBrandt4, ("f", "cx", "cy", "k"), lambda p: _kb4(p[0], p[0], p[1], p[2], p[3])),
+    "RADIAL_FISHEYE": (KannalaBrandt4, ("f", "cx", "cy", "k1", "k2"), lambda p: _kb4(p[0], p[0], p[1], p[2], p[3], p[4])),
 }
+
+def _kb4(fx: float, fy: float, cx: float, cy: float, *ks: float) -> dict[str, float]:
+    """KannalaBrandt4 parameters from leading coefficients (the missing ones are zero)."""
+    coefficients = [*ks, 0.0, 0.0, 0.0, 0.0][:4]
+    return {"fx": fx, "fy": fy, "cx": cx, "cy": cy, **dict(zip(("k1", "k2", "k3", "k4"), coefficients, strict=True))}
+
 
 # Our model -> the COLMAP model used on export (parameters in our order = COLMAP order).
 _COLMAP_EXPORT = {
@@ -501,6 +516,7 @@ _COLMAP_EXPORT = {
     "kb4": "OPENCV_FISHEYE",
     "thin_prism_fisheye": "THIN_PRISM_FISHEYE",
     "eucm": "EUCM",
+    "fov": "FOV",
 }
 
 _COLMAP_LINE = re.compile(r"^\s*-?\d+\s+[A-Z][A-Z0-9_]*\s")
@@ -557,7 +573,7 @@ def _read_colmap(path: PathLike, text: str, camera: str | int | None) -> Camera:
     fields = {}
     for ours in cls.param_names:
         colmap_name = "f" if ours in ("fx", "fy") and "f" in names else ours
-        if ours in ("k1",) and model == "SIMPLE_RADIAL":
+        if ours == "k1" and "k" in names:
             colmap_name = "k"
         fields[ours] = f"{where} param {colmap_name}"
     return _build(path, cls, w, h, values, fields)
@@ -569,7 +585,7 @@ def to_colmap_line(camera: Camera, camera_id: int, model: str | None = None) -> 
     Adds 0.5 to cx, cy (COLMAP's pixel-centre convention) and writes floats with ``repr`` so
     that import followed by export reproduces the line. ``model`` may force ``SIMPLE_PINHOLE``
     (pinhole with fx == fy); by default pinhole -> PINHOLE, opencv -> OPENCV, kb4 ->
-    OPENCV_FISHEYE, thin_prism_fisheye -> THIN_PRISM_FISHEYE, eucm -> EUCM.
+    OPENCV_FISHEYE, thin_prism_fisheye -> THIN_PRISM_FISHEYE, eucm -> EUCM, fov -> FOV.
 
     Raises:
         CameraError: the model has no COLMAP equivalent.
