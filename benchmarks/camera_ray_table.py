@@ -18,10 +18,12 @@ import torch
 
 from raytun3r_plugin.cameras import (
     EUCM,
+    FOV,
     MEI,
     UCM,
     Camera,
     DoubleSphere,
+    Fisheye624,
     KannalaBrandt4,
     OpenCVRadTan,
     Pinhole,
@@ -156,6 +158,18 @@ def cameras(size: int) -> dict[str, tuple[Camera, str]]:
                 )
             ),
             "ETH3D DSLR",
+        ),  # fmt: skip
+        "fov": (sq(FOV(640, 480, [256.1, 255.7, 319.8, 239.4, 0.9217])), "Project-Tango-like"),
+        "fisheye624": (
+            sq(
+                Fisheye624(
+                    640,
+                    480,
+                    [241.3, 241.3, 316.9, 237.6, -0.0255, 0.0979, -0.0665, 0.0070, 0.0031, -0.0013,
+                     -0.0003, 0.0002, 0.0005, -0.0001, -0.0004, 0.00005],
+                )
+            ),
+            "Project-Aria-SLAM-like",
         ),  # fmt: skip
     }
 

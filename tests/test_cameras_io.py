@@ -15,6 +15,7 @@ from raytun3r_plugin.cameras import (
     MEI,
     UCM,
     DoubleSphere,
+    Fisheye624,
     KannalaBrandt4,
     OpenCVRadTan,
     Pinhole,
@@ -134,6 +135,7 @@ COLMAP_LINES = [
     "3 SIMPLE_PINHOLE 201 101 150.0 100.5 50.5",
     "7 OPENCV 752 480 458.654 457.296 367.715 248.875 -0.28340811 0.07395907 0.00019359 1.76187114e-05",
     "8 FOV 640 480 256.1 255.7 320.5 240.25 0.9217",
+    "9 RAD_TAN_THIN_PRISM_FISHEYE 640 480 241.3 241.3 317.5 238.0 -0.0255 0.0979 -0.0665 0.007 0.0031 -0.0013 -0.0003 0.0002 0.0005 -0.0001 -0.0004 5e-05",
 ]
 COLMAP_TXT = (
     "# Camera list with one line of data per camera:\n"
@@ -433,9 +435,11 @@ def test_colmap_equidistant_family_is_kb4(tmp_path, line, expected):
     assert to_colmap_line(camera, 1).split()[1] == "OPENCV_FISHEYE"
 
 
-def test_colmap_fov(tmp_path):
+def test_colmap_fov_and_fisheye624(tmp_path):
     camera = load(write(tmp_path, "cameras.txt", COLMAP_TXT), camera=8)
     assert isinstance(camera, FOV) and camera.values["omega"] == 0.9217 and camera.values["cx"] == 320.0
+    aria = load(write(tmp_path, "cameras.txt", COLMAP_TXT), camera=9)
+    assert isinstance(aria, Fisheye624) and aria.values["k5"] == -0.0013 and aria.values["s3"] == 5e-05
     with pytest.raises(CameraError, match=r"param omega.*\(0, pi\)"):
         load(write(tmp_path, "bad.txt", "1 FOV 640 480 256.1 255.7 320.5 240.25 0.0\n"))
 
@@ -609,7 +613,7 @@ def basalt_eucm(**changes: float) -> str:
             BASALT_EUCM.replace('"camera_type": "eucm"', '"camera_type": "fov"'),
             "value0.intrinsics[0].camera_type",
         ),
-        ("cameras.txt", "1 RAD_TAN_THIN_PRISM_FISHEYE 640 480 300 300 320 240" + " 0" * 12 + "\n", "camera 1 (line 1) MODEL"),
+        ("cameras.txt", "1 SIMPLE_DIVISION 640 480 300 320 240 0.1\n", "camera 1 (line 1) MODEL"),
         ("camera.json", '{"model": "fisheye9", "width": 10, "height": 10, "params": {}}', "model"),
         # own JSON with a bad value
         (

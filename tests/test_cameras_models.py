@@ -18,6 +18,7 @@ from raytun3r_plugin.cameras import (
     UCM,
     Camera,
     DoubleSphere,
+    Fisheye624,
     KannalaBrandt4,
     OpenCVRadTan,
     Pinhole,
@@ -41,6 +42,9 @@ ETH3D_TP = [3411.42, 3410.02, 3041.29 - 0.5, 2014.07 - 0.5, 0.21047, 0.21102, -5
             0.00051541, -0.158023, 0.406856, -8.46499e-05, 0.000861313]  # fmt: skip
 # A Project-Tango-like FOV fisheye (640x480, omega about 53 degrees).
 TANGO_FOV = [256.1, 255.7, 319.8, 239.4, 0.9217]
+# A Project-Aria-SLAM-like Fisheye624 (640x480): plausible coefficients, not an official file.
+ARIA_F624 = [241.3, 241.3, 316.9, 237.6, -0.0255, 0.0979, -0.0665, 0.0070, 0.0031, -0.0013,
+             -0.0003, 0.0002, 0.0005, -0.0001, -0.0004, 0.00005]  # fmt: skip
 EUROC_RADTAN = [458.654, 457.296, 367.215, 248.375, -0.28340811, 0.07395907, 0.00019359,
                 1.76187114e-05]  # fmt: skip
 
@@ -62,6 +66,7 @@ def make_cameras() -> dict[str, Camera]:
         "mei": _small(MEI(1400, 1400, KITTI360_02)),
         "thin_prism_fisheye": _small(ThinPrismFisheye(6048, 4032, ETH3D_TP), 200, 133),
         "fov": _small(FOV(640, 480, TANGO_FOV), 200, 150),
+        "fisheye624": _small(Fisheye624(640, 480, ARIA_F624), 200, 150),
     }
 
 
@@ -128,6 +133,18 @@ def ref_project(cam: Camera, X: np.ndarray) -> np.ndarray:
         R = np.hypot(a, b)
         factor = np.arctan(2 * R * np.tan(p["omega"] / 2)) / (R * p["omega"])
         return np.stack([fx * a * factor + cx, fy * b * factor + cy], -1)
+    if cam.model == "fisheye624":  # COLMAP's route: normalised plane, atan(R), radial, then prism
+        a, b = x / z, y / z
+        R = np.hypot(a, b)
+        th = np.arctan(R)
+        u, v = a * th / R, b * th / R
+        t2 = u * u + v * v
+        rad = 1 + sum(p[f"k{i}"] * t2 ** (i + 1) for i in range(6))
+        xr, yr = u * rad, v * rad
+        r2 = xr * xr + yr * yr
+        dx = 2 * p["p1"] * xr * yr + p["p0"] * (r2 + 2 * xr * xr) + p["s0"] * r2 + p["s1"] * r2 * r2
+        dy = 2 * p["p0"] * xr * yr + p["p1"] * (r2 + 2 * yr * yr) + p["s2"] * r2 + p["s3"] * r2 * r2
+        return np.stack([fx * (xr + dx) + cx, fy * (yr + dy) + cy], -1)
     raise AssertionError(cam.model)
 
 
@@ -152,6 +169,7 @@ def test_registry_names():
         "mei",
         "thin_prism_fisheye",
         "fov",
+        "fisheye624",
     }
     assert KannalaBrandt4.param_names == ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")
     for cls in CAMERA_MODELS.values():
@@ -166,7 +184,7 @@ def test_project_matches_reference(name):
     # Reference formulas of the perspective-based models only exist in front of the camera.
     lim = min(
         cam.max_angle,
-        math.radians(89) if name in ("pinhole", "opencv", "thin_prism_fisheye", "fov") else 10.0,
+        math.radians(89) if name in ("pinhole", "opencv", "thin_prism_fisheye", "fov", "fisheye624") else 10.0,
     )
     X = directions(500, 0.98 * lim, seed=1, min_angle=1e-3)
     uv, valid = cam.project(X)
@@ -394,6 +412,23 @@ def test_fov_image_circle_and_pinhole_limit():
     uv, _ = near_pinhole.project(points)
     uv_pinhole, _ = Pinhole(200, 200, [f, f, 99.5, 99.5]).project(points)
     assert torch.allclose(uv, uv_pinhole, atol=1e-5)
+
+
+def test_fisheye624_without_prism_terms_is_kb4_in_front():
+    ks = [0.02, -0.01, 0.003, -0.0004]
+    f624 = Fisheye624(200, 200, [60.0, 61.0, 99.5, 100.5, *ks, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    kb4 = KannalaBrandt4(200, 200, [60.0, 61.0, 99.5, 100.5, *ks])
+    points = directions(200, math.radians(85), seed=4)
+    uv, valid = f624.project(points)
+    uv_kb, _ = kb4.project(points)
+    assert valid.all() and torch.allclose(uv, uv_kb, atol=1e-9)
+    # The prism / tangential stage moves pixels; unprojection undoes it.
+    tilted = Fisheye624(200, 200, [60.0, 61.0, 99.5, 100.5, *ks, 0.0, 0.0, 2e-3, -1e-3, 1e-3, 5e-4, -8e-4, 2e-4])
+    uv_t, _ = tilted.project(points)
+    assert (uv_t - uv).abs().max() > 0.05
+    rays, ok = tilted.unproject(uv_t)
+    assert ok.all() and torch.allclose(rays, points / points.norm(dim=-1, keepdim=True), atol=1e-9)
+    assert not tilted.project(torch.tensor([1.0, 0.0, -0.01], dtype=torch.float64))[1]
 
 
 # ----------------------------------------------------------------------------- gradients

@@ -9,6 +9,7 @@ KITTI-360 (OpenCV YAML) and raytun3r's own JSON calibration files. See ``docs/ca
 from __future__ import annotations
 
 from raytun3r_plugin.cameras.base import CAMERA_MODELS, Camera, from_dict, pixel_grid
+from raytun3r_plugin.cameras.fisheye624 import Fisheye624
 from raytun3r_plugin.cameras.formats import load, save, to_colmap_line
 from raytun3r_plugin.cameras.fov import FOV
 from raytun3r_plugin.cameras.kb import KannalaBrandt4, ThinPrismFisheye
@@ -19,6 +20,7 @@ __all__ = [
     "CAMERA_MODELS",
     "EUCM",
     "FOV",
+    "Fisheye624",
     "MEI",
     "UCM",
     "Camera",

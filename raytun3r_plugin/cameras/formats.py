@@ -27,6 +27,7 @@ from typing import Any
 import yaml
 
 from raytun3r_plugin.cameras.base import Camera, from_dict
+from raytun3r_plugin.cameras.fisheye624 import Fisheye624
 from raytun3r_plugin.cameras.fov import FOV
 from raytun3r_plugin.cameras.kb import KannalaBrandt4, ThinPrismFisheye
 from raytun3r_plugin.cameras.pinhole import OpenCVRadTan, Pinhole
@@ -494,6 +495,11 @@ _COLMAP: dict[
     ),
     "EUCM": (EUCM, EUCM.param_names, lambda p: dict(zip(EUCM.param_names, p, strict=True))),
     "FOV": (FOV, FOV.param_names, lambda p: dict(zip(FOV.param_names, p, strict=True))),
+    "RAD_TAN_THIN_PRISM_FISHEYE": (
+        Fisheye624,
+        Fisheye624.param_names,
+        lambda p: dict(zip(Fisheye624.param_names, p, strict=True)),
+    ),
     # COLMAP's equidistant family: theta_d = theta (1 + k1 theta^2 + k2 theta^4) on the angle
     # from the axis, i.e. Kannala-Brandt with the remaining coefficients zero (import only; a
     # KB4 camera exports as OPENCV_FISHEYE).
@@ -517,6 +523,7 @@ _COLMAP_EXPORT = {
     "thin_prism_fisheye": "THIN_PRISM_FISHEYE",
     "eucm": "EUCM",
     "fov": "FOV",
+    "fisheye624": "RAD_TAN_THIN_PRISM_FISHEYE",
 }
 
 _COLMAP_LINE = re.compile(r"^\s*-?\d+\s+[A-Z][A-Z0-9_]*\s")
@@ -585,7 +592,8 @@ def to_colmap_line(camera: Camera, camera_id: int, model: str | None = None) -> 
     Adds 0.5 to cx, cy (COLMAP's pixel-centre convention) and writes floats with ``repr`` so
     that import followed by export reproduces the line. ``model`` may force ``SIMPLE_PINHOLE``
     (pinhole with fx == fy); by default pinhole -> PINHOLE, opencv -> OPENCV, kb4 ->
-    OPENCV_FISHEYE, thin_prism_fisheye -> THIN_PRISM_FISHEYE, eucm -> EUCM, fov -> FOV.
+    OPENCV_FISHEYE, thin_prism_fisheye -> THIN_PRISM_FISHEYE, eucm -> EUCM, fov -> FOV,
+    fisheye624 -> RAD_TAN_THIN_PRISM_FISHEYE.
 
     Raises:
         CameraError: the model has no COLMAP equivalent.
