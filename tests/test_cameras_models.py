@@ -393,19 +393,26 @@ def test_thin_prism_only_front_hemisphere():
     assert not cam.project(torch.tensor([1.0, 0.0, -0.01], dtype=torch.float64))[1]
 
 
-def test_fov_image_circle_and_pinhole_limit():
-    omega, f = 1.2, 40.0
+def test_fov_image_circle_beyond_90_degrees_and_pinhole_limit():
+    omega, f = 1.9, 30.0
     cam = FOV(200, 200, [f, f, 99.5, 99.5, omega])
-    assert cam.max_angle == math.pi / 2
-    # The 90-degree ray lands on the circle of radius f pi / (2 omega): inside it every pixel
-    # has a forward ray, outside none.
-    edge = f * math.pi / (2 * omega)
+    assert cam.max_angle == math.pi
+    # basalt's atan2 form of the model: the same as COLMAP's in front, and defined behind.
+    points = directions(300, math.radians(175), seed=5, min_angle=math.radians(95))
+    x, y, z = points.unbind(-1)
+    rho = torch.hypot(x, y)
+    rd = torch.atan2(2 * math.tan(omega / 2) * rho, z) / (rho * omega)
+    uv, valid = cam.project(points)
+    assert valid.all() and torch.allclose(uv, torch.stack([f * x * rd + 99.5, f * y * rd + 99.5], -1), atol=1e-9)
+    # 90 degrees lands on the circle of radius f pi / (2 omega), 180 on f pi / omega: inside
+    # that circle every pixel has a ray, the ones beyond 90 degrees point backwards.
     rays, valid = cam.ray_table(dtype=torch.float64)
     v, u = torch.meshgrid(torch.arange(200.0), torch.arange(200.0), indexing="ij")
     r = torch.hypot(u - 99.5, v - 99.5)
+    edge = f * math.pi / omega
     assert valid[r < edge - 0.5].all() and not valid[r > edge + 0.5].any()
-    assert (rays[valid][:, 2] > 0).all()
-    assert not cam.project(torch.tensor([1.0, 0.0, -0.01], dtype=torch.float64))[1]
+    assert (rays[r < f * math.pi / (2 * omega) - 0.5][:, 2] > 0).all() and (rays[valid & (r > f * math.pi / (2 * omega) + 0.5)][:, 2] < 0).all()
+    assert not cam.project(torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))[1]
     # A small omega is almost a pinhole: factor atan(c r) / (omega r) -> 1.
     near_pinhole = FOV(200, 200, [f, f, 99.5, 99.5, 1e-4])
     points = directions(50, math.radians(60), seed=3)
