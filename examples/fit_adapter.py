@@ -1,6 +1,6 @@
 """Fit an adapter for a camera from a short fisheye segment and save it as one shareable file.
 
-    python examples/fit_adapter.py --out my_camera.safetensors [--frames FOLDER --camera CALIB]
+    python examples/fit_adapter.py --out my_camera.safetensors [--frames FOLDER --camera CALIB [--mask PNG]]
 
 Without --frames, a synthetic 190-degree fisheye segment is rendered, so the script runs anywhere.
 """
@@ -13,7 +13,7 @@ import raytun3r_plugin as rt
 from raytun3r_plugin import cameras, synthetic
 from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
 from raytun3r_plugin.demo import POSE_SOURCE, default_network, demo_camera
-from raytun3r_plugin.images import read_frames
+from raytun3r_plugin.images import read_frames, read_mask
 
 
 def main() -> None:
@@ -21,6 +21,7 @@ def main() -> None:
     parser.add_argument("--out", required=True)
     parser.add_argument("--frames", help="image folder or video of the segment")
     parser.add_argument("--camera", help="calibration file of the frames")
+    parser.add_argument("--mask", help="scene mask of the frames (255 = scene, 0 = the vehicle's body or the mount)")
     parser.add_argument("--backbone", help="backbone name (default: the built-in network)")
     parser.add_argument("--weights", help="local weight file of --backbone")
     parser.add_argument("--size", type=int, default=112, help="network input long side (px)")
@@ -29,15 +30,18 @@ def main() -> None:
     args = parser.parse_args()
 
     model = rt.load_backbone(args.backbone, args.weights) if args.backbone else default_network()[0]
+    mask = None
     if args.frames:
         camera = cameras.load(args.camera)
         frames, _ = read_frames(args.frames, limit=args.n_frames)
+        # Pixels that see the rig itself move with the camera: keep them out of the fit.
+        mask = read_mask(args.mask, camera.width, camera.height) if args.mask else None
     else:
         camera = demo_camera(args.size)
         frames = synthetic.render_sequence("indoor", camera, n_frames=args.n_frames, seed=7).images
     # The built-in network's pose head is at chance: take relative poses from MAGSAC++ targets.
     config = AdaptConfig(steps=args.steps, input_size=args.size, seed=0, pose_source="model" if args.backbone else POSE_SOURCE)
-    adapter = adapt(model, camera, frames, config, out_path=args.out, progress=False)
+    adapter = adapt(model, camera, frames, config, out_path=args.out, progress=False, mask=mask)
     print(f"saved {args.out}: {adapter.num_parameters()['total']:,} parameters, final losses {adapter.training_info.get('final_losses')}")
 
 
