@@ -95,6 +95,7 @@ def run_demo(args: argparse.Namespace) -> int:
     print()
     print("rot/trans: relative-pose errors (deg) on consecutive held-out pairs; d_reproj: px, GT pose;")
     print("AbsRel, delta<1.25: per-image median scale, range depth; coverage: fraction of fisheye pixels with depth.")
+    print(f"One sequence (seed {1000 + args.seed}; --seed k renders another) decides little; `raytun3r bench` scores 5 per camera and scene.")
     (out / "metrics.json").write_text(json.dumps({"network": description, "camera": json.loads(camera.to_json()), "rows": rows, "adapt_seconds": adapt_seconds}, indent=2, default=float))
     (out / "metrics.md").write_text(table + "\n")
     print(f"\nadapter: {out / 'adapter.safetensors'} ({adapter.num_parameters()['total']:,} parameters); total {time.perf_counter() - started:.0f} s")
