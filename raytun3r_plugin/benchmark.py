@@ -105,15 +105,36 @@ def targets_met(summary: list[dict], method: str = "raytun3r", reference: str = 
     return met
 
 
+def sequence_rows(model, camera, label: str, scene: str, seed: int, *, size: int, n_adapt: int, n_eval: int, steps: int, out: Path, progress: bool = False) -> list[dict]:
+    """The rows of one held-out sequence: vanilla, Center-PH, the zero adapter, and an adapter
+    fitted on its first ``n_adapt`` frames (written to ``out``); all scored on the rest."""
+    from raytun3r_plugin import synthetic
+    from raytun3r_plugin.adaptation.train import adapt
+
+    seq = synthetic.render_sequence(scene, camera, n_frames=n_adapt + n_eval, seed=seed)
+    held_out = list(range(n_adapt, len(seq)))
+    cell = {"camera": label, "scene": scene, "seed": seed}
+    rows = []
+    for method in ("vanilla", "center-ph"):
+        rows.append({**cell, "method": method, **headline(score(seq, run_method(model, seq, method, frames=held_out))), "adapt_s": math.nan})
+    # The patch with a zero adapter: the parameter-free corrections alone, so the table shows
+    # what the fitted tables add on top of them.
+    zero = headline(score(seq, run_method(model, seq, "raytun3r", frames=held_out)))
+    rows.append({**cell, "method": ZERO_ADAPTER, **zero, "adapt_s": math.nan})
+    start = time.perf_counter()
+    path = out / f"{label.replace(' ', '_')}_{scene}_{seed}.safetensors"
+    adapter = adapt(model, camera, seq.images[:n_adapt], adapt_config(size, steps, seed=0), out_path=path, resume=False, progress=progress)
+    seconds = time.perf_counter() - start
+    rows.append({**cell, "method": "raytun3r", **headline(score(seq, run_method(model, seq, "raytun3r", adapter=adapter, frames=held_out))), "adapt_s": seconds})
+    return rows
+
+
 def run_benchmark(model, out_dir: str | Path, *, size: int = 112, n_adapt: int = 24, n_eval: int = 12, steps: int = 300, sequences: int = SEQUENCES_PER_CELL, cameras=CAMERAS, scenes=SCENES, network: str = "", progress: bool = False) -> str:
     """Run every (camera, scene) on ``sequences`` held-out sequences; return the markdown table.
 
     The table shows means over each cell's sequences; ``out_dir`` also gets every per-sequence
     row (``results.json``) and the table (``results.md``).
     """
-    from raytun3r_plugin import synthetic
-    from raytun3r_plugin.adaptation.train import adapt
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows, began = [], time.perf_counter()
@@ -122,20 +143,7 @@ def run_benchmark(model, out_dir: str | Path, *, size: int = 112, n_adapt: int =
         for scene_index, scene in enumerate(scenes):
             for k in range(sequences):
                 seed = sequence_seed(camera_index, scene_index, k)
-                seq = synthetic.render_sequence(scene, camera, n_frames=n_adapt + n_eval, seed=seed)
-                held_out = list(range(n_adapt, len(seq)))
-                cell = {"camera": spec.label, "scene": scene, "seed": seed}
-                for method in ("vanilla", "center-ph"):
-                    rows.append({**cell, "method": method, **headline(score(seq, run_method(model, seq, method, frames=held_out))), "adapt_s": math.nan})
-                # The patch with a zero adapter: the parameter-free corrections alone, so the table
-                # shows what the fitted tables add on top of them.
-                zero = headline(score(seq, run_method(model, seq, "raytun3r", frames=held_out)))
-                rows.append({**cell, "method": ZERO_ADAPTER, **zero, "adapt_s": math.nan})
-                config = adapt_config(size, steps, seed=0)
-                start = time.perf_counter()
-                adapter = adapt(model, camera, seq.images[:n_adapt], config, out_path=out / f"{spec.label.replace(' ', '_')}_{scene}_{seed}.safetensors", resume=False, progress=progress)
-                seconds = time.perf_counter() - start
-                rows.append({**cell, "method": "raytun3r", **headline(score(seq, run_method(model, seq, "raytun3r", adapter=adapter, frames=held_out))), "adapt_s": seconds})
+                rows += sequence_rows(model, camera, spec.label, scene, seed, size=size, n_adapt=n_adapt, n_eval=n_eval, steps=steps, out=out, progress=progress)
                 print(f"[{time.perf_counter() - began:6.0f} s] {spec.label} {scene} seed {seed}: done", flush=True)
     summary = summarise(rows)
     met = targets_met(summary)
