@@ -15,6 +15,7 @@ import threading
 import weakref
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import nn
@@ -199,6 +200,29 @@ def _components_for(components, adapter: Adapter | None) -> dict[str, bool]:
     return normalise_components(components)
 
 
+def _checked_mask(mask: Any, camera: Any) -> torch.Tensor:
+    """The scene mask as (H, W) bool, refused when it cannot belong to ``camera``.
+
+    It may be at the camera's size or at another size of the same aspect ratio (it is resized
+    with the camera to every input); a different aspect ratio or nothing left inside the lens is
+    a mistake that would otherwise show only as worse depth.
+    """
+    mask = torch.as_tensor(mask).bool()
+    if mask.ndim != 2:
+        raise CameraError(f"mask must be (H, W), got shape {tuple(mask.shape)}")
+    height, width = mask.shape
+    if abs(height * camera.width - width * camera.height) > 0.01 * width * camera.height:
+        raise CameraError(f"mask is {width}x{height} px but the camera is {camera.width}x{camera.height}: the aspect ratios differ")
+    valid = camera.valid_mask().cpu()
+    if (height, width) != tuple(valid.shape):
+        resized = torch.nn.functional.interpolate(mask[None, None].float(), size=tuple(valid.shape), mode="nearest")[0, 0] > 0.5
+    else:
+        resized = mask
+    if not bool((resized & valid).any()):
+        raise CameraError("mask leaves no pixel inside the camera's valid region")
+    return mask
+
+
 def apply(
     model: nn.Module,
     camera=None,
@@ -240,9 +264,7 @@ def apply(
     if not isinstance(camera, Camera):
         raise CameraError(f"camera must be a raytun3r_plugin.cameras.Camera, got {type(camera).__name__}")
     if mask is not None:
-        mask = torch.as_tensor(mask).bool()
-        if mask.ndim != 2:
-            raise CameraError(f"mask must be (H, W), got shape {tuple(mask.shape)}")
+        mask = _checked_mask(mask, camera)
 
     spec, root = spec_for(model)
     info = spec.describe(root)

@@ -11,6 +11,7 @@ import raytun3r_plugin as rt
 from raytun3r_plugin.errors import (
     AdapterError,
     AlreadyAppliedError,
+    CameraError,
     InputError,
     NotAppliedError,
     Raytun3rError,
@@ -235,6 +236,29 @@ def test_camera_follows_input_size(net):
 def test_wrong_image_size_is_a_clear_error(net):
     with rt.apply(net, fisheye(W, H)), pytest.raises(InputError, match="multiple of the patch size 14"):
         rt.predict(net, torch.rand(1, 2, 3, H + 3, W))
+
+
+def test_bad_mask_is_refused_before_the_model_is_touched(net, images):
+    camera = fisheye(W, H)
+    before = snapshot(net)
+    with pytest.raises(CameraError, match="aspect ratios differ"):
+        rt.apply(net, camera, mask=torch.ones(H, H, dtype=torch.bool))
+    with pytest.raises(CameraError, match="no pixel inside"):
+        rt.apply(net, camera, mask=torch.zeros(H, W, dtype=torch.bool))
+    with pytest.raises(CameraError, match=r"must be \(H, W\)"):
+        rt.apply(net, camera, mask=torch.ones(2, H, W, dtype=torch.bool))
+    assert rt.handle_of(net) is None
+    assert_same_snapshot(net, before)
+    # The same mask at twice the size is accepted (resized with the camera) and acts alike.
+    mask = torch.ones(H, W, dtype=torch.bool)
+    mask[H // 2 :] = False
+    with rt.apply(net, camera, mask=mask):
+        at_size = outputs(net, images)
+    with rt.apply(net, camera, mask=mask.repeat_interleave(2, 0).repeat_interleave(2, 1)):
+        doubled = outputs(net, images)
+    with rt.apply(net, camera):
+        unmasked = outputs(net, images)
+    assert max_relative_difference(at_size, doubled) == 0.0 and max_relative_difference(at_size, unmasked) > 1e-3
 
 
 def test_adapter_for_other_backbone_or_weights_is_refused(net):
