@@ -403,6 +403,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--w-quat", type=float, default=0.0, help="weight of the L1 loss on the raw quaternion of the pose encoding")
     ap.add_argument("--pe-std", type=float, default=0.0, help="start the PE table as a low-frequency 2D sin-cos map of this std (0 = trunc-normal 0.02)")
     ap.add_argument("--init", default=None, help="start from these weights (a stage-2 run); the optimizer starts fresh")
+    ap.add_argument("--fixed-batch", action="store_true", help="train on the batch of step 0 at every step: a memorisation check of the losses and targets")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--ckpt-every", type=int, default=50)
@@ -466,7 +467,9 @@ def main(argv=None) -> int:
         lr = lr_at(step, args.steps, args.lr, args.warmup)
         for g in opt.param_groups:
             g["lr"] = lr
-        batch = make_batch(data, args.seed, step, args.batch, args.views, args.max_gap)
+        # A fixed batch must be fitted by any network that can represent its targets: if it is
+        # not, the targets or the losses are wrong rather than the data too hard.
+        batch = make_batch(data, args.seed, 0 if args.fixed_batch else step, args.batch, args.views, args.max_gap)
         tg = targets(batch)
         out_d, pose_enc = forward_train(model, batch["images"])
         ls = losses(out_d, pose_enc, tg, weights)

@@ -198,3 +198,22 @@ def test_training_with_pe_init_and_quaternion_loss_starts_from_the_sincos_table(
     header, row = (tmp_path / "log.csv").read_text().strip().splitlines()[:2]
     quat_loss = float(row.split(",")[header.split(",").index("quat")])
     assert quat_loss > 0
+
+
+def test_fixed_batch_trains_on_the_first_batch_every_step(tmp_path, monkeypatch):
+    train = _script("train_default_network")
+    requested = []
+    original = train.make_batch
+
+    def recording(data, seed, step, *args):
+        requested.append(step)
+        return original(data, seed, step, *args)
+
+    monkeypatch.setattr(train, "make_batch", recording)
+    common = ["--tiny", "--size", "28", "--n-seq", "1", "--n-frames", "3", "--max-gap", "1", "--batch", "1",
+              "--steps", "3", "--warmup", "1", "--log-every", "1", "--ckpt-every", "3", "--threads", "1"]
+    assert train.main(["--out", str(tmp_path / "fixed"), "--fixed-batch", *common]) == 0
+    assert requested == [0, 0, 0]
+    requested.clear()
+    assert train.main(["--out", str(tmp_path / "normal"), *common]) == 0
+    assert requested == [0, 1, 2]
