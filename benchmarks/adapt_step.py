@@ -88,18 +88,11 @@ def frames(size: int, n_frames: int, cache_dir: str):
     return images
 
 
-def quiet_da3() -> None:
-    from depth_anything_3.utils.logger import logger
-
-    logger.level = 1  # DA3 prints an INFO line on every forward with 3+ views
-
-
 def setup(size: int, n_frames: int, cache_dir: str, config_changes: dict | None = None):
     """Model, prepared problem, zero adapter applied, Adam. Returns (model, problem, adapter, optimizer, config, handle)."""
     from raytun3r_plugin import Adapter, apply
     from raytun3r_plugin.adaptation.train import AdaptConfig, prepare_problem
 
-    quiet_da3()
     model = build_model()
     config = AdaptConfig(input_size=size, cache_dir=cache_dir, sequence_id=f"bench-indoor-s0-{size}-{n_frames}", **(config_changes or {}))
     problem = prepare_problem(camera(size), frames(size, n_frames, cache_dir), config)
@@ -256,4 +249,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from raytun3r_plugin.registry import quiet_upstream
+
+    with quiet_upstream():  # no per-forward INFO lines from the backbone's own logger (children too)
+        main()

@@ -29,6 +29,7 @@ from raytun3r_plugin.benchmark import CAMERAS, make_camera
 from raytun3r_plugin.evaluation import format_table
 from raytun3r_plugin.prediction import predict
 from raytun3r_plugin.registry import quiet_upstream
+from raytun3r_plugin.weights import load_backbone
 
 
 def relative_change(depth: torch.Tensor, reference: torch.Tensor) -> float:
@@ -70,8 +71,6 @@ def leverage(model, camera, images: torch.Tensor, seed: int = 0) -> dict[str, fl
 
 
 def main() -> None:
-    from raytun3r_plugin.patches.da3_default import BUILDERS
-
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--weights", nargs="*", default=[None], help="raytun3r-da3-tiny weight files (default: packaged)")
     parser.add_argument("--camera", type=int, default=1, help="index into the benchmark cameras (0 KB4 120, 1 KB4 185, 2 DS 195)")
@@ -83,7 +82,7 @@ def main() -> None:
     images = torch.from_numpy(seq.images).permute(0, 3, 1, 2)[None].float()
     rows = []
     for weights in args.weights:
-        model = BUILDERS["raytun3r-da3-tiny"](weights).eval()
+        model = load_backbone("raytun3r-da3-tiny", weights)
         rows.append({"weights": weights or "packaged", **leverage(model, camera, images)})
     print(f"camera {CAMERAS[args.camera].label}, indoor seed {args.seed}, 3 views at 112 px; mean |d - d_ref| / d_ref")
     print(format_table(rows, ["weights", "pe_std", "zero_pe", "pe_correction", "rope_1_token", "parameter_free"]))

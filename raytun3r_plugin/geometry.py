@@ -176,6 +176,16 @@ def patch_resample_grid(
     return normalised[None]
 
 
+def resize_mask(mask: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """An (H, W) bool mask at ``size = (h, w)``, nearest neighbour (it stays binary; unchanged
+    when already that size). The one resize for scene masks: the patched model, ``apply``'s
+    check and adaptation must agree on which pixels a mask excludes."""
+    mask = mask.bool()
+    if tuple(mask.shape) == tuple(size):
+        return mask
+    return F.interpolate(mask[None, None].float(), size=tuple(size), mode="nearest")[0, 0] > 0.5
+
+
 def token_validity(valid_pixels: torch.Tensor, patch: int) -> torch.Tensor:
     """(hw,) bool: tokens with at least half of their pixels valid. ``valid_pixels`` is (H, W)."""
     fraction = F.avg_pool2d(valid_pixels[None, None].double(), patch, stride=patch)[0, 0]
@@ -283,10 +293,7 @@ class SizeGeometry:
         def build():
             valid = self.camera.valid_mask().to("cpu").bool()
             if self._mask is not None:
-                mask = self._mask.to("cpu").bool()
-                if mask.shape != valid.shape:
-                    mask = F.interpolate(mask[None, None].float(), size=valid.shape, mode="nearest")[0, 0] > 0.5
-                valid = valid & mask
+                valid = valid & resize_mask(self._mask.to("cpu"), valid.shape)
             return valid
 
         return self._get("valid_pixels", build)

@@ -27,6 +27,7 @@ from raytun3r_plugin.geometry import (
     DEFAULT_MAX_STRETCH,
     GeometryCache,
     SizeGeometry,
+    resize_mask,
 )
 from raytun3r_plugin.registry import BackboneInfo, BackboneSpec, resolve_targets, spec_for
 
@@ -214,11 +215,7 @@ def _checked_mask(mask: Any, camera: Any) -> torch.Tensor:
     if abs(height * camera.width - width * camera.height) > 0.01 * width * camera.height:
         raise CameraError(f"mask is {width}x{height} px but the camera is {camera.width}x{camera.height}: the aspect ratios differ")
     valid = camera.valid_mask().cpu()
-    if (height, width) != tuple(valid.shape):
-        resized = torch.nn.functional.interpolate(mask[None, None].float(), size=tuple(valid.shape), mode="nearest")[0, 0] > 0.5
-    else:
-        resized = mask
-    if not bool((resized & valid).any()):
+    if not bool((resize_mask(mask, valid.shape) & valid).any()):
         raise CameraError("mask leaves no pixel inside the camera's valid region")
     return mask
 

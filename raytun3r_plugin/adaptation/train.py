@@ -62,7 +62,7 @@ from raytun3r_plugin.adaptation.matchers import get_matcher
 from raytun3r_plugin.adaptation.windows import AdaptationSet, Window, prepare_adaptation_set
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AdapterError, AlreadyAppliedError, InputError
-from raytun3r_plugin.geometry import ASPECT_TOLERANCE, GeometryCache
+from raytun3r_plugin.geometry import ASPECT_TOLERANCE, GeometryCache, resize_mask
 from raytun3r_plugin.patching import apply, handle_of
 from raytun3r_plugin.prediction import predict
 
@@ -277,8 +277,7 @@ def _mask_at_input(mask: np.ndarray, layout: InputLayout) -> tuple[torch.Tensor,
     if layout.crop is not None:
         x0, y0, w, h = layout.crop
         tensor = tensor[y0 : y0 + h, x0 : x0 + w]
-    resized = F.interpolate(tensor[None, None].float(), size=(layout.height, layout.width), mode="nearest")[0, 0] > 0.5
-    return tensor.contiguous(), resized
+    return tensor.contiguous(), resize_mask(tensor, (layout.height, layout.width))
 
 
 # --------------------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from raytun3r_plugin.cameras._math import (
+    Coef,
     RadialTable,
     angle_ratio,
     radial_poly,
@@ -23,8 +24,6 @@ from raytun3r_plugin.cameras.base import Camera
 from raytun3r_plugin.cameras.kb import _equidistant_table, _ray_from_angle, _unit_points
 
 __all__ = ["Fisheye624"]
-
-Coef = Tensor | float
 
 
 class _TangentialPrism:

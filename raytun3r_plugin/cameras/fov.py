@@ -7,7 +7,7 @@ import math
 import torch
 from torch import Tensor
 
-from raytun3r_plugin.cameras._math import angle_ratio, safe_sqrt, small_threshold
+from raytun3r_plugin.cameras._math import safe_sqrt, small_threshold
 from raytun3r_plugin.cameras.base import Camera, param_error
 from raytun3r_plugin.cameras.kb import _ray_from_angle, _unit_points
 
@@ -52,9 +52,9 @@ class FOV(Camera):
         ratio = torch.where(small, series, torch.atan2(c * rho, z) / rho)
         scale = ratio / omega
         uv = torch.stack([p[0] * scale * x + p[2], p[1] * scale * y + p[3]], dim=-1)
-        # Strict bound: the back pole is a whole circle of pixels (as at a Kannala-Brandt fold).
-        _theta2, _ratio, theta = angle_ratio(x, y, z)
-        return uv, nonzero & (theta < math.pi)
+        # Strict bound: the back pole (a point on the axis behind the camera) is a whole circle
+        # of pixels, as at a Kannala-Brandt fold; off the axis atan2(rho, z) < pi.
+        return uv, nonzero & ~(small & (z <= 0))
 
     def _unproject(self, uv: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
         mx = (uv[..., 0] - p[2]) / p[0]
