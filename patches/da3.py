@@ -73,14 +73,15 @@ def describe(root: nn.Module) -> BackboneInfo:
     )
 
 
-def _prepare_rope(original, owner, state):
+def _prepare_rope(owner, state):
     """Displace the frame-attention positions; the global blocks' constant (1, 1) stays."""
+    patch_start = owner.patch_start_idx
 
-    def prepare_rope(B, S, H, W, device):
+    def prepare_rope(original, B, S, H, W, device):
         pos, pos_nodiff = original(B, S, H, W, device)
         if pos is None or not state.uses("rope"):
             return pos, pos_nodiff
-        return hooks.displaced_rope_positions(pos, owner.patch_start_idx, state, H, W), pos_nodiff
+        return hooks.displaced_rope_positions(pos, patch_start, state, H, W), pos_nodiff
 
     return prepare_rope
 

@@ -136,7 +136,9 @@ class _UvTrampoline:
     Lifetime: installed lazily by the first patched forward that needs it (``apply`` itself
     changes no module global), shared by every patched Pi3X, and removed again (the original
     function put back) when the last head wrapper that uses it is released, which is at
-    ``remove()`` (the wrappers are freed when the core deletes them from the heads). If something
+    ``remove()`` (the wrappers are freed when the core deletes them from the heads) or when a
+    patched model is garbage-collected; a deep copy of a patched Pi3X rebuilds its head wrappers,
+    which count as users of their own. If something
     else replaced the module attribute in the meantime, it is left as found.
     """
 
@@ -190,7 +192,7 @@ class _UvTrampoline:
                 setattr(module, _UV_FUNCTION, cls(module, getattr(module, _UV_FUNCTION)))
 
 
-def conv_head_uv(original, owner, state):
+def conv_head_uv(owner, state):
     """Wrap ``ConvHead.forward(hidden_states, image, patch_h, patch_w)`` of one head instance."""
     module = sys.modules.get(type(owner).__module__)
     if module is None or not callable(getattr(module, _UV_FUNCTION, None)):
@@ -199,7 +201,7 @@ def conv_head_uv(original, owner, state):
         )
     patch = state.info.patch_size
 
-    def forward(hidden_states, image=None, patch_h=None, patch_w=None):
+    def forward(original, hidden_states, image=None, patch_h=None, patch_w=None):
         if not state.uses("grid"):
             return original(hidden_states, image, patch_h, patch_w)
         if image is not None:

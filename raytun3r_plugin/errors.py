@@ -41,3 +41,11 @@ class WeightsError(Raytun3rError, ValueError):
 
 class MissingDependencyError(Raytun3rError, ImportError):
     """An optional upstream package needed for the request is not installed."""
+
+
+class PatchedCopyError(Raytun3rError, RuntimeError):
+    """``copy.deepcopy`` was asked for a part of a patched model, or for a handle on its own."""
+
+
+class SplitInstallError(Raytun3rError, ImportError):
+    """``raytun3r_plugin`` and ``raytun3r_plugin.patches`` were imported from different source trees."""

@@ -1,8 +1,13 @@
 """Replacement builders shared by the backbone patch modules.
 
 Each builder has the :class:`raytun3r_plugin.registry.PatchTarget` ``build`` signature
-``build(original, owner, state) -> replacement`` and wraps one upstream method of one instance.
-The backbone modules only say *where* these go; what they do is written once here.
+``build(owner, state) -> behaviour``, and ``behaviour(original, *args)`` runs in place of one
+upstream method of one instance. ``original`` is that method, bound to the owner, looked up by the
+installed wrapper on every call: a behaviour must not keep the original or the owner itself, so
+that a patched model is freed like any other and a deep copy runs its own submodules (the
+wrapper rebuilds the behaviour for the copy). Plain values read from the owner at build time
+(a frequency, a token offset) are fine. The backbone modules only say *where* these go; what
+they do is written once here.
 """
 
 from __future__ import annotations
@@ -17,14 +22,14 @@ from raytun3r_plugin.errors import UnsupportedUpstreamError
 from raytun3r_plugin.rope import apply_rope_2d, displaced_positions
 
 
-def pe_interpolation(original, owner, state):
+def pe_interpolation(owner, state):
     """Wrap ``interpolate_pos_encoding(x, w, h)``: add the adapter's PE correction to patch rows.
 
     Upstream names are swapped (``w`` receives the image height); the table's first row is the
     class slot and stays unchanged.
     """
 
-    def interpolate_pos_encoding(x, w, h):
+    def interpolate_pos_encoding(original, x, w, h):
         table = original(x, w, h)
         if not state.uses("pe"):
             return table
@@ -35,13 +40,13 @@ def pe_interpolation(original, owner, state):
     return interpolate_pos_encoding
 
 
-def patch_embedding(original, owner, state):
+def patch_embedding(owner, state):
     """Wrap ``PatchEmbed.forward(x)``: local undistortion before, border tokens after.
 
     x: (N, C, H, W) images; returns (N, hw, D) tokens like upstream.
     """
 
-    def forward(x):
+    def forward(original, x):
         resample = state.uses("patch_resample")
         border = state.uses("border_tokens")
         if not (resample or border):
@@ -63,7 +68,7 @@ def patch_embedding(original, owner, state):
     return forward
 
 
-def continuous_rope(original, owner, state):
+def continuous_rope(owner, state):
     """Wrap a RoPE module's ``forward(tokens, positions)`` to accept fractional positions.
 
     Integer positions (upstream's own, or a disabled handle) go to the original table look-up;
@@ -71,7 +76,7 @@ def continuous_rope(original, owner, state):
     """
     base = float(getattr(owner, "base_frequency", getattr(owner, "base", 100.0)))
 
-    def forward(tokens, positions):
+    def forward(original, tokens, positions):
         if not positions.is_floating_point():
             return original(tokens, positions)
         return apply_rope_2d(tokens, positions, base)
@@ -86,7 +91,7 @@ def displaced_rope_positions(positions: torch.Tensor, patch_start: int, state, h
     return displaced_positions(positions, patch_start, displacement)
 
 
-def uv_grid_embedding(original, owner, state):
+def uv_grid_embedding(owner, state):
     """Wrap a DPT head's ``_add_pos_embed(x, W, H, ratio)`` / ``_apply_pos_embed``.
 
     The camera-aware uv grid goes through the sinusoidal embedding function that the head's own
@@ -99,7 +104,7 @@ def uv_grid_embedding(original, owner, state):
             f"{type(owner).__module__}: expected a module-level 'position_grid_to_embed' next to {type(owner).__qualname__}, found none"
         )
 
-    def add_pos_embed(x, W, H, ratio=0.1):
+    def add_pos_embed(original, x, W, H, ratio=0.1):
         if not state.uses("grid"):
             return original(x, W, H, ratio)
         geometry = state.geometry(H, W)
@@ -144,7 +149,7 @@ def displace_grid_positions(positions: torch.Tensor, state, patch_size: int) -> 
     return positions.to(torch.float32) + offset
 
 
-def grid_position_rope(original, owner, state):
+def grid_position_rope(owner, state):
     """Wrap a RoPE module's ``forward(tokens, positions)``: radial displacement + continuous angles.
 
     Upstream integer positions (y + 1, x + 1) identify each patch token, whatever the layout of
@@ -154,13 +159,13 @@ def grid_position_rope(original, owner, state):
     unchanged. Float positions and a disabled handle go straight to the continuous / upstream
     evaluation of :func:`raytun3r_plugin.hooks.continuous_rope`.
     """
-    continuous = continuous_rope(original, owner, state)
+    continuous = continuous_rope(owner, state)
     patch_size = state.info.patch_size
 
-    def forward(tokens, positions):
+    def forward(original, tokens, positions):
         if positions.is_floating_point() or not state.uses("rope"):
-            return continuous(tokens, positions)
-        return continuous(tokens, displace_grid_positions(positions, state, patch_size))
+            return continuous(original, tokens, positions)
+        return continuous(original, tokens, displace_grid_positions(positions, state, patch_size))
 
     return forward
 

@@ -4,16 +4,23 @@ Modelled on accelerate's hooks and pytest's monkeypatch: each replaced method is
 installed as an instance attribute (so other instances of the same class are untouched), and
 undone in reverse order. ``apply`` validates everything first and mutates last; a failure while
 installing rolls back what was installed, so the model is never left half patched.
+
+Lifetime, as accelerate's ``add_hook_to_module``: an installed :class:`_Wrapper` holds its owner
+by weak reference and looks the original method up *at call time*, and the handle holds the
+model by weak reference, so a patched model is freed like any other. The handle itself lives on
+the model (the one attribute of :data:`ADDED_ATTRIBUTES`), which is what lets ``copy.deepcopy``
+of a patched model give a patched copy with its own handle that runs its own weights.
 """
 
 from __future__ import annotations
 
 import contextlib
 import contextvars
-import functools
+import copy
+import inspect
 import threading
 import weakref
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,7 +28,13 @@ import torch
 from torch import nn
 
 from raytun3r_plugin.adapter import Adapter, normalise_components, pe_fingerprint
-from raytun3r_plugin.errors import AdapterError, AlreadyAppliedError, CameraError, NotAppliedError
+from raytun3r_plugin.errors import (
+    AdapterError,
+    AlreadyAppliedError,
+    CameraError,
+    NotAppliedError,
+    PatchedCopyError,
+)
 from raytun3r_plugin.geometry import (
     DEFAULT_KNEE_DEG,
     DEFAULT_MAX_STRETCH,
@@ -29,7 +42,13 @@ from raytun3r_plugin.geometry import (
     SizeGeometry,
     resize_mask,
 )
-from raytun3r_plugin.registry import BackboneInfo, BackboneSpec, resolve_targets, spec_for
+from raytun3r_plugin.registry import (
+    BackboneInfo,
+    BackboneSpec,
+    PatchTarget,
+    resolve_targets,
+    spec_for,
+)
 
 # Hook kind -> the components it serves (a hook is installed when any of them is on).
 _HOOK_COMPONENTS = {
@@ -38,24 +57,72 @@ _HOOK_COMPONENTS = {
     "patch_embed": ("patch_resample", "border_tokens"),
     "grid": ("grid",),
 }
-_WRAPPER_MARK = "__raytun3r_wrapper__"
+#: Class attribute that identifies an installed raytun3r wrapper.
+WRAPPER_MARK = "__raytun3r_wrapper__"
+#: Where the live handle is kept on the model given to :func:`apply`.
+HANDLE_ATTRIBUTE = "_raytun3r_handle"
+#: Every attribute ``apply`` adds to the model object itself (accelerate's
+#: ``_accelerate_added_attributes``); ``remove`` deletes exactly these.
+ADDED_ATTRIBUTES = (HANDLE_ATTRIBUTE,)
 
 # Handles disabled in the current thread / context (see RaytunHandle.disabled).
 _DISABLED: contextvars.ContextVar[frozenset[int]] = contextvars.ContextVar("raytun3r_disabled", default=frozenset())
 
-_ACTIVE: weakref.WeakKeyDictionary[nn.Module, RaytunHandle] = weakref.WeakKeyDictionary()
-_ACTIVE_LOCK = threading.Lock()
+# apply / remove of any model, one at a time (the check-then-install of apply must not interleave).
+_LOCK = threading.Lock()
+
+_PART_COPY_HINT = (
+    "copy the whole model that was given to apply(), or call handle.remove() before copying "
+    "(a copy of only a part of a patched model would carry wrappers that no handle can remove)"
+)
 
 
 class PatchState:
     """What the installed wrappers read at run time (one per patched model)."""
 
-    def __init__(self, camera, adapter: Adapter | None, components: dict[str, bool], info: BackboneInfo, mask: torch.Tensor | None, knee_deg: float, max_stretch: float):
+    def __init__(
+        self,
+        camera,
+        adapter: Adapter | None,
+        components: dict[str, bool],
+        info: BackboneInfo,
+        mask: torch.Tensor | None,
+        knee_deg: float,
+        max_stretch: float,
+        model: nn.Module | None = None,
+    ):
         self.camera = camera
         self.adapter = adapter
         self.components = components
         self.info = info
+        self.mask = mask
+        self.knee_deg = knee_deg
+        self.max_stretch = max_stretch
         self.geometry_cache = GeometryCache(camera, info.patch_size, mask, knee_deg, max_stretch)
+        # Weak: the state is reachable from the model's own wrappers.
+        self._model = weakref.ref(model) if model is not None else None
+
+    def __deepcopy__(self, memo: dict) -> PatchState:
+        """The state of a deep copy of the patched model: its own adapter, fresh caches and locks.
+
+        Refused (:class:`PatchedCopyError`) when the model given to ``apply`` is not itself being
+        copied, i.e. for a copy of only a part of it.
+        """
+        model = self._model() if self._model is not None else None
+        if model is None or id(model) not in memo:
+            raise PatchedCopyError(f"cannot deepcopy a part of a patched model: {_PART_COPY_HINT}")
+        twin = PatchState.__new__(PatchState)
+        memo[id(self)] = twin
+        twin.camera = self.camera  # cameras are immutable
+        twin.adapter = copy.deepcopy(self.adapter, memo)
+        twin.components = dict(self.components)
+        twin.info = copy.deepcopy(self.info, memo)  # pos_embed becomes the copy's own parameter
+        twin.mask = copy.deepcopy(self.mask, memo)
+        twin.knee_deg, twin.max_stretch = self.knee_deg, self.max_stretch
+        # Fresh: the cache's locks cannot be copied, and its tensors may sit on the source's device.
+        twin.geometry_cache = GeometryCache(twin.camera, twin.info.patch_size, twin.mask, twin.knee_deg, twin.max_stretch)
+        twin._model = weakref.ref(memo[id(model)])
+        return twin
 
     @property
     def active(self) -> bool:
@@ -86,24 +153,126 @@ class PatchState:
         return (weights @ self.adapter.rope["radial"].to(device, dtype))[:, None] * direction
 
 
+class _NotSet:
+    """Marks a wrapper whose owner had no instance attribute of its own (the class method runs)."""
+
+    def __repr__(self) -> str:
+        return "<not set>"
+
+    def __deepcopy__(self, memo: dict) -> _NotSet:
+        return self
+
+
+_NOTSET = _NotSet()
+
+
+class _Wrapper:
+    """The callable installed in place of one upstream method on one owner instance.
+
+    It holds the owner by weak reference and resolves the original method on every call (the
+    class method bound to the owner, or the instance attribute it shadowed), so it never pins
+    the model and a deep copy rebinds to the copied owner; the behaviour comes from
+    ``target.build(owner, state)`` and is rebuilt for a copy. ``__wrapped__``, ``__name__`` and
+    ``__signature__`` are the original's, so ``inspect`` sees the upstream method.
+    """
+
+    __raytun3r_wrapper__ = True
+
+    def __init__(self, owner: Any, target: PatchTarget, state: PatchState, previous: Any = _NOTSET, *, build: bool = True):
+        self._owner = weakref.ref(owner)
+        self._target = target
+        self._state = state
+        self._previous = previous
+        self._lock = threading.Lock()
+        self._behaviour = target.build(owner, state) if build else None
+        named = getattr(type(owner), target.attribute) if previous is _NOTSET else previous
+        self.__name__ = getattr(named, "__name__", target.attribute)
+        self.__qualname__ = getattr(named, "__qualname__", target.attribute)
+        self.__doc__ = getattr(named, "__doc__", None)
+        self.__module__ = getattr(named, "__module__", type(owner).__module__)
+
+    def _original(self) -> Callable:
+        owner = self._owner()
+        if owner is None:
+            raise NotAppliedError(f"the module owning {self._target.attribute} was garbage-collected")
+        if self._previous is not _NOTSET:
+            return self._previous
+        return getattr(type(owner), self._target.attribute).__get__(owner, type(owner))
+
+    def _built(self) -> Callable:
+        with self._lock:
+            if self._behaviour is None:
+                self._behaviour = self._target.build(self._owner(), self._state)
+            return self._behaviour
+
+    def __call__(self, *args, **kwargs):
+        behaviour = self._behaviour or self._built()
+        return behaviour(self._original(), *args, **kwargs)
+
+    @property
+    def __wrapped__(self) -> Callable:
+        return self._original()
+
+    @property
+    def __signature__(self) -> inspect.Signature:
+        return inspect.signature(self._original())
+
+    def __deepcopy__(self, memo: dict) -> _Wrapper:
+        state = copy.deepcopy(self._state, memo)  # refuses a copy of only a part of the model
+        owner = copy.deepcopy(self._owner(), memo)  # already in memo: the copy being built
+        # The copied owner is still empty here (deepcopy is filling its __dict__), so the
+        # behaviour, which may read it, is built on the copy's first call.
+        twin = _Wrapper(owner, self._target, state, copy.deepcopy(self._previous, memo), build=False)
+        memo[id(self)] = twin
+        return twin
+
+    def __reduce_ex__(self, protocol):
+        raise PatchedCopyError("a patched model cannot be pickled: call handle.remove() first (apply() again after loading)")
+
+    def __repr__(self) -> str:
+        owner = self._owner()
+        where = type(owner).__qualname__ if owner is not None else "<freed>"
+        return f"<raytun3r wrapper of {where}.{self._target.attribute}>"
+
+
 @dataclass
 class _Installed:
-    owner: object
+    owner: weakref.ref
     attribute: str
     had_own: bool
     previous: object
 
 
 class RaytunHandle:
-    """A live patch on one model: ``.remove()``, context manager, ``.disabled()``."""
+    """A live patch on one model: ``.remove()``, context manager, ``.disabled()``.
+
+    The handle holds its model by weak reference: it never keeps a model alive, and once the
+    model is garbage-collected the handle is inactive and ``remove()`` does nothing.
+    """
 
     def __init__(self, model: nn.Module, root: nn.Module, spec: BackboneSpec, state: PatchState, installed: list[_Installed]):
-        self.model = model
-        self.root = root
+        self._model = weakref.ref(model)
+        self._root = weakref.ref(root)
         self.spec = spec
         self._state = state
         self._installed = installed
         self._removed = False
+
+    def _alive(self, ref: weakref.ref) -> nn.Module:
+        module = ref()
+        if module is None:
+            raise NotAppliedError("the patched model was garbage-collected")
+        return module
+
+    @property
+    def model(self) -> nn.Module:
+        """The model given to ``apply`` (raises :class:`NotAppliedError` once it is freed)."""
+        return self._alive(self._model)
+
+    @property
+    def root(self) -> nn.Module:
+        """The module that was patched (the network inside a wrapper such as DA3's API class)."""
+        return self._alive(self._root)
 
     @property
     def camera(self):
@@ -119,22 +288,34 @@ class RaytunHandle:
 
     @property
     def is_active(self) -> bool:
-        return not self._removed
+        """False after ``remove()`` or once the model is garbage-collected."""
+        return not self._removed and self._model() is not None
+
+    def wrapped(self) -> list[tuple[Any, str]]:
+        """``(owner, attribute)`` of every replaced method still alive, in install order."""
+        pairs = []
+        for item in self._installed:
+            owner = item.owner()
+            if owner is not None:
+                pairs.append((owner, item.attribute))
+        return pairs
 
     @property
     def patched(self) -> list[str]:
-        """``owner_path.attribute`` of every replaced method, in install order."""
-        return [f"{type(item.owner).__name__}.{item.attribute}" for item in self._installed]
+        """``OwnerClass.attribute`` of every replaced method, in install order."""
+        return [f"{type(owner).__name__}.{attribute}" for owner, attribute in self.wrapped()]
 
     def remove(self) -> None:
-        """Undo every replacement in reverse order; idempotent."""
-        with _ACTIVE_LOCK:
+        """Undo every replacement in reverse order and drop the handle from the model; idempotent."""
+        with _LOCK:
             if self._removed:
                 return
             _undo(self._installed)
             self._removed = True
-            if _ACTIVE.get(self.model) is self:
-                del _ACTIVE[self.model]
+            model = self._model()
+            if model is not None and vars(model).get(HANDLE_ATTRIBUTE) is self:
+                for name in ADDED_ATTRIBUTES:
+                    vars(model).pop(name, None)
 
     @contextlib.contextmanager
     def disabled(self) -> Iterator[None]:
@@ -151,6 +332,28 @@ class RaytunHandle:
     def __exit__(self, *exc) -> None:
         self.remove()
 
+    def __deepcopy__(self, memo: dict) -> RaytunHandle:
+        """The handle of a deep copy of the patched model (reached through the model's marker)."""
+        model = self._model()
+        if model is None or id(model) not in memo:
+            raise PatchedCopyError("deepcopy the patched model, not its handle: the copy then gets a handle of its own")
+        twin = RaytunHandle.__new__(RaytunHandle)
+        memo[id(self)] = twin
+        twin._model = weakref.ref(memo[id(model)])
+        twin._root = weakref.ref(copy.deepcopy(self.root, memo))
+        twin.spec = self.spec
+        twin._state = copy.deepcopy(self._state, memo)
+        twin._installed = [
+            _Installed(weakref.ref(copy.deepcopy(owner, memo)), item.attribute, item.had_own, copy.deepcopy(item.previous, memo))
+            for item in self._installed
+            if (owner := item.owner()) is not None
+        ]
+        twin._removed = self._removed
+        return twin
+
+    def __reduce_ex__(self, protocol):
+        raise PatchedCopyError("a raytun3r handle cannot be pickled: remove() the patch before saving the model")
+
     def __repr__(self) -> str:
         status = "active" if self.is_active else "removed"
         return f"RaytunHandle({self.spec.family}, {status}, camera={self.camera!r}, components={[k for k, v in self.components.items() if v]})"
@@ -158,10 +361,13 @@ class RaytunHandle:
 
 def _undo(installed: list[_Installed]) -> None:
     for item in reversed(installed):
+        owner = item.owner()
+        if owner is None:  # freed with its model: nothing left to restore
+            continue
         if item.had_own:
-            object.__setattr__(item.owner, item.attribute, item.previous)
+            object.__setattr__(owner, item.attribute, item.previous)
         else:
-            delattr(item.owner, item.attribute)
+            delattr(owner, item.attribute)
     installed.clear()
 
 
@@ -269,8 +475,8 @@ def apply(
         _check_adapter(adapter, info, camera, strict)
     wanted = _components_for(components, adapter)
 
-    with _ACTIVE_LOCK:
-        existing = _ACTIVE.get(model)
+    with _LOCK:
+        existing = handle_of(model)
         if existing is not None:
             same = _same_camera(existing.camera, camera) and (
                 (existing.adapter is None and adapter is None)
@@ -284,19 +490,16 @@ def apply(
             spec.check(root)
         hooks = {hook for hook, served in _HOOK_COMPONENTS.items() if any(wanted.get(c) for c in served)}
         resolved = resolve_targets(spec, root, hooks)
-        state = PatchState(camera, adapter, wanted, info, mask, knee_deg, max_stretch)
-        for _target, path, owner in resolved:
-            current = owner.__dict__.get(_target.attribute)
-            if getattr(current, _WRAPPER_MARK, False):
-                raise AlreadyAppliedError(f"{path}.{_target.attribute} is already wrapped by raytun3r")
+        state = PatchState(camera, adapter, wanted, info, mask, knee_deg, max_stretch, model=model)
+        for target, path, owner in resolved:
+            current = owner.__dict__.get(target.attribute)
+            if getattr(current, WRAPPER_MARK, False):
+                raise AlreadyAppliedError(f"{path}.{target.attribute} is already wrapped by raytun3r")
         # Build every replacement before installing any, so a build error changes nothing.
         planned = []
         for target, _path, owner in resolved:
-            original = getattr(owner, target.attribute)
-            replacement = target.build(original, owner, state)
-            replacement = functools.wraps(original)(replacement)
-            setattr(replacement, _WRAPPER_MARK, True)
-            planned.append((owner, target.attribute, replacement))
+            previous = owner.__dict__.get(target.attribute, _NOTSET)
+            planned.append((owner, target.attribute, _Wrapper(owner, target, state, previous)))
 
         installed: list[_Installed] = []
         try:
@@ -306,13 +509,13 @@ def apply(
             _undo(installed)
             raise
         handle = RaytunHandle(model, root, spec, state, installed)
-        _ACTIVE[model] = handle
+        object.__setattr__(model, HANDLE_ATTRIBUTE, handle)
         return handle
 
 
 def _install(installed: list[_Installed], owner, attribute: str, replacement) -> None:
     had_own = attribute in owner.__dict__
-    record = _Installed(owner, attribute, had_own, owner.__dict__.get(attribute))
+    record = _Installed(weakref.ref(owner), attribute, had_own, owner.__dict__.get(attribute))
     # object.__setattr__: nn.Module.__setattr__ would be fine for plain functions, but this keeps
     # the write an ordinary instance attribute for every owner type.
     object.__setattr__(owner, attribute, replacement)
@@ -321,12 +524,16 @@ def _install(installed: list[_Installed], owner, attribute: str, replacement) ->
 
 def remove(model: nn.Module) -> None:
     """Remove the raytun3r patch from ``model`` (no handle needed)."""
-    handle = _ACTIVE.get(model)
+    handle = handle_of(model)
     if handle is None:
         raise NotAppliedError(f"{type(model).__name__} carries no raytun3r patch")
     handle.remove()
 
 
 def handle_of(model: nn.Module) -> RaytunHandle | None:
-    """The live handle of ``model``, or None."""
-    return _ACTIVE.get(model)
+    """The live handle of ``model`` (also of a deep copy of a patched model), or None."""
+    handle = getattr(model, "__dict__", {}).get(HANDLE_ATTRIBUTE)
+    # A shallow copy (copy.copy) shares the marker but is not the patched model.
+    if isinstance(handle, RaytunHandle) and handle.is_active and handle._model() is model:
+        return handle
+    return None

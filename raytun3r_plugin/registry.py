@@ -36,8 +36,11 @@ class PatchTarget:
         attribute: the method name replaced on each owner instance.
         signature: the upstream method's parameter names after ``self``, in order.
         owner_classes: accepted class names of the owners (checked along the MRO).
-        build: ``build(original, owner, state) -> replacement``; ``original`` is the bound
-            upstream method, ``state`` the :class:`raytun3r_plugin.patching.PatchState`.
+        build: ``build(owner, state) -> behaviour``, with ``state`` the
+            :class:`raytun3r_plugin.patching.PatchState`; the installed wrapper calls
+            ``behaviour(original, *args, **kwargs)`` with the upstream method bound to the owner,
+            looked up at call time. The behaviour must hold neither ``original`` nor ``owner``
+            (see :mod:`raytun3r_plugin.hooks`).
         optional: when True an absent owner (missing attribute or ``None``) just means the model
             has no such hook (e.g. a DA3 mono model has no RoPE); otherwise it is an error.
     """

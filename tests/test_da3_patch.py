@@ -107,6 +107,9 @@ def test_remove_restores_everything(net, images):
     signature = inspect.signature(net.forward)
     handle = rt.apply(net, fisheye(W, H), randomise_(rt.Adapter.for_model(net)), strict=False)
     assert max_relative_difference(reference, outputs(net, images)) > 1e-4
+    # The replaced methods (not net.forward, which is never patched) keep their signatures.
+    for owner, attribute in handle.wrapped():
+        assert inspect.signature(vars(owner)[attribute]) == inspect.signature(getattr(type(owner), attribute).__get__(owner)), attribute
     handle.remove()
     handle.remove()  # idempotent
     assert_same_snapshot(net, snap)

@@ -364,6 +364,9 @@ def test_remove_restores_everything(net, kind, images, reference):
     uv_function = conv_head_module().normalized_view_plane_uv
     handle = rt.apply(net, fisheye(W, H), randomise_(rt.Adapter.for_model(net)), strict=False)
     assert max_relative_difference(reference, outputs(net, images)) > 1e-4
+    # The replaced methods (not net.forward, which is never patched) keep their signatures.
+    for owner, attribute in handle.wrapped():
+        assert inspect.signature(vars(owner)[attribute]) == inspect.signature(getattr(type(owner), attribute).__get__(owner)), attribute
     handle.remove()
     handle.remove()  # idempotent
     assert_same_snapshot(net, snap)
