@@ -19,6 +19,11 @@ from raytun3r_plugin.errors import (
 
 __version__ = "0.1.0"
 
+from raytun3r_plugin._layout import check_installed_layout  # noqa: E402
+
+# Before anything can import the patch modules: a mixed install must fail here, not in a test.
+check_installed_layout()
+
 from raytun3r_plugin.adapter import Adapter  # noqa: E402
 from raytun3r_plugin.patching import RaytunHandle, apply, handle_of, remove  # noqa: E402
 from raytun3r_plugin.prediction import Prediction, predict  # noqa: E402

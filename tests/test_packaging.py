@@ -30,3 +30,44 @@ def test_wheel_contains_patches_under_the_package(tmp_path):
     assert not any(name.startswith("patches/") for name in names)
     assert "raytun3r_plugin/data/raytun3r-da3-tiny.safetensors" in names
     assert not any(name.startswith("tests/") for name in names)
+
+
+_FOREIGN_PATCHES = """
+import importlib.abc, importlib.util, sys
+
+class OtherClone(importlib.abc.MetaPathFinder):
+    # What an editable install of another clone does: map the patches package to its folder.
+    def find_spec(self, name, path=None, target=None):
+        if name == "raytun3r_plugin.patches":
+            return importlib.util.spec_from_file_location(name, {init!r}, submodule_search_locations=[{folder!r}])
+        return None
+
+sys.meta_path.insert(0, OtherClone())
+sys.path.insert(0, {root!r})
+{statement}
+"""
+
+
+def _run_with_foreign_patches(tmp_path, statement: str) -> subprocess.CompletedProcess:
+    folder = tmp_path / "other-clone" / "patches"
+    folder.mkdir(parents=True)
+    (folder / "__init__.py").write_text("FOREIGN = True\n")
+    script = _FOREIGN_PATCHES.format(init=str(folder / "__init__.py"), folder=str(folder), root=str(ROOT), statement=statement)
+    return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+
+
+def test_patches_from_another_tree_fail_loudly_at_import(tmp_path):
+    for statement in ("import raytun3r_plugin", "import raytun3r_plugin.patches"):
+        result = _run_with_foreign_patches(tmp_path / statement.split()[-1], statement)
+        assert result.returncode != 0, statement
+        assert "SplitInstallError" in result.stderr, result.stderr
+        assert str(ROOT / "raytun3r_plugin") in result.stderr  # both trees are named
+        assert "other-clone" in result.stderr and "pip install -e ." in result.stderr
+
+
+def test_layout_rule_accepts_the_source_tree_and_the_wheel(tmp_path):
+    from raytun3r_plugin._layout import same_tree
+
+    assert same_tree(tmp_path / "clone" / "raytun3r_plugin", tmp_path / "clone" / "patches")  # source / editable
+    assert same_tree(tmp_path / "site" / "raytun3r_plugin", tmp_path / "site" / "raytun3r_plugin" / "patches")  # wheel
+    assert not same_tree(tmp_path / "clone" / "raytun3r_plugin", tmp_path / "other" / "patches")
