@@ -145,10 +145,13 @@ def test_render_outputs(cam, indoor):
     assert (seq.images[~seq.mask] == 0).all() and (seq.depth[~seq.mask] == 0).all()
     assert (seq.depth[seq.mask] > 0.05).all() and seq.depth.max() < 30.0
     assert seq.images[seq.mask].std() > 0.08  # textured, not flat
-    rays = cam.ray_table()[0].numpy()
+    # The renderer's own recipe (float64 table cast to float32, then z = range * ray_z): an
+    # independently computed float32 table differs by ~eps32 / |ray_z| near the 90-degree ring,
+    # which is more than any tight tolerance on some CPUs. Same inputs, same product: exact.
+    rays = cam.ray_table(dtype=torch.float64)[0].float().numpy()
     z = seq.meta["per_frame"]["z_depth"]
     expect = np.where(seq.mask & (rays[..., 2] > 0), seq.depth * rays[..., 2], 0.0)
-    np.testing.assert_allclose(z, expect, rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(z, expect.astype(np.float32))
     # beyond 90 degrees from the axis: rays with z < 0 see the scene with positive range
     behind = seq.mask[0] & (rays[..., 2] < -0.05)
     assert behind.sum() > 10 and (seq.depth[0][behind] > 0).all()
