@@ -29,6 +29,30 @@ from raytun3r_plugin.patching import RaytunHandle, apply, handle_of, remove  # n
 from raytun3r_plugin.prediction import Prediction, predict  # noqa: E402
 from raytun3r_plugin.weights import available_backbones, load_backbone  # noqa: E402
 
+# Subpackages and modules reachable as ``rt.<name>`` without importing them here: they pull in
+# cv2, the upstream backbones or the adaptation code, and ``import raytun3r_plugin`` stays cheap.
+_LAZY_SUBMODULES = frozenset(
+    {
+        "adaptation", "benchmark", "cameras", "cli", "datasets", "demo", "evaluation", "export",
+        "geometry", "hooks", "images", "inference", "metrics", "patches", "patching", "prediction",
+        "registry", "rope", "synthetic", "weights",
+    }
+)
+
+
+def __getattr__(name: str):
+    """Import ``raytun3r_plugin.<name>`` on first use (PEP 562), e.g. ``rt.cameras.load(...)``."""
+    if name in _LAZY_SUBMODULES:
+        import importlib
+
+        return importlib.import_module(f"{__name__}.{name}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | _LAZY_SUBMODULES)
+
+
 __all__ = [
     "Adapter",
     "Prediction",
