@@ -286,6 +286,80 @@ class Adapter(nn.Module):
         return f"backbone={self.backbone!r}, embed_dim={self.embed_dim}, n_r={self.n_r}, n_theta={self.n_theta}, n_r_rope={self.n_r_rope}, parameters={counts['total']}"
 
 
+def describe_record(path: str | os.PathLike) -> dict[str, Any]:
+    """An adapter file's metadata as one JSON-ready dict (what ``raytun3r inspect --json`` prints).
+
+    The string metadata of the file are decoded (camera, components and the training record
+    as objects, sizes as integers) and the parameter counts are added.
+    """
+    adapter = Adapter.load(path)
+    metadata = adapter.metadata()
+    record: dict[str, Any] = {key: value for key, value in metadata.items() if key not in ("camera", "components", "training")}
+    for key in ("embed_dim", "patch_size", "n_r", "n_theta", "n_r_rope"):
+        record[key] = int(metadata[key])
+    record["camera"] = json.loads(metadata["camera"]) if metadata["camera"] else None
+    record["components"] = dict(adapter.components)
+    record["training"] = dict(adapter.training_info)
+    record["parameters"] = adapter.num_parameters()
+    return record
+
+
+def _short(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.3g}"
+    if isinstance(value, (list, tuple)):
+        return f"{len(value)} items"
+    if isinstance(value, dict):
+        return f"{len(value)} keys"
+    return str(value)
+
+
+def _training_lines(training: Mapping[str, Any]) -> list[str]:
+    """A few lines about the fitting; the full record is ``raytun3r inspect --json``."""
+    if not training:
+        return ["training:        none (not fitted: made by Adapter.for_model or by hand)"]
+    indent = " " * 17
+    steps = training.get("steps")
+    head = f"{steps} of {training['requested_steps']} steps" if "requested_steps" in training else f"{steps} steps"
+    if training.get("resumed_from"):
+        head += f", resumed at step {training['resumed_from']}"
+    if training.get("interrupted"):
+        head += ", interrupted"
+    if "wall_time_s" in training:
+        head += f", {float(training['wall_time_s']):.1f} s"
+    lines = [f"training:        {training.get('method', 'unknown method')}: {head}"]
+    losses = training.get("final_losses") or {}
+    if losses:
+        over = training.get("final_losses_over_steps")
+        text = ", ".join(f"{name} {float(value):.3g}" for name, value in losses.items())
+        lines.append(f"{indent}final losses{f' (mean of the last {over} steps)' if over else ''}:")
+        lines.extend(f"{indent}  {part}" for part in _wrap(text, 100 - len(indent)))
+    segment = training.get("segment") or {}
+    if segment:
+        parts = [f"{key} {_short(value)}" for key, value in segment.items() if key not in ("windows",) and value is not None]
+        if "windows" in segment:
+            parts.insert(0, f"{len(segment['windows'])} windows")
+        lines.append(f"{indent}segment:")
+        lines.extend(f"{indent}  {part}" for part in _wrap(", ".join(parts), 100 - len(indent)))
+    layout = training.get("input") or {}
+    if layout:
+        crop = layout.get("crop")
+        lines.append(f"{indent}input: {layout.get('width')}x{layout.get('height')} px, " + (f"crop {crop}" if crop else "no crop"))
+    extra = [key for key in training if key not in ("method", "steps", "requested_steps", "resumed_from", "interrupted", "wall_time_s",
+                                                     "final_losses", "final_losses_over_steps", "segment", "input")]
+    if extra:
+        lines.append(f"{indent}also recorded: {', '.join(extra)} (raytun3r inspect --json shows everything)")
+    else:
+        lines.append(f"{indent}(raytun3r inspect --json shows the full record)")
+    return lines
+
+
+def _wrap(text: str, width: int) -> list[str]:
+    import textwrap
+
+    return textwrap.wrap(text, width) or [""]
+
+
 def describe_file(path: str | os.PathLike) -> str:
     """Human-readable summary of an adapter file (what ``raytun3r inspect`` prints)."""
     adapter = Adapter.load(path)
@@ -301,8 +375,8 @@ def describe_file(path: str | os.PathLike) -> str:
         f"camera:          {adapter.camera!r}",
         f"field of view:   {adapter.camera.fov_deg:.1f} deg" if adapter.camera is not None else "field of view:   -",
         f"components:      {', '.join(k for k, v in adapter.components.items() if v) or 'none'}",
-        f"pe_fingerprint:  {adapter.pe_fingerprint}",
-        f"training:        {json.dumps(adapter.training_info, sort_keys=True)}",
+        f"pe_fingerprint:  {adapter.pe_fingerprint or '-'}",
+        *_training_lines(adapter.training_info),
     ]
     magnitude = max(float(p.detach().abs().max()) for p in adapter.parameters())
     lines.append(f"max |table|:     {magnitude:.3g}" + (" (identity adapter)" if magnitude == 0 or math.isclose(magnitude, 0.0) else ""))

@@ -15,9 +15,14 @@ def _load_model(backbone: str, weights: str | None):
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from raytun3r_plugin.adapter import describe_file
+    from raytun3r_plugin.adapter import describe_file, describe_record
 
-    print(describe_file(args.adapter))
+    if args.json:
+        import json
+
+        print(json.dumps(describe_record(args.adapter), indent=2, sort_keys=True, default=str))
+    else:
+        print(describe_file(args.adapter))
     return 0
 
 
@@ -114,6 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("inspect", help="print an adapter file's metadata, camera and parameter count")
     p.add_argument("adapter")
+    p.add_argument("--json", action="store_true", help="print the whole metadata record (training included) as JSON")
     p.set_defaults(func=cmd_inspect)
 
     p = sub.add_parser("infer", help="apply an adapter and write depth (.npy, .png), poses (TUM) and a point cloud (.ply)")
