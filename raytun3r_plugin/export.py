@@ -1,4 +1,4 @@
-"""Writing predictions: depth (.npy + colour .png), TUM trajectories, coloured PLY point clouds."""
+"""Writing predictions: depth (.npy + a .png of input, depth and colour bar), TUM trajectories, coloured PLY point clouds."""
 
 from __future__ import annotations
 
@@ -16,11 +16,96 @@ def colourise_depth(depth: np.ndarray, valid: np.ndarray | None = None) -> np.nd
     inverse = np.zeros_like(depth, dtype=np.float32)
     inverse[valid] = 1.0 / depth[valid]
     if valid.any():
-        low, high = np.percentile(inverse[valid], [2, 98])
-        inverse = np.clip((inverse - low) / max(high - low, 1e-12), 0, 1)
+        low, high = _inverse_range(depth, valid)
+        inverse = np.clip((inverse - low) / (high - low), 0, 1)
     image = cv2.applyColorMap((inverse * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
     image[~valid] = 0
     return image
+
+
+def _inverse_range(depth: np.ndarray, valid: np.ndarray) -> tuple[float, float]:
+    """The 2-98% range of inverse depth that :func:`colourise_depth` maps to the colour map."""
+    if not valid.any():
+        return 0.0, 1.0
+    low, high = np.percentile(1.0 / depth[valid], [2, 98])
+    return float(low), float(max(high, low + 1e-12))
+
+
+def _nice_ticks(near: float, far: float, count: int = 5) -> list[float]:
+    """About ``count`` round depth values between ``near`` and ``far`` (both ends included)."""
+    if not np.isfinite(far) or far <= near:
+        return [near]
+    raw = (far - near) / max(count - 1, 1)
+    magnitude = 10 ** np.floor(np.log10(raw))
+    step = min((m * magnitude for m in (1, 2, 2.5, 5, 10) if m * magnitude >= raw), default=raw)
+    inner = np.arange(np.ceil(near / step) * step, far, step)
+    ticks = [near, *[float(t) for t in inner if near + 0.3 * step < t < far - 0.3 * step], far]
+    return ticks
+
+
+def _label(value: float) -> str:
+    return f"{value:.3g}" if value < 1000 else f"{value:.0f}"
+
+
+def depth_panel(
+    image: np.ndarray,
+    depth: np.ndarray,
+    valid: np.ndarray | None = None,
+    unit: str = "units",
+    min_height: int = 240,
+) -> np.ndarray:
+    """One picture of a prediction: input frame | colourised depth | colour bar with its scale.
+
+    Args:
+        image: (H, W, 3) RGB input frame in [0, 1] (float) or 0..255 (uint8).
+        depth: (H, W) depth; invalid (non-finite, <= 0 or outside ``valid``) pixels are black.
+        valid: optional (H, W) bool mask, e.g. the camera's image circle.
+        unit: the depth unit written on the bar ("m" for a metric model).
+        min_height: small inputs are enlarged (nearest neighbour) to at least this height so
+            that the labels stay readable.
+
+    Returns:
+        (H', W', 3) uint8 BGR image, ready for ``cv2.imwrite``. The bar is linear in inverse
+        depth, as the colours are, and its labels are depths in ``unit``.
+    """
+    import cv2
+
+    depth = np.asarray(depth, dtype=np.float32)
+    height, width = depth.shape
+    usable = np.isfinite(depth) & (depth > 0)
+    if valid is not None:
+        usable &= np.asarray(valid, dtype=bool)
+    low, high = _inverse_range(depth, usable)
+    coloured = colourise_depth(depth, usable)
+    frame = np.asarray(image)
+    if frame.dtype != np.uint8:
+        frame = (np.clip(frame, 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
+    frame = cv2.cvtColor(np.ascontiguousarray(frame[..., :3]), cv2.COLOR_RGB2BGR)
+
+    scale = max(1, int(np.ceil(min_height / height)))
+    size = (width * scale, height * scale)
+    frame = cv2.resize(frame, size, interpolation=cv2.INTER_NEAREST)
+    coloured = cv2.resize(coloured, size, interpolation=cv2.INTER_NEAREST)
+    panel_h = size[1]
+
+    # Colour bar: top = near (high inverse depth), bottom = far, the same map as the panel.
+    top, bottom, bar_w, text_w = 28, 10, 18, 90  # top: room for the title above the bar
+    strip = np.linspace(1.0, 0.0, panel_h - top - bottom, dtype=np.float32)[:, None]
+    bar_colours = cv2.applyColorMap((strip * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    bar = np.full((panel_h, bar_w + text_w, 3), 255, np.uint8)
+    bar[top : panel_h - bottom, 4 : bar_w] = bar_colours
+    font, font_scale, thick = cv2.FONT_HERSHEY_SIMPLEX, 0.4, 1
+    cv2.putText(bar, f"depth [{unit}]", (4, 14), font, font_scale, (0, 0, 0), thick, cv2.LINE_AA)
+    if usable.any():
+        near, far = 1.0 / high, 1.0 / max(low, 1e-12)
+        for tick in _nice_ticks(near, far):
+            fraction = (1.0 / tick - low) / (high - low)  # 1 at the top
+            y = int(round(top + (1.0 - np.clip(fraction, 0.0, 1.0)) * (panel_h - top - bottom - 1)))
+            cv2.line(bar, (bar_w, y), (bar_w + 4, y), (0, 0, 0), 1)
+            cv2.putText(bar, _label(tick), (bar_w + 7, y + 4), font, font_scale, (0, 0, 0), thick, cv2.LINE_AA)
+    else:
+        cv2.putText(bar, "no valid", (bar_w + 2, panel_h // 2), font, font_scale, (0, 0, 0), thick, cv2.LINE_AA)
+    return np.concatenate([frame, coloured, bar], axis=1)
 
 
 def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from raytun3r_plugin.export import colourise_depth, write_ply, write_tum
+from raytun3r_plugin.export import depth_panel, write_ply, write_tum
 from raytun3r_plugin.patching import apply
 from raytun3r_plugin.prediction import Prediction, predict
 
@@ -31,10 +31,21 @@ def predict_with_camera(model, camera, adapter, images: torch.Tensor, components
         return predict(model, images)
 
 
-def write_outputs(out_dir: str | os.PathLike, prediction: Prediction, images: torch.Tensor, camera, names: list[str], timestamps: np.ndarray | None = None, max_points: int = 500_000) -> dict:
+def write_outputs(
+    out_dir: str | os.PathLike,
+    prediction: Prediction,
+    images: torch.Tensor,
+    camera,
+    names: list[str],
+    timestamps: np.ndarray | None = None,
+    max_points: int = 500_000,
+    depth_unit: str = "units",
+) -> dict:
     """Write ``depth/<name>.npy`` + ``.png``, ``trajectory.txt`` (TUM) and ``points.ply``.
 
-    images: (1, S, 3, h, w) network input in [0, 1]; camera: the camera of that input.
+    images: (1, S, 3, h, w) network input in [0, 1]; camera: the camera of that input. The PNG
+    shows the input frame, the colourised depth and a colour bar labelled in ``depth_unit``
+    (see :func:`raytun3r_plugin.export.depth_panel`); the .npy is the raw (h, w) float32 depth.
     """
     out = Path(out_dir)
     (out / "depth").mkdir(parents=True, exist_ok=True)
@@ -44,9 +55,10 @@ def write_outputs(out_dir: str | os.PathLike, prediction: Prediction, images: to
     cam_from_world = prediction.cam_from_world[0].detach().double().cpu().numpy()
     rays, valid = camera.ray_table(dtype=torch.float32)
     valid_np = valid.cpu().numpy()
-    for name, frame_depth in zip(names, depth, strict=True):
+    frames = images[0].permute(0, 2, 3, 1).detach().float().cpu().numpy()
+    for name, frame_depth, frame in zip(names, depth, frames, strict=True):
         np.save(out / "depth" / f"{name}.npy", frame_depth.astype(np.float32))
-        cv2.imwrite(str(out / "depth" / f"{name}.png"), colourise_depth(frame_depth, valid_np))
+        cv2.imwrite(str(out / "depth" / f"{name}.png"), depth_panel(frame, frame_depth, valid_np, unit=depth_unit))
     stamps = np.arange(len(names), dtype=np.float64) if timestamps is None else np.asarray(timestamps, dtype=np.float64)
     write_tum(out / "trajectory.txt", stamps, cam_from_world)
     points_cam = points_from_depth(torch.from_numpy(depth), rays.cpu()).numpy()  # (S, h, w, 3)
