@@ -1,6 +1,6 @@
 """Depth Anything 3 (PyPI ``depth-anything-3`` 0.1.1 = GitHub main at 2c21ea8).
 
-Hook map (UPSTREAM.md section 2), all patched per instance on the ``DepthAnything3Net``:
+Hook map (docs/backbones.md), all patched per instance on the ``DepthAnything3Net``:
 
 * PE: ``backbone.pretrained.interpolate_pos_encoding(x, w, h)`` (``w`` is the image height);
 * RoPE: ``backbone.pretrained._prepare_rope(B, S, H, W, device)`` gives the frame blocks the
@@ -35,7 +35,7 @@ from raytun3r_plugin.weights import load_into, read_state_dict, strip_prefix
 FAMILY = "da3"
 UPSTREAM_MODULE = "depth_anything_3"
 
-# (embed_dim, depth, RoPE) -> name, for the official configs (UPSTREAM.md section 2.6).
+# (embed_dim, depth, RoPE) -> name, for the official configs (docs/backbones.md, Depth Anything 3).
 _KNOWN = {
     (384, 12, True): "da3-small",
     (768, 12, True): "da3-base",

@@ -4,7 +4,7 @@ Two families are registered, ``pi3`` (``pi3.models.pi3.Pi3``) and ``pi3x``
 (``pi3.models.pi3x.Pi3X``): they share every hook except the prediction grid, and they keep
 their RoPE instances in different places.
 
-Hook map (UPSTREAM.md section 4), all patched per instance:
+Hook map (docs/backbones.md), all patched per instance:
 
 * PE: ``encoder.interpolate_pos_encoding(x, w, h)`` of the DINOv2 ViT-L/14-reg image encoder
   (``w`` is the image height; row 0 is the class slot; registers get no PE). Pi3X's
@@ -331,7 +331,7 @@ def predict(root: nn.Module, images: torch.Tensor, **kwargs) -> Prediction:
       differentiable for Pi3X too (see :func:`_run_keeping_pi3x_poses`);
     * depth = |local_points|, the distance from the camera centre to the predicted point, i.e.
       the range along the ray: Pi3 predicts camera-frame points, and raytun3r reads the depth
-      channel as range (DESIGN.md section 2), so X = depth * ray(u, v) gives the point back when
+      channel as range (docs/conventions.md section 2), so X = depth * ray(u, v) gives the point back when
       its direction follows the camera. Upstream's z (planar depth) is ``extras["depth_z"]``;
     * confidence = sigmoid of upstream's ``conf`` logits.
 

@@ -1,6 +1,6 @@
 """VGGT (``facebookresearch/vggt`` at 44b3afb; not on PyPI, used from a source checkout).
 
-Hook map (UPSTREAM.md section 3), all patched per instance on the ``VGGT`` model:
+Hook map (docs/backbones.md), all patched per instance on the ``VGGT`` model:
 
 * PE: ``aggregator.patch_embed.interpolate_pos_encoding(x, w, h)`` of the DINOv2 ViT-L/14-reg
   that VGGT uses as its patch embedding (``w`` is the image height; row 0 of the table is the

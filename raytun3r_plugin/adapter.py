@@ -2,7 +2,7 @@
 
 A fresh adapter is all zeros and therefore the identity. The file is one ``.safetensors`` with
 exactly the tensors ``pe.radial`` [N_r, C], ``pe.angular`` [N_theta, C] and, for RoPE backbones,
-``rope.radial`` [N_r_rope], all float32, plus string metadata (DESIGN.md section 4). Loading never
+``rope.radial`` [N_r_rope], all float32, plus string metadata (docs/conventions.md section 4). Loading never
 unpickles: safetensors stores raw tensors and a JSON header.
 """
 
@@ -28,7 +28,7 @@ DEFAULT_N_R = 20
 DEFAULT_N_THETA = 8
 DEFAULT_N_R_ROPE = 20
 
-#: Corrections that can be switched on and off (DESIGN.md section 5); tables are "pe" and "rope".
+#: Corrections that can be switched on and off (docs/conventions.md section 5); tables are "pe" and "rope".
 COMPONENTS = ("pe", "rope", "patch_resample", "border_tokens", "grid")
 
 _REQUIRED_METADATA = (

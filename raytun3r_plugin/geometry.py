@@ -2,11 +2,11 @@
 
 Everything here is parameter-free and depends only on (camera, input size, patch size), so it
 is computed once in float64 and cached by :class:`GeometryCache`; a patched forward only reads
-it. Conventions (DESIGN.md sections 2, 4, 5):
+it. Conventions (docs/conventions.md sections 2, 4, 5):
 
 * pixel coordinates have the centre of the top-left pixel at (0, 0);
 * token (i, j) of patch size p covers pixels [j p, (j + 1) p) x [i p, (i + 1) p), so its centre is
-  ((j + 0.5) p - 0.5, (i + 0.5) p - 0.5) in that convention (DESIGN.md writes the same point as
+  ((j + 0.5) p - 0.5, (i + 0.5) p - 0.5) in that convention (docs/conventions.md section 4 writes the same point as
   ((j + 0.5) p, (i + 0.5) p) with pixel edges at integers);
 * the fisheye-to-pinhole map ``M`` sends a pixel whose ray makes angle ``a`` with the optical axis
   and has image-plane direction (cos b, sin b) to (cx + fx g(a) cos b, cy + fy g(a) sin b), with
@@ -35,7 +35,7 @@ ASPECT_TOLERANCE = 0.01
 def camera_for_input(camera, height: int, width: int):
     """Return ``camera`` rescaled to a network input of ``height`` x ``width`` pixels.
 
-    A pure resize is assumed (DESIGN.md section 3). Crops must be stated by the caller with
+    A pure resize is assumed (docs/conventions.md section 3). Crops must be stated by the caller with
     ``camera.cropped(...)`` before calling; an aspect-ratio change beyond 1% is refused.
     """
     if camera.width == width and camera.height == height:
@@ -88,7 +88,7 @@ def token_centres(height: int, width: int, patch: int, dtype=torch.float64) -> t
 
 @dataclass(frozen=True)
 class TokenPolar:
-    """Polar coordinates of the token centres around the principal point (DESIGN.md section 4).
+    """Polar coordinates of the token centres around the principal point (docs/conventions.md section 4).
 
     rho: (hw,) normalised radius in [0, 1]; theta: (hw,) angle in [0, 2 pi);
     direction_yx: (hw, 2) unit outward direction in (y, x) order, zero at the exact centre.

@@ -155,7 +155,7 @@ def grid_position_rope(owner, state):
     Upstream integer positions (y + 1, x + 1) identify each patch token, whatever the layout of
     the call (per frame or all frames of a global block), so the position assembly code of the
     model (``Aggregator.forward``, ``Pi3.decode``) is left alone: q' = q + rope.radial(rho) d/|d|
-    with q the upstream position including its +1 (DESIGN.md section 4), special tokens at (0, 0)
+    with q the upstream position including its +1 (docs/conventions.md section 4), special tokens at (0, 0)
     unchanged. Float positions and a disabled handle go straight to the continuous / upstream
     evaluation of :func:`raytun3r_plugin.hooks.continuous_rope`.
     """

@@ -1,4 +1,4 @@
-"""Evaluation metrics (DESIGN.md section 8): relative pose errors, d_reproj, AbsRel, delta < 1.25.
+"""Evaluation metrics (docs/conventions.md section 8): relative pose errors, d_reproj, AbsRel, delta < 1.25.
 
 Conventions: poses are ``cam_from_world`` (N, 4, 4); the relative pose of pair (i, j) is
 ``cam_j_from_cam_i = cam_j_from_world @ inv(cam_i_from_world)``. Angles are reported in degrees.

@@ -15,11 +15,11 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 
 @dataclass
 class Prediction:
-    """Backbone outputs in raytun3r's conventions (DESIGN.md section 2).
+    """Backbone outputs in raytun3r's conventions (docs/conventions.md section 2).
 
     Attributes:
         depth: (B, S, H, W) depth along the backbone's convention (z-depth for pinhole training;
-            read as range along the ray on a fisheye, see DESIGN.md section 2).
+            read as range along the ray on a fisheye, see docs/conventions.md section 2).
         cam_from_world: (B, S, 4, 4) world-to-camera poses, OpenCV axes; the world is the
             backbone's reference frame.
         confidence: (B, S, H, W) or None when the backbone gives none.

@@ -20,7 +20,7 @@ from torch import nn
 
 from raytun3r_plugin.errors import UnsupportedUpstreamError
 
-#: Hook kinds of DESIGN.md section 1 and the components (adapter.COMPONENTS) each can serve.
+#: Hook kinds of docs/conventions.md section 1 and the components (adapter.COMPONENTS) each can serve.
 HOOK_KINDS = ("pe", "rope", "patch_embed", "grid")
 
 

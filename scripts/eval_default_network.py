@@ -11,7 +11,7 @@ Per camera:
 * depth: AbsRel and delta < 1.25 after per-image median scale alignment
   (``raytun3r_plugin.metrics``), sky excluded, against a constant-depth predictor (which after
   alignment predicts the median ground truth everywhere). Pinhole: z-depth; fisheye: the
-  network's depth read as range along the ray (DESIGN.md section 2), against the range;
+  network's depth read as range along the ray (docs/conventions.md section 2), against the range;
 * pose: geodesic rotation error of the relative pose (``relative_pose_errors``) against
   predicting no rotation, plus the translation-direction error (signed, 0..180 degrees).
 

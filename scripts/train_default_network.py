@@ -89,7 +89,7 @@ def pinhole_camera(size: int, fov_deg: float):
     from raytun3r_plugin.cameras import Pinhole
 
     f = (size / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
-    c = (size - 1) / 2.0  # pixel centres at integers (DESIGN.md section 2)
+    c = (size - 1) / 2.0  # pixel centres at integers (docs/conventions.md section 2)
     return Pinhole(size, size, {"fx": f, "fy": f, "cx": c, "cy": c})
 
 

@@ -1,4 +1,4 @@
-"""The adapter file format v1 (DESIGN.md section 4): sizes, atomic save, validated load."""
+"""The adapter file format v1 (docs/conventions.md section 4): sizes, atomic save, validated load."""
 
 from __future__ import annotations
 

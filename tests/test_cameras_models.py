@@ -27,7 +27,7 @@ from raytun3r_plugin.cameras import (
 )
 from raytun3r_plugin.errors import CameraError, Raytun3rError
 
-# Official calibrations (docs/CAMERAS_AND_FORMATS.md), used full size and scaled down.
+# Official calibrations (docs/cameras.md), used full size and scaled down.
 TUMVI_KB4 = [190.97847715128717, 190.9733070521226, 254.93170605935475, 256.8974428996504,
              0.0034823894022493434, 0.0007150348452162257, -0.0020532361418706202,
              0.00020293673591811182]  # fmt: skip

@@ -1,4 +1,4 @@
-"""apply()/remove() on the real Depth Anything 3 code (DESIGN.md section 9, invariants 1-4, 6)."""
+"""apply()/remove() on the real Depth Anything 3 code (docs/conventions.md section 9, invariants 1-4, 6)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """``predict`` conventions of every backbone: a known pose in gives the known cam_from_world out.
 
-DESIGN.md section 2: poses are returned as cam_from_world (world-to-camera, OpenCV axes),
+docs/conventions.md section 2: poses are returned as cam_from_world (world-to-camera, OpenCV axes),
 depth as (B, S, H, W), confidence as (B, S, H, W). DA3 and VGGT predict cam_from_world, Pi3
 predicts world_from_cam. The conversions are checked on stand-in networks that return a chosen
 output, so the expected pose is exact; the Pi3 family is also checked on a model.

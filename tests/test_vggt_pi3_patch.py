@@ -1,4 +1,4 @@
-"""apply()/remove() on VGGT, Pi3 and Pi3X (DESIGN.md section 9, invariants 1, 2, 3, 4, 6).
+"""apply()/remove() on VGGT, Pi3 and Pi3X (docs/conventions.md section 9, invariants 1, 2, 3, 4, 6).
 
 Runs on the stub packages in ``tests/stubs`` (the documented tiny recipes), and unchanged on the
 real upstream code when ``vggt`` / ``pi3`` are importable: the official models are 1-1.4 B

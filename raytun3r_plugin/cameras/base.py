@@ -1,6 +1,6 @@
 """The :class:`Camera` base class shared by every camera model.
 
-Conventions (DESIGN.md section 2): OpenCV axes (x right, y down, z forward), pixel (0, 0) is the
+Conventions (docs/conventions.md section 2): OpenCV axes (x right, y down, z forward), pixel (0, 0) is the
 centre of the top-left pixel, ``unproject`` returns unit rays (never points on the z = 1 plane),
 angles from the optical axis are ``theta = atan2(sqrt(x^2 + y^2), z)`` so rays beyond 90 degrees
 work. All maths is torch, batched over leading dimensions, in the dtype and on the device of the
