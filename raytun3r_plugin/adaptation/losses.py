@@ -20,6 +20,7 @@ pose 1 (:class:`LossWeights`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -37,7 +38,11 @@ __all__ = [
     "pe_l2",
     "pe_tv",
     "pose_loss",
+    "pe_energy",
+    "pixel_optimal_scale",
     "relative_pose",
+    "robust_px_error",
+    "silog_loss",
     "reprojection_loss",
     "rotation_angle",
     "sample_bilinear",
@@ -53,13 +58,19 @@ _EPS = 1e-12
 
 @dataclass(frozen=True)
 class LossWeights:
-    """Weights of the adaptation objective (paper: pose 1, smooth 10, L2 2, TV 20; reproj 1)."""
+    """Weights of the adaptation objective (paper: pose 1, smooth 10, L2 2, TV 20; reproj 1).
+
+    ``depth`` weighs the supervised term (:func:`silog_loss`), present only when ground-truth
+    depth is given. How L2 and TV are measured (absolute PE units or relative to the backbone's
+    own PE energy) is :attr:`AdaptConfig.pe_regulariser` of the trainer.
+    """
 
     reproj: float = 1.0
     smooth: float = 10.0
     l2: float = 2.0
     tv: float = 20.0
     pose: float = 1.0
+    depth: float = 1.0
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -160,6 +171,7 @@ def reprojection_loss(
     valid: torch.Tensor | None = None,
     depth_convention: str = "range",
     rays_i: tuple[torch.Tensor, torch.Tensor] | None = None,
+    robust_px: float | None = None,
 ) -> tuple[torch.Tensor, int]:
     """Confidence-weighted L1 reprojection error of matched pixels (paper eq. L_reproj).
 
@@ -177,6 +189,9 @@ def reprojection_loss(
         depth_convention: ``"range"`` (fisheye default) or ``"z"``.
         rays_i: optional precomputed ``camera.unproject(uv_i)`` (rays (M, 3), valid (M,)); the
             camera is fixed during adaptation, so a trainer lifts every match once.
+        robust_px: None for the plain L1 error ``e``; a scale ``c`` (px) for the log-L1 error
+            :func:`robust_px_error` ``c log(1 + e / c)``, which is ``e`` for small errors and
+            grows only logarithmically for wrong matches.
 
     Returns:
         (loss, n_valid): the mean weighted L1 error in input pixels (a 0-d tensor, zero but
@@ -216,7 +231,115 @@ def reprojection_loss(
     if n_valid == 0:
         return depth_i.sum() * 0.0 + cam_j_from_cam_i.sum().to(dtype) * 0.0, 0
     error = (projected[ok] - uv_j[ok]).abs().sum(dim=-1)
+    if robust_px is not None:
+        error = robust_px_error(error, robust_px)
     return (weights[ok] * error).sum() / n_valid, n_valid
+
+
+def robust_px_error(error: torch.Tensor, scale_px: float) -> torch.Tensor:
+    """Log-L1 penalty ``c log(1 + e / c)`` of non-negative pixel errors ``e`` (scale ``c`` px).
+
+    Equal to ``e`` to first order, so well-matched pixels count as in the L1 loss; an error of
+    ``10 c`` costs ``2.4 c`` instead of ``10 c``, so the few wrong matches that survive the
+    matcher's checks cannot dominate the sum.
+    """
+    return scale_px * torch.log1p(error / scale_px)
+
+
+def _projected_error(points_i: torch.Tensor, rotation: torch.Tensor, direction: torch.Tensor, scales: torch.Tensor, uv_j: torch.Tensor, camera: Any) -> torch.Tensor:
+    """(S, M) L1 pixel errors of ``R X + s t`` for each candidate scale ``s`` (S,)."""
+    moved = (points_i @ rotation.T)[None] + scales[:, None, None] * direction[None, None]
+    projected, ok = camera.project(moved.reshape(-1, 3))
+    projected = projected.reshape(scales.shape[0], -1, 2)
+    ok = ok.reshape(scales.shape[0], -1) & torch.isfinite(projected).all(dim=-1)
+    error = (projected - uv_j[None]).abs().sum(dim=-1)
+    return torch.where(ok, error, torch.full_like(error, 1e6))
+
+
+def pixel_optimal_scale(
+    points_i: torch.Tensor,
+    uv_j: torch.Tensor,
+    rotation: torch.Tensor,
+    direction: torch.Tensor,
+    camera: Any,
+    weights: torch.Tensor | None = None,
+    *,
+    robust_px: float = 1.0,
+    initial: torch.Tensor | float | None = None,
+    span: float = 30.0,
+    samples: int = 49,
+) -> torch.Tensor:
+    """Translation scale ``s`` of a unit-translation pose that minimises the pixel residual.
+
+    The least-squares scale of :func:`fit_translation_scale` weighs every match by its 3-D
+    lever arm, so far points decide it; outdoors, at true depth and pose, it returned 2.6 times
+    the true translation and scored true depth at 7.05 px against 2.82 px for the zero adapter.
+    This one minimises ``sum w rho(|project(R X + s t) - uv_j|_1)`` (``rho`` the log-L1 penalty
+    of scale ``robust_px``) over ``log s``: a grid of ``samples`` values spanning ``initial``
+    times ``[1 / span, span]``, then a finer grid around the best one. The result is detached:
+    the scale is chosen for the current depth and held fixed for the gradient (it is a nuisance
+    variable, as the per-pair scale of ``d_reproj``).
+
+    Args:
+        points_i: (M, 3) points in camera ``i``; uv_j: (M, 2) matched pixels in frame ``j``.
+        rotation: (3, 3), direction: (3,) unit translation of ``cam_j_from_cam_i``.
+        camera: the camera of ``uv_j``.
+        weights: (M,) match weights or None.
+        initial: centre of the search (default: the least-squares scale, or the median range
+            of the points when that is 0).
+
+    Returns:
+        0-d tensor ``s >= 0`` (no gradient).
+    """
+    with torch.no_grad():
+        points_i = points_i.detach()
+        dtype = points_i.dtype
+        rotation = rotation.to(dtype)
+        direction = direction.to(dtype)
+        weights = torch.ones_like(points_i[:, 0]) if weights is None else weights.detach().to(dtype)
+        if points_i.shape[0] == 0:
+            return points_i.new_zeros(())
+        if initial is None:
+            rays_j, _ = camera.unproject(uv_j.to(dtype))
+            initial = fit_translation_scale(points_i, rays_j.to(dtype), rotation, direction, weights)
+        centre = float(initial)
+        if not math.isfinite(centre) or centre <= 0:
+            centre = float(points_i.norm(dim=-1).median()) * 0.05
+        centre = max(centre, 1e-9)
+
+        def cost(log_scales: torch.Tensor) -> torch.Tensor:
+            error = _projected_error(points_i, rotation, direction, log_scales.exp(), uv_j.to(dtype), camera)
+            return (weights[None] * robust_px_error(error, robust_px)).sum(dim=-1)
+
+        log_span = math.log(span)
+        grid = torch.linspace(math.log(centre) - log_span, math.log(centre) + log_span, samples, dtype=dtype)
+        best = grid[int(torch.argmin(cost(grid)))]
+        step = float(grid[1] - grid[0])
+        fine = torch.linspace(float(best) - step, float(best) + step, 21, dtype=dtype)
+        best = fine[int(torch.argmin(cost(fine)))]
+        return best.exp()
+
+
+def silog_loss(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Scale-invariant log error of depth samples: ``var(log pred - log target)``.
+
+    The variance (Eigen et al.'s scale-invariant error with lambda = 1) ignores a global scale,
+    which the backbones cannot know for a fisheye; samples with a non-positive or non-finite
+    value on either side are left out.
+
+    Args:
+        pred, target: (M,) depth samples; weights: (M,) or None.
+
+    Returns:
+        0-d tensor (zero, attached to ``pred``, when fewer than 2 samples are usable).
+    """
+    ok = torch.isfinite(pred) & torch.isfinite(target) & (pred > 0) & (target > 0)
+    if int(ok.sum()) < 2:
+        return pred.sum() * 0.0
+    w = torch.ones_like(pred[ok]) if weights is None else weights[ok].to(pred.dtype)
+    difference = torch.log(pred[ok]) - torch.log(target[ok].to(pred.dtype))
+    mean = (w * difference).sum() / w.sum()
+    return (w * (difference - mean).pow(2)).sum() / w.sum()
 
 
 # --------------------------------------------------------------------------------------------
@@ -284,6 +407,26 @@ def pe_correction_grid(adapter: Any, geometry: Any, device: torch.device | str |
     correction = radial @ adapter.pe["radial"].to(device, dtype) + angular @ adapter.pe["angular"].to(device, dtype)
     rows, cols = geometry.height // geometry.patch, geometry.width // geometry.patch
     return correction.reshape(rows, cols, -1)
+
+
+def pe_energy(pos_embed: torch.Tensor | None) -> float:
+    """Mean squared norm of the backbone's own patch-token PE, ``mean_k ||P_A[k]||^2``.
+
+    The unit in which the relative PE regularisers count (:attr:`AdaptConfig.pe_regulariser`):
+    dividing ``||correction||^2`` by it makes the L2 and TV terms dimensionless, so one weight
+    means the same for a backbone whose PE has std 0.5 (the built-in network, energy about 32)
+    and one whose PE is 40 times larger. The class token (the first row when the row count is
+    a square plus one) is left out. Returns 1.0 for a backbone without a PE table, or one
+    whose table is all zeros.
+    """
+    if pos_embed is None:
+        return 1.0
+    table = pos_embed.detach().float().reshape(-1, pos_embed.shape[-1])
+    rows = table.shape[0]
+    if rows > 1 and math.isqrt(rows - 1) ** 2 == rows - 1:
+        table = table[1:]
+    energy = float(table.pow(2).sum(dim=-1).mean())
+    return energy if math.isfinite(energy) and energy > 0 else 1.0
 
 
 def pe_l2(correction: torch.Tensor) -> torch.Tensor:
