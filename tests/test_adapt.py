@@ -14,6 +14,8 @@ import torch
 
 from raytun3r_plugin import Adapter, apply, handle_of
 from raytun3r_plugin.adaptation.train import (
+    SELF_SUPERVISED_WEIGHTS,
+    SUPERVISED_WEIGHTS,
     AdaptConfig,
     adapt,
     artifact_paths,
@@ -58,7 +60,8 @@ def _quiet_da3():
 
 
 def config(cache_dir, **changes) -> AdaptConfig:
-    base = dict(steps=3, input_size=84, n_windows=3, checkpoint_every=2, cache_dir=str(cache_dir), matcher_options={"border_px": 2}, seed=0)
+    # The collapse guard adds forwards of its own; the tests of it switch it on.
+    base = dict(steps=3, input_size=84, n_windows=3, checkpoint_every=2, cache_dir=str(cache_dir), matcher_options={"border_px": 2}, seed=0, guard=False)
     base.update(changes)
     return AdaptConfig(**base)
 
@@ -96,8 +99,14 @@ def test_input_layout_resizes_or_crops_consistently():
 
 def test_config_validates_and_round_trips():
     cfg = AdaptConfig()
-    assert (cfg.steps, cfg.lr, cfg.clip, cfg.input_size, cfg.n_windows, cfg.pose_source) == (300, 1e-3, 1.0, 504, 30, "model")
-    assert cfg.weights.as_dict() == {"reproj": 1.0, "smooth": 10.0, "l2": 2.0, "tv": 20.0, "pose": 1.0}
+    assert (cfg.steps, cfg.lr, cfg.clip, cfg.input_size, cfg.n_windows, cfg.pose_source) == (300, 3e-3, 1.0, 504, 30, "model")
+    assert cfg.weights.as_dict() == SELF_SUPERVISED_WEIGHTS
+    assert (cfg.scale, cfg.robust_px, cfg.pe_regulariser, cfg.guard) == ("pixel", 1.0, "relative", True)
+    supervised = AdaptConfig.supervised(steps=5)
+    assert supervised.steps == 5 and supervised.lr == 3e-2 and supervised.weights.as_dict() == SUPERVISED_WEIGHTS
+    for field, value in (("scale", "median"), ("robust_px", 0.0), ("pe_regulariser", "none"), ("guard_every", 0)):
+        with pytest.raises(InputError, match=field):
+            AdaptConfig(**{field: value})
     again = AdaptConfig(**json.loads(json.dumps(cfg.to_dict())))
     assert again == cfg and again.identity() == cfg.identity()
     assert AdaptConfig(steps=10).identity() == cfg.identity()  # steps may change on resume

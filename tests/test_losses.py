@@ -333,7 +333,7 @@ def test_pe_tv_is_the_squared_neighbour_difference():
 
 def test_total_loss_uses_the_paper_weights():
     weights = LossWeights()
-    assert weights.as_dict() == {"reproj": 1.0, "smooth": 10.0, "l2": 2.0, "tv": 20.0, "pose": 1.0}
+    assert weights.as_dict() == {"reproj": 1.0, "smooth": 10.0, "l2": 2.0, "tv": 20.0, "pose": 1.0, "depth": 1.0}
     terms = {name: torch.tensor(1.0) for name in ("reproj", "smooth", "l2", "tv", "pose")}
     assert float(total_loss(terms, weights)) == 34.0
     del terms["pose"]

@@ -106,7 +106,7 @@ def test_matches_from_flows_forward_backward_check() -> None:
 
 def test_dis_recovers_homography(pair) -> None:
     img_i, img_j, valid = pair
-    matcher = DISFlowMatcher()
+    matcher = DISFlowMatcher(appearance_check=False)
     m = matcher.match(img_i, img_j, valid)
     assert isinstance(matcher, Matcher)
     assert len(m) > 600  # ~ pi * 75^2 / 16 grid points
@@ -306,7 +306,8 @@ def _end_point_errors(seq, i: int, j: int, m: Matches) -> np.ndarray:
 
 
 @pytest.mark.parametrize(("matcher", "min_matches", "max_median", "min_in1"), [
-    (DISFlowMatcher(), 500, 0.5, 0.85),
+    (DISFlowMatcher(appearance_check=False), 500, 0.5, 0.85),
+    (DISFlowMatcher(), 150, 0.3, 0.95),
     (SIFTMatcher(), 100, 0.5, 0.85),
 ])
 def test_matchers_on_synthetic_fisheye(fisheye_indoor, matcher, min_matches, max_median,
@@ -321,3 +322,67 @@ def test_matchers_on_synthetic_fisheye(fisheye_indoor, matcher, min_matches, max
         assert np.median(err) < max_median
         assert (err < 1.0).mean() > min_in1
         assert (err < 3.0).mean() > 0.9
+
+
+# --------------------------------------------------------------------------- appearance check
+
+
+def test_appearance_check_rejects_the_zero_flow_failure() -> None:
+    """A flow that stopped at zero on a 12 px motion passes the forward-backward check (both
+    directions are zero) but fails the appearance check; the true matches pass it."""
+    from raytun3r_plugin.adaptation.matchers import appearance_check
+
+    rng = np.random.default_rng(3)
+    texture = cv2.GaussianBlur(rng.random((96, 120)).astype(np.float32), (0, 0), 0.8)
+    gray_i, gray_j = texture[:, 12:108], texture[:, :96]  # scene moves 12 px to the right
+    grid = np.stack(np.meshgrid(np.arange(16, 80, 4), np.arange(16, 80, 4)), -1).reshape(-1, 2).astype(np.float32)
+    true = appearance_check(gray_i, gray_j, grid, grid + [12.0, 0.0])
+    zero = appearance_check(gray_i, gray_j, grid, grid)
+    assert true.mean() > 0.9
+    assert zero.mean() < 0.05
+
+
+def test_appearance_check_rejects_flat_and_edge_patches() -> None:
+    from raytun3r_plugin.adaptation.matchers import appearance_check
+
+    flat = np.full((64, 64), 0.5, np.float32)
+    ramp = np.tile(np.linspace(0, 1, 64, dtype=np.float32), (64, 1))  # an edge along v
+    uv = np.array([[32.0, 32.0]], np.float32)
+    assert not appearance_check(flat, flat, uv, uv).any()
+    # Sliding along the ramp's level lines looks the same, so the match is not a distinct peak.
+    assert not appearance_check(ramp, ramp, uv, uv).any()
+
+
+def test_dis_default_holds_at_large_motion_on_the_benchmark_cameras() -> None:
+    """Issue 12's matching target on a development sequence per benchmark camera (outdoor, the
+    hard case): in every displacement bin (0-4, 4-8, 8-16, 16-32, 32+ px) that holds at least
+    5 % of the matches the median end-point error is below 1 px; without the check the
+    zero-flow failure puts medians of several pixels into the 8-16 or 16-32 px bins."""
+    from raytun3r_plugin import synthetic
+    from raytun3r_plugin.benchmark import CAMERAS, make_camera
+
+    bins = [0, 4, 8, 16, 32, np.inf]
+    for index, spec in enumerate(CAMERAS):
+        camera = make_camera(spec, 112)
+        seq = synthetic.render_sequence("outdoor", camera, n_frames=6, seed=80_001 + 10 * index)
+        valid = camera.valid_mask().numpy()
+        worst = {}
+        for name, matcher in (("checked", DISFlowMatcher()), ("raw", DISFlowMatcher(appearance_check=False))):
+            errors, motion = [], []
+            for i, j in ((0, 2), (2, 0), (1, 3), (3, 1), (2, 4), (4, 2)):
+                m = matcher.match(seq.images[i], seq.images[j], valid)
+                flow, visible = synthetic.dense_flow(seq, i, j)
+                flow = np.nan_to_num(flow)
+                uv = m.uv_i.astype(np.float64)
+                fu, ok_u = synthetic.bilinear_sample(flow[..., 0], uv, visible)
+                fv, ok_v = synthetic.bilinear_sample(flow[..., 1], uv, visible)
+                ok = ok_u & ok_v
+                truth = np.stack([fu, fv], 1)[ok]
+                errors.append(np.linalg.norm(uv[ok] + truth - m.uv_j[ok], axis=1))
+                motion.append(np.linalg.norm(truth, axis=1))
+            error, moved = np.concatenate(errors), np.concatenate(motion)
+            medians = [np.median(error[(moved >= lo) & (moved < hi)]) for lo, hi in zip(bins[:-1], bins[1:], strict=True)
+                       if ((moved >= lo) & (moved < hi)).mean() >= 0.05]
+            worst[name] = max(medians)
+        assert worst["checked"] < 1.0, (spec.label, worst)
+        assert worst["raw"] > worst["checked"]

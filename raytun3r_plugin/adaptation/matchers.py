@@ -63,11 +63,16 @@ class Matches:
         uv_j: ``(M, 2)`` float32 pixel coordinates of the same scene points in frame ``j``.
         confidence: ``(M,)`` float32 in ``[0, 1]``; 1 = most reliable. Its scale is
             matcher-specific (documented per matcher); use it as a relative weight.
+        motion_px: the pair's mean image motion in pixels when the matcher knows it better than
+            the kept matches do (DIS measures it on every flow-consistent match, before the
+            appearance check removes the large motions it got wrong), else None; what decides
+            whether a window is static.
     """
 
     uv_i: np.ndarray
     uv_j: np.ndarray
     confidence: np.ndarray
+    motion_px: float | None = None
 
     def __post_init__(self) -> None:
         self.uv_i = np.ascontiguousarray(np.asarray(self.uv_i, dtype=np.float32).reshape(-1, 2))
@@ -110,6 +115,12 @@ class Matches:
     def displacement(self) -> np.ndarray:
         """``(M,)`` float32 pixel displacement ``|uv_j - uv_i|``."""
         return np.linalg.norm(self.uv_j - self.uv_i, axis=1).astype(np.float32)
+
+    def mean_motion_px(self) -> float:
+        """:attr:`motion_px` when set, else the mean displacement of the matches (0 if none)."""
+        if self.motion_px is not None:
+            return float(self.motion_px)
+        return float(self.displacement().mean()) if len(self) else 0.0
 
 
 @runtime_checkable
@@ -415,7 +426,7 @@ class DISFlowMatcher:
             out["appearance_check"] = {
                 "zncc_min": self.zncc_min, "distinct_margin": self.distinct_margin,
                 "distinct_shift_px": self.distinct_shift_px, "patch_radius": self.patch_radius,
-                "min_patch_std": self.min_patch_std,
+                "min_patch_std": self.min_patch_std, "motion_px": "before the check",
             }
         return out
 
@@ -443,7 +454,9 @@ class DISFlowMatcher:
             zncc_min=self.zncc_min, margin=self.distinct_margin, shift_px=self.distinct_shift_px,
             min_std=self.min_patch_std,
         )
-        return matches.select(keep)
+        kept = matches.select(keep)
+        kept.motion_px = float(matches.displacement().mean())
+        return kept
 
     def __repr__(self) -> str:
         return f"DISFlowMatcher({self.settings()})"

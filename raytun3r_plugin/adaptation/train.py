@@ -77,13 +77,17 @@ __all__ = [
     "adapt",
     "adaptation_step",
     "artifact_paths",
+    "depth_health",
+    "fit_verdict",
     "input_layout",
     "load_checkpoint",
+    "objective_value",
     "prepare_problem",
     "read_loss_log",
     "scene_mask",
     "window_of_step",
     "window_terms",
+    "write_loss_artifacts",
 ]
 
 CHECKPOINT_FORMAT = "raytun3r-adapt-checkpoint"
@@ -158,7 +162,7 @@ class AdaptConfig:
     """
 
     steps: int = 300
-    lr: float = 1e-2
+    lr: float = 3e-3
     clip: float | None = 1.0
     weights: LossWeights = field(default_factory=lambda: LossWeights(**SELF_SUPERVISED_WEIGHTS))
     input_size: int = 504
@@ -970,6 +974,33 @@ def adaptation_step(
         **counts,
         "time_s": round(time.perf_counter() - began, 4),
     }
+
+
+def objective_value(model: nn.Module, adapter: Adapter, problem: AdaptationProblem, config: AdaptConfig, seed: int = 0) -> dict[str, float]:
+    """The objective of ``config`` for ``adapter``, averaged over every window of ``problem``.
+
+    Runs the model patched with ``adapter`` (the model must be unpatched; it is again
+    afterwards), without gradients. Match subsets come from a generator seeded by ``seed`` and
+    the window index, so two adapters are scored on the same samples. Used to check that the
+    objective ranks a better adapter lower (``tests``, ``docs/adaptation.md``).
+
+    Returns:
+        ``{"loss": total, <term>: mean value, ...}``.
+    """
+    if handle_of(model) is not None:
+        raise AlreadyAppliedError("objective_value needs an unpatched model")
+    sums: dict[str, float] = {}
+    with _frozen(model), torch.no_grad(), apply(model, problem.layout.native_camera, adapter, components=config.components, strict=False, mask=problem.mask):
+        for index, (_, pairs) in enumerate(problem.windows):
+            generator = torch.Generator().manual_seed(int(seed) * 7_919 + index)
+            terms, _ = window_terms(
+                model, adapter, problem.batch(index), pairs, problem.layout, problem.valid, problem.geometry, config, generator,
+                pe_scale=problem.pe_scale, depth_targets=problem.window_depth(index),
+            )
+            terms = {**terms, "loss": total_loss(terms, config.weights)}
+            for name, value in terms.items():
+                sums[name] = sums.get(name, 0.0) + float(value) / len(problem.windows)
+    return sums
 
 
 # --------------------------------------------------------------------------------------------

@@ -122,7 +122,7 @@ class Window:
             (``uv_i`` in frame ``frames[a]``, ``uv_j`` in frame ``frames[b]``).
         targets: ``(a, b) -> PoseTarget`` (``cam_b_from_cam_a``, unit translation; check
             ``ok``).
-        motion_px: mean correspondence displacement over the forward pairs, pixels.
+        motion_px: mean over the forward pairs of their mean image motion (``Matches.mean_motion_px``), pixels.
     """
 
     frames: tuple[int, ...]
@@ -408,9 +408,8 @@ def prepare_adaptation_set(
         win = Window(frames)
         # Forward pairs first: enough to decide whether the window is static.
         forward = [(a, b) for a, b in pairs if a < b]
-        disp = [matches_for(*win.global_pair(a, b)).displacement() for a, b in forward]
-        all_disp = np.concatenate(disp) if disp else np.zeros(0)
-        win.motion_px = float(all_disp.mean()) if all_disp.size else 0.0
+        motion = [matches_for(*win.global_pair(a, b)).mean_motion_px() for a, b in forward]
+        win.motion_px = float(np.mean(motion)) if motion else 0.0
         if win.motion_px < min_motion_px:
             static.append(frames)
             continue
