@@ -381,3 +381,33 @@ def describe_file(path: str | os.PathLike) -> str:
     magnitude = max(float(p.detach().abs().max()) for p in adapter.parameters())
     lines.append(f"max |table|:     {magnitude:.3g}" + (" (identity adapter)" if magnitude == 0 or math.isclose(magnitude, 0.0) else ""))
     return "\n".join(lines)
+
+
+def write_pe_picture(adapter: Adapter, path: str | os.PathLike, long_side: int = 504) -> None:
+    """Write a PNG of the adapter's PE correction: its size ``||t_r(rho) + rho d_theta(theta)||``
+    per token (PE units) over the network input the adapter was fitted at (or ``long_side``
+    px), black outside the lens. A fresh adapter is flat zero; a fitted one shows where the
+    correction acts (typically growing towards the rim).
+
+    Raises:
+        AdapterError: the adapter carries no camera.
+    """
+    import cv2
+    import numpy as np
+
+    from raytun3r_plugin.adaptation.losses import pe_correction_grid
+    from raytun3r_plugin.adaptation.train import input_layout
+    from raytun3r_plugin.geometry import GeometryCache
+    from raytun3r_plugin.plots import heatmap
+
+    if adapter.camera is None:
+        raise AdapterError("the adapter carries no camera, so the PE correction has no image to be drawn on")
+    trained = (adapter.training_info or {}).get("input") or {}
+    layout = input_layout(adapter.camera, int(max(trained.get("width", 0), trained.get("height", 0)) or long_side), adapter.patch_size)
+    geometry = GeometryCache(layout.native_camera, adapter.patch_size).at(layout.height, layout.width)
+    with torch.no_grad():
+        size = pe_correction_grid(adapter, geometry).norm(dim=-1).cpu().numpy()
+    pixels = np.kron(size, np.ones((adapter.patch_size, adapter.patch_size)))
+    lens = layout.camera.valid_mask().cpu().numpy().astype(bool)
+    title = f"PE correction size per token ({adapter.backbone}, {layout.width}x{layout.height} px)"
+    cv2.imwrite(str(path), heatmap(pixels, title, "PE units", valid=lens))

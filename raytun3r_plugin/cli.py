@@ -23,6 +23,11 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         print(json.dumps(describe_record(args.adapter), indent=2, sort_keys=True, default=str))
     else:
         print(describe_file(args.adapter))
+    if args.picture:
+        from raytun3r_plugin.adapter import Adapter, write_pe_picture
+
+        write_pe_picture(Adapter.load(args.adapter), args.picture)
+        print(f"PE correction picture: {args.picture}")
     return 0
 
 
@@ -52,15 +57,20 @@ def cmd_infer(args: argparse.Namespace) -> int:
 def cmd_adapt(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
     from raytun3r_plugin.cameras import load as load_camera
-    from raytun3r_plugin.images import read_frames, read_mask
+    from raytun3r_plugin.adaptation.train import artifact_paths
+    from raytun3r_plugin.images import read_depth_maps, read_frames, read_mask
 
     camera = load_camera(args.camera, camera=args.camera_id)
-    frames, _names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
+    frames, names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
     mask = read_mask(args.mask, frames.shape[2], frames.shape[1]) if args.mask else None
+    depth = read_depth_maps(args.depth, names, frames.shape[2], frames.shape[1], args.depth_png_scale) if args.depth else None
     model = _load_model(args.backbone, args.weights)
-    config = AdaptConfig(steps=args.steps, input_size=args.size, n_windows=args.windows, matcher=args.matcher, seed=args.seed, pose_source=args.pose_source, cache_dir=args.cache_dir)
-    adapter = adapt(model, camera, frames, config, out_path=args.out, mask=mask)
-    print(f"saved adapter to {args.out} ({adapter.num_parameters()['total']:,} parameters)")
+    settings = dict(steps=args.steps, input_size=args.size, n_windows=args.windows, matcher=args.matcher, seed=args.seed, pose_source=args.pose_source, cache_dir=args.cache_dir)
+    config = AdaptConfig(**settings) if depth is None else AdaptConfig.supervised(**settings)
+    adapter = adapt(model, camera, frames, config, out_path=args.out, mask=mask, depth=depth)
+    paths = artifact_paths(args.out)
+    print(f"saved adapter to {args.out} ({adapter.num_parameters()['total']:,} parameters); losses: {paths['csv']}, {paths['curve']}")
+    print(adapter.training_info["verdict"]["summary"])
     return 0
 
 
@@ -120,6 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("inspect", help="print an adapter file's metadata, camera and parameter count")
     p.add_argument("adapter")
     p.add_argument("--json", action="store_true", help="print the whole metadata record (training included) as JSON")
+    p.add_argument("--picture", default=None, help="write the PE correction's size over the image (PNG) to this path")
     p.set_defaults(func=cmd_inspect)
 
     p = sub.add_parser("infer", help="apply an adapter and write depth (.npy, .png), poses (TUM) and a point cloud (.ply)")
@@ -132,7 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_infer)
 
-    p = sub.add_parser("adapt", help="fit an adapter on a short fisheye segment (self-supervised)")
+    p = sub.add_parser("adapt", help="fit an adapter on a short fisheye segment (self-supervised, or from depth with --depth)")
     _add_model_arguments(p)
     _add_frame_arguments(p)
     p.add_argument("--camera", required=True)
@@ -143,6 +154,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pose-source", default="model", choices=("model", "targets"))
     p.add_argument("--cache-dir", default=None)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--depth", default=None, help="folder of ground-truth depth per frame (NAME.npy, or 16-bit NAME.png): supervised fit")
+    p.add_argument("--depth-png-scale", type=float, default=1000.0, help="16-bit depth PNG values per depth unit (1000 = millimetres)")
     p.add_argument("--out", required=True, help="output adapter .safetensors")
     p.set_defaults(func=cmd_adapt)
 

@@ -58,6 +58,47 @@ def read_frames(source: str | os.PathLike, stride: int = 1, limit: int | None = 
     return rgb, names
 
 
+DEPTH_SUFFIXES = (".npy", ".png", ".tif", ".tiff", ".exr")
+
+
+def read_depth_maps(folder: str | os.PathLike, names: list[str], width: int, height: int, png_scale: float = 1000.0) -> np.ndarray:
+    """Ground-truth depth for the frames ``names`` from a folder with one file per frame.
+
+    The file of a frame has the frame's name (its stem) and one of :data:`DEPTH_SUFFIXES`:
+    ``.npy`` float depth, or a 16-bit PNG / TIFF divided by ``png_scale`` (1000: millimetres,
+    the convention of depth sensors and of KITTI-style projected LiDAR maps, which store 0
+    where no point fell). 0, negative and NaN mean "no value", so sparse maps work as they are.
+
+    Returns:
+        (N, H, W) float32, one map per name, in the order of ``names``.
+
+    Raises:
+        InputError: a frame without a depth file, an unreadable file, or a map of another size.
+    """
+    import cv2
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: not a folder of depth maps")
+    files = {path.stem: path for path in sorted(folder.iterdir()) if path.suffix.lower() in DEPTH_SUFFIXES}
+    maps = []
+    for name in names:
+        path = files.get(name)
+        if path is None:
+            raise InputError(f"{folder}: no depth file for frame {name!r} (expected {name}.npy or {name}.png)")
+        if path.suffix.lower() == ".npy":
+            depth = np.load(path, allow_pickle=False).astype(np.float32)
+        else:
+            raw = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
+            if raw is None:
+                raise InputError(f"{path}: not a readable depth image")
+            depth = raw.astype(np.float32) / (png_scale if raw.dtype in (np.uint16, np.uint8) else 1.0)
+        if depth.shape != (height, width):
+            raise InputError(f"{path}: depth map is {depth.shape[1] if depth.ndim > 1 else '?'}x{depth.shape[0]} px, the frames are {width}x{height}")
+        maps.append(depth)
+    return np.stack(maps)
+
+
 def network_size(width: int, height: int, long_side: int, patch: int = 14) -> tuple[int, int, int, int]:
     """Resized size (w, h) keeping the aspect ratio and the centred crop (w', h') to patch multiples."""
     scale = long_side / max(width, height)

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from raytun3r_plugin.patches.da3 import build_tiny_network
 
 from raytun3r_plugin.adaptation import train
 from raytun3r_plugin.adaptation.losses import (
@@ -37,7 +38,6 @@ from raytun3r_plugin.adaptation.train import (
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.cameras import KannalaBrandt4
 from raytun3r_plugin.errors import InputError
-from raytun3r_plugin.patches.da3 import build_tiny_network
 
 
 @pytest.fixture(scope="module")

@@ -40,7 +40,14 @@ def setup(tmp_path_factory):
     for k, image in enumerate(seq.images):
         cv2.imwrite(str(frames / f"{k:04d}.png"), (image[..., ::-1] * 255).round().astype(np.uint8))
     synthetic.write_sequence(seq, folder / "sequence")
-    return {"folder": folder, "weights": weights, "camera": folder / "camera.json", "frames": frames, "sequence": folder / "sequence", "net": net}
+    depth = folder / "depth"
+    depth.mkdir()
+    for k, values in enumerate(seq.depth):
+        if k % 2:  # half as .npy in depth units, half as 16-bit PNG in millimetres
+            cv2.imwrite(str(depth / f"{k:04d}.png"), np.round(values * 1000).astype(np.uint16))
+        else:
+            np.save(depth / f"{k:04d}.npy", values)
+    return {"depth": depth, "folder": folder, "weights": weights, "camera": folder / "camera.json", "frames": frames, "sequence": folder / "sequence", "net": net}
 
 
 def test_adapt_inspect_infer(setup, capsys):
@@ -64,6 +71,38 @@ def test_adapt_inspect_infer(setup, capsys):
     assert len(lines) == 6 and all(len(line.split()) == 8 for line in lines)
     points, colours = read_ply(out / "points.ply")
     assert len(points) > 1000 and np.isfinite(points).all() and colours.dtype == np.uint8
+
+
+def test_supervised_adapt_from_a_depth_folder_and_the_pe_picture(setup, tmp_path, capsys):
+    import cv2
+
+    from raytun3r_plugin import Adapter
+
+    adapter = tmp_path / "supervised.safetensors"
+    code = main(["adapt", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--camera", str(setup["camera"]),
+                 "--frames", str(setup["frames"]), "--size", str(SIZE), "--steps", "3", "--windows", "2",
+                 "--depth", str(setup["depth"]), "--out", str(adapter)])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "supervised.losses.csv" in out and (tmp_path / "supervised.losses.png").is_file()
+    info = Adapter.load(adapter).training_info
+    assert info["supervision"]["kind"] == "depth" and info["supervision"]["coverage"] > 0.9
+    assert info["config"]["lr"] == 3e-2 and info["final_losses"]["depth"] > 0
+    picture = tmp_path / "pe.png"
+    assert main(["inspect", str(adapter), "--picture", str(picture)]) == 0
+    image = cv2.imread(str(picture))
+    assert image is not None and image.shape[0] >= 320 and image.std() > 10
+
+    (setup["depth"] / "0003.png").rename(tmp_path / "moved.png")
+    try:
+        capsys.readouterr()
+        assert main(["adapt", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--camera", str(setup["camera"]),
+                     "--frames", str(setup["frames"]), "--size", str(SIZE), "--steps", "1", "--depth", str(setup["depth"]),
+                     "--out", str(tmp_path / "none.safetensors")]) == 2
+        assert "no depth file for frame '0003'" in capsys.readouterr().err
+        assert not (tmp_path / "none.safetensors").exists()
+    finally:
+        (tmp_path / "moved.png").rename(setup["depth"] / "0003.png")
 
 
 def test_mask_reaches_adaptation_and_inference(setup, tmp_path, capsys):
