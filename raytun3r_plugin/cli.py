@@ -55,9 +55,8 @@ def cmd_infer(args: argparse.Namespace) -> int:
 
 
 def cmd_adapt(args: argparse.Namespace) -> int:
-    from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+    from raytun3r_plugin.adaptation.train import AdaptConfig, adapt, artifact_paths
     from raytun3r_plugin.cameras import load as load_camera
-    from raytun3r_plugin.adaptation.train import artifact_paths
     from raytun3r_plugin.images import read_depth_maps, read_frames, read_mask
 
     camera = load_camera(args.camera, camera=args.camera_id)
