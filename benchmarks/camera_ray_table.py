@@ -32,7 +32,7 @@ from raytun3r_plugin.cameras import (
 
 
 def cameras(size: int) -> dict[str, tuple[Camera, str]]:
-    """Realistic calibrations (docs/CAMERAS_AND_FORMATS.md) resized to ``size x size``."""
+    """Realistic calibrations (docs/cameras.md) resized to ``size x size``."""
 
     def sq(cam: Camera) -> Camera:
         # Centre-crop to a square, then resize: the benchmark compares equal pixel counts.

@@ -11,12 +11,17 @@ outdoor driving) and matcher (DIS, SIFT), renders a short sequence and, for the 
 * pose target (``estimate_relative_pose``, defaults): rotation error and signed
   translation-direction error (degrees, median and max over pairs) against ``cam_j_from_cam_i``,
   the fraction of pairs with ``ok``, and the medians for OpenCV's pose alone (``refine=False``);
-* time per pair: matching and pose estimation (ms, median).
+* time per pair: matching and pose estimation (ms, median);
+* with ``--bins``: instead, per displacement bin of the true motion (0-4, 4-8, 8-16, 16-32,
+  32+ px), the share of the matches and their median end-point error, on the benchmark's three
+  cameras at 112 px (issue 12's target: below 1 px in every bin holding at least 5 % of the
+  matches), for the default DIS matcher and for DIS without its appearance check.
 
 Prints one markdown table. Usage::
 
     python benchmarks/matching_quality.py                  # 160x160, 6 frames, gaps 1 and 2
     python benchmarks/matching_quality.py --size 256 --frames 8 --seeds 0 1
+    python benchmarks/matching_quality.py --bins             # displacement bins, benchmark cameras
 """
 
 from __future__ import annotations
@@ -60,7 +65,51 @@ def ds_195(size: int) -> cameras.Camera:
 
 
 CAMERAS: dict[str, Callable[[int], cameras.Camera]] = {"KB4 190": kb4_190, "DS 195": ds_195}
-MATCHERS: dict[str, Callable[[], Matcher]] = {"dis": DISFlowMatcher, "sift": SIFTMatcher}
+MATCHERS: dict[str, Callable[[], Matcher]] = {"dis": DISFlowMatcher, "sift": SIFTMatcher, "dis-unchecked": lambda: DISFlowMatcher(appearance_check=False)}
+BINS = (0.0, 4.0, 8.0, 16.0, 32.0, math.inf)
+
+
+def displacement_bins(seqs, matcher: Matcher, gaps: tuple[int, ...] = (1, 2)) -> list[tuple[float, float, int]]:
+    """(share of matches, median end-point error px, count) per bin of the true motion, pooled
+    over the pairs ``(k, k + gap)`` and ``(k + gap, k)`` of every sequence."""
+    errors, motion = [], []
+    for seq in seqs:
+        valid = seq.camera.valid_mask().cpu().numpy()
+        for gap in gaps:
+            for k in range(0, len(seq) - gap, 2):
+                for i, j in ((k, k + gap), (k + gap, k)):
+                    m = matcher.match(seq.images[i], seq.images[j], valid)
+                    gt, has_gt = gt_end_points(seq, i, j, m.uv_i)
+                    errors.append(np.linalg.norm(gt - m.uv_j, axis=1)[has_gt])
+                    motion.append(np.linalg.norm(gt - m.uv_i, axis=1)[has_gt])
+    error, moved = np.concatenate(errors), np.concatenate(motion)
+    out = []
+    for low, high in zip(BINS[:-1], BINS[1:], strict=True):
+        inside = (moved >= low) & (moved < high)
+        out.append((float(inside.mean()) if moved.size else 0.0, float(np.median(error[inside])) if inside.any() else math.nan, int(inside.sum())))
+    return out
+
+
+def bins_table(n_frames: int, seeds: list[int]) -> None:
+    """The displacement-bin table on the benchmark's cameras (development seeds 80000+)."""
+    from raytun3r_plugin.benchmark import CAMERAS, make_camera
+
+    labels = [f"{int(lo)}-{int(hi)} px" if math.isfinite(hi) else f"{int(lo)}+ px" for lo, hi in zip(BINS[:-1], BINS[1:], strict=True)]
+    print("Share of matches and median end-point error (px) per bin of the true motion; pairs (k, k+1) and (k, k+2), both directions; "
+          f"{n_frames} frames per sequence, development seeds {seeds} (80000 + 100 k + 10 camera + scene), 112 px. "
+          "A bin fails when it holds at least 5 % of the matches and its median is 1 px or more.\n")
+    print("| camera | scene | matcher | matches/pair | " + " | ".join(labels) + " | target |")
+    print("|" + "---|" * (5 + len(labels)))
+    for c, spec in enumerate(CAMERAS):
+        camera = make_camera(spec, 112)
+        for s, kind in enumerate(("indoor", "outdoor")):
+            seqs = [synthetic.render_sequence(kind, camera, n_frames=n_frames, seed=80_000 + 100 * k + 10 * c + s) for k in seeds]
+            for name in ("dis", "dis-unchecked"):
+                rows = displacement_bins(seqs, MATCHERS[name]())
+                pairs = sum(2 * len(range(0, n_frames - g, 2)) for g in (1, 2)) * len(seqs)
+                fails = [label for label, (share, median, _) in zip(labels, rows, strict=True) if share >= 0.05 and not median < 1.0]
+                cells = " | ".join(f"{100 * share:.0f}% {median:.2f}" if count else "0% -" for share, median, count in rows)
+                print(f"| {spec.label} | {kind} | {name} | {sum(r[2] for r in rows) / pairs:.0f} | {cells} | {'met' if not fails else 'fails ' + ', '.join(fails)} |", flush=True)
 
 
 def gt_end_points(seq, i: int, j: int, uv_i: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -139,8 +188,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--matchers", nargs="+", default=list(MATCHERS), choices=list(MATCHERS))
     ap.add_argument("--torch-threads", type=int, default=1,
                     help="torch threads for rendering (1 is fastest on a shared machine)")
+    ap.add_argument("--bins", action="store_true", help="displacement-bin table on the benchmark's cameras (issue 12)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.torch_threads)
+    if args.bins:
+        bins_table(24, [0, 1])
+        return
 
     print(
         f"Synthetic {args.size}x{args.size}, {args.frames} frames per sequence, seeds "

@@ -173,6 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=None, help="adaptation steps (default: the demo's budget)")
     p.add_argument("--size", type=int, default=None)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sequences", type=int, default=None, help="sequences to score (default 4)")
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("bench", help="the synthetic fisheye benchmark (vanilla vs Center-PH vs raytun3r)")

@@ -1,9 +1,9 @@
-"""Scoring a method on a sequence (DESIGN.md section 8): vanilla, Center-PH, raytun3r.
+"""Scoring a method on a sequence (docs/conventions.md section 8): vanilla, Center-PH, raytun3r.
 
 Every method is run on the same frame windows and scored on the same pair list. The network sees
 non-overlapping windows of consecutive frames (``window`` views per forward); relative poses are
 scored on consecutive pairs inside a window, depth on every frame. On a fisheye the depth channel
-is read as range along the ray for every method (DESIGN.md section 2), so all methods are scored
+is read as range along the ray for every method (docs/conventions.md section 2), so all methods are scored
 alike; AbsRel and delta < 1.25 use a per-image median scale.
 """
 

@@ -1,4 +1,4 @@
-"""Online adaptation (DESIGN.md section 7, invariant 5) on the tiny real DA3 network.
+"""Online adaptation (docs/conventions.md section 7, invariant 5) on the tiny real DA3 network.
 
 The segment is the analytic textured room of ``test_losses.py`` seen by a 190-degree fisheye at
 84x70 px; matches come from the default DIS matcher, targets from MAGSAC++.

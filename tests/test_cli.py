@@ -170,14 +170,19 @@ def test_bench_quick(tmp_path, capsys, monkeypatch):
     assert "lower_than_vanilla" in out and "Target (raytun3r's mean d_reproj and AbsRel below vanilla's): met in" in out
     assert (tmp_path / "results.md").is_file()
     results = json.loads((tmp_path / "results.json").read_text())
-    assert {r["method"] for r in results["sequences"]} == {"vanilla", "center-ph", "raytun3r, no adapter", "raytun3r"}
+    assert {r["method"] for r in results["sequences"]} == {"vanilla", "center-ph", "raytun3r, no adapter", "raytun3r", "raytun3r, supervised"}
+    assert "gap_closed" in out and "Target (below 'raytun3r, no adapter' on both)" in out
     assert all(r["sequences"] == 1 for r in results["summary"])
 
 
 def test_demo_runs_on_the_built_in_default(tmp_path, capsys):
-    assert main(["demo", "--out", str(tmp_path), "--steps", "3", "--size", "84"]) == 0
+    assert main(["demo", "--out", str(tmp_path), "--steps", "3", "--size", "84", "--sequences", "2"]) == 0
     out = capsys.readouterr().out
     assert "raytun3r-da3-tiny" in out and "trained by raytun3r on pinhole renders only" in out
-    for label in ("vanilla (unpatched)", "Center-PH", "raytun3r, no adapter", "raytun3r, adapted (3 steps"):
+    for label in ("vanilla (unpatched)", "Center-PH", "raytun3r, no adapter", "raytun3r, adapted (3 steps", "raytun3r, supervised (3 steps"):
         assert label in out
-    assert (tmp_path / "adapter.safetensors").is_file() and (tmp_path / "metrics.json").is_file()
+    assert "Mean over 2 held-out sequences" in out and "/2" in out  # per-sequence win counts
+    for k in (0, 1):
+        assert (tmp_path / f"seq{k}" / "adapter.safetensors").is_file() and (tmp_path / f"seq{k}" / "adapter.losses.png").is_file()
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert len(metrics["rows"]) == 2 * 5

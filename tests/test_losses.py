@@ -1,4 +1,4 @@
-"""Adaptation losses (DESIGN.md section 7): zero at ground truth, edge-aware, PE-only regularisers.
+"""Adaptation losses (docs/conventions.md section 7): zero at ground truth, edge-aware, PE-only regularisers.
 
 Ground truth comes from an analytic textured room (an axis-aligned box seen from inside, so every
 surface point is visible from every camera inside it and correspondences need no occlusion test);

@@ -1,9 +1,9 @@
-"""Self-supervised adaptation losses (DESIGN.md section 7, paper "Adapter training").
+"""Self-supervised adaptation losses (docs/conventions.md section 7, paper "Adapter training").
 
 Every term is a small function of plain tensors, so it can be tested on ground truth and reused
 by other trainers (LoRA and calibration-token baselines use the same objective).
 
-Conventions (DESIGN.md section 2):
+Conventions (docs/conventions.md section 2):
 
 * pixels ``(u, v)`` have the centre of the top-left pixel at ``(0, 0)``; every pixel argument of
   the functions here is in the pixels of the *network input* (the image the depth map belongs

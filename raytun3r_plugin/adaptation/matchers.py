@@ -4,7 +4,7 @@ A matcher turns an ordered image pair ``(i -> j)`` into pixel correspondences wi
 per match (:class:`Matches`). Everything here works in the raw (fisheye) image: flow and
 descriptors are camera-model agnostic, the camera is only used later to lift pixels to rays.
 
-Conventions (DESIGN.md section 2): images are ``(H, W, 3)`` float32 RGB in ``[0, 1]``; pixel
+Conventions (docs/conventions.md section 2): images are ``(H, W, 3)`` float32 RGB in ``[0, 1]``; pixel
 ``(u, v)`` has the centre of the top-left pixel at ``(0, 0)``, ``u`` to the right, ``v`` down
 (the OpenCV convention, so OpenCV keypoints and flow fields need no offset).
 

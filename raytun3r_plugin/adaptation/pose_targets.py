@@ -3,7 +3,7 @@
 For a pair ``(i -> j)`` the target is the pose ``cam_j_from_cam_i`` (a point ``X_i`` in camera
 ``i`` maps to ``X_j = R @ X_i + t``), with the translation known only up to scale (``|t| = 1``).
 
-Pipeline (DESIGN.md section 7, CAMERAS_AND_FORMATS.md D.1/D.4):
+Pipeline (docs/conventions.md section 7):
 
 1. Unproject both ends of each match to unit rays with the camera model.
 2. Keep matches whose rays are both within ``max_angle_deg`` of the optical axis (the normalised
@@ -421,7 +421,7 @@ def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
 
 
 def translation_direction_error_deg(t_est: np.ndarray, t_gt: np.ndarray) -> float:
-    """Signed (0..180 degrees) angle between two translation directions (DESIGN.md section 8)."""
+    """Signed (0..180 degrees) angle between two translation directions (docs/conventions.md section 8)."""
     a = np.asarray(t_est, np.float64).reshape(3)
     b = np.asarray(t_gt, np.float64).reshape(3)
     na, nb = np.linalg.norm(a), np.linalg.norm(b)

@@ -1,6 +1,6 @@
 """Online adaptation: fit an adapter to a fisheye segment without ground truth.
 
-``adapt(model, camera, frames, config)`` (DESIGN.md section 7, paper "Adapter training"):
+``adapt(model, camera, frames, config)`` (docs/conventions.md section 7, paper "Adapter training"):
 
 1. picks the network input size (long side ``config.input_size``, multiples of the patch size;
    a centred crop only when a pure resize would change the aspect ratio by more than 1%);
@@ -115,7 +115,7 @@ _RESUMABLE_CHANGES = {"steps", "checkpoint_every", "cache_dir"}
 
 @dataclass
 class AdaptConfig:
-    """Settings of :func:`adapt`. Defaults follow DESIGN.md section 7 and the paper.
+    """Settings of :func:`adapt`. Defaults: docs/conventions.md section 7 and docs/adaptation.md.
 
     Attributes:
         steps: optimisation steps, one 3-frame window each (300 = 10 passes over 30 windows).
@@ -266,7 +266,7 @@ def input_layout(camera: Any, long_side: int, patch: int = 14) -> InputLayout:
     """Network input size for frames of ``camera``: long side ``long_side`` rounded to ``patch``.
 
     Each side is ``round(side * long_side / max(W, H) / patch) * patch`` (at least one patch). If
-    that changes the aspect ratio by more than 1% (DESIGN.md section 3 forbids a silent
+    that changes the aspect ratio by more than 1% (docs/conventions.md section 3 forbids a silent
     stretch), the native image is centre-cropped to the input's aspect ratio first.
     """
     width, height = int(camera.width), int(camera.height)

@@ -1,6 +1,6 @@
 """Adaptation windows: frame selection, correspondences + pose targets per window, disk cache.
 
-The adaptation set of a fisheye segment (DESIGN.md section 7) is a list of short windows (by
+The adaptation set of a fisheye segment (docs/conventions.md section 7) is a list of short windows (by
 default 30 windows of 3 frames). For every window and every *ordered* pair of its frames we
 store the matcher's correspondences and a MAGSAC++ relative-pose target; windows whose mean
 correspondence displacement is below ``min_motion_px`` (2 px) are static and skipped.
