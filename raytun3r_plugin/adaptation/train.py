@@ -424,7 +424,7 @@ def write_loss_artifacts(paths: Mapping[str, Path], records: list[dict[str, Any]
     """The per-step losses as CSV (``paths["csv"]``) and as a loss-curve picture (``paths["curve"]``).
 
     Columns: ``step``, ``loss``, every term the run had, ``grad_norm``, ``skipped``, ``time_s``.
-    The picture shows the total and each weighted-in term over the steps (log scale).
+    The picture shows the total and the raw value of each term over the steps (log scale).
     """
     import csv
 
