@@ -22,18 +22,36 @@ import torch
 from torch import nn
 
 from raytun3r_plugin import hooks
-from raytun3r_plugin.errors import InputError, MissingDependencyError, WeightsError
+from raytun3r_plugin.errors import (
+    InputError,
+    MissingDependencyError,
+    UnsupportedUpstreamError,
+    WeightsError,
+)
 from raytun3r_plugin.prediction import (
     Prediction,
     as_batched_images,
     imagenet_normalise,
     to_homogeneous,
 )
-from raytun3r_plugin.registry import BackboneInfo, BackboneSpec, PatchTarget, register
+from raytun3r_plugin.registry import (
+    BackboneInfo,
+    BackboneSpec,
+    PatchTarget,
+    UpstreamVersion,
+    register,
+)
 from raytun3r_plugin.weights import load_into, read_state_dict, strip_prefix
 
 FAMILY = "da3"
 UPSTREAM_MODULE = "depth_anything_3"
+UPSTREAM = UpstreamVersion(
+    source="depth-anything-3", version="0.1.1", module=UPSTREAM_MODULE, note="GitHub ByteDance-Seed/Depth-Anything-3 2c21ea8"
+)
+#: RoPE classes of the ViT (one instance, shared by every block from ``rope_start``).
+ROPE_CLASSES = ("RotaryPositionEmbedding2D",)
+#: ``RotaryPositionEmbedding2D.__init__(frequency)`` stores the base as ``base_frequency``.
+ROPE_BASE_ATTRIBUTE = "base_frequency"
 
 # (embed_dim, depth, RoPE) -> name, for the official configs (docs/backbones.md, Depth Anything 3).
 _KNOWN = {
@@ -59,7 +77,13 @@ def recognise(model: nn.Module) -> nn.Module | None:
 
 
 def describe(root: nn.Module) -> BackboneInfo:
-    vit = root.backbone.pretrained
+    vit = getattr(getattr(root, "backbone", None), "pretrained", None)
+    if vit is None or not isinstance(getattr(vit, "pos_embed", None), torch.Tensor):
+        found = f"{type(vit).__module__}.{type(vit).__qualname__}" if vit is not None else "nothing"
+        raise UnsupportedUpstreamError(
+            f"da3: expected a DinoVisionTransformer with an absolute PE table at 'backbone.pretrained', found {found} "
+            f"(the da3 patch was checked against {UPSTREAM})"
+        )
     has_rope = getattr(vit, "rope", None) is not None
     key = (vit.embed_dim, len(vit.blocks), has_rope)
     name = getattr(root, "raytun3r_name", None) or _KNOWN.get(key) or f"da3-custom-e{vit.embed_dim}-d{len(vit.blocks)}"
@@ -275,12 +299,14 @@ def quiet_info() -> Iterator[None]:
 SPEC = register(
     BackboneSpec(
         family=FAMILY,
-        supports="depth-anything-3 0.1.1 (GitHub 2c21ea8)",
+        upstream=UPSTREAM,
         recognise=recognise,
         describe=describe,
         targets=TARGETS,
         predict=predict,
         builders=_builders(),
+        rope_classes=ROPE_CLASSES,
+        rope_base_attribute=ROPE_BASE_ATTRIBUTE,
         quiet=quiet_info,
     )
 )

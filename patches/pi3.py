@@ -42,12 +42,23 @@ from torch import nn
 from raytun3r_plugin import hooks
 from raytun3r_plugin.errors import MissingDependencyError, UnsupportedUpstreamError, WeightsError
 from raytun3r_plugin.prediction import Prediction, as_batched_images
-from raytun3r_plugin.registry import BackboneInfo, BackboneSpec, PatchTarget, register
+from raytun3r_plugin.registry import (
+    BackboneInfo,
+    BackboneSpec,
+    PatchTarget,
+    UpstreamVersion,
+    register,
+)
 from raytun3r_plugin.weights import load_into, read_state_dict
 
 UPSTREAM_MODULE = "pi3"
 UPSTREAM_COMMIT = "9fa3ddb3f8d53041f8b2738df404f62223bbaa7b"
-_SUPPORTS = f"yyfz/Pi3 {UPSTREAM_COMMIT[:7]}"
+UPSTREAM = UpstreamVersion(source="yyfz/Pi3", version=UPSTREAM_COMMIT, module=UPSTREAM_MODULE)
+#: ``RoPE2D`` is the PyTorch class; ``cuRoPE2D`` the compiled one upstream substitutes when it
+#: imports (refused by :func:`_refuse_compiled_rope`, listed so a stray instance is not missed).
+ROPE_CLASSES = ("RoPE2D", "cuRoPE2D")
+#: ``RoPE2D.__init__(freq)`` stores the base as ``base``.
+ROPE_BASE_ATTRIBUTE = "base"
 _INSTALL_HINT = (
     "Pi3 is not on PyPI: clone the yyfz/Pi3 repository from GitHub and put it on PYTHONPATH "
     "(it also needs huggingface_hub)"
@@ -78,7 +89,11 @@ def _describe(family: str, official: str):
     def describe(root: nn.Module) -> BackboneInfo:
         encoder = getattr(root, "encoder", None)
         if encoder is None or not isinstance(getattr(encoder, "pos_embed", None), torch.Tensor):
-            raise UnsupportedUpstreamError(f"{family}: expected a DINOv2 ViT with an absolute PE table at 'encoder'")
+            found = f"{type(encoder).__module__}.{type(encoder).__qualname__}" if encoder is not None else "nothing"
+            raise UnsupportedUpstreamError(
+                f"{family}: expected a DINOv2 ViT with an absolute PE table at 'encoder', found {found} "
+                f"(the {family} patch was checked against {UPSTREAM})"
+            )
         depth = len(root.decoder)
         known = encoder.embed_dim == 1024 and depth == 36
         name = getattr(root, "raytun3r_name", None) or (official if known else f"{family}-custom-e{encoder.embed_dim}-d{depth}")
@@ -108,10 +123,9 @@ def _refuse_compiled_rope(root: nn.Module, family: str) -> None:
             )
 
 
-def _check(family: str, rope_owners: tuple[str, ...]):
+def _check(family: str):
     def check(root: nn.Module) -> None:
         _refuse_compiled_rope(root, family)
-        hooks.check_rope_coverage(root, rope_owners, family)
 
     return check
 
@@ -400,25 +414,29 @@ def _builder(name: str):
 PI3_SPEC = register(
     BackboneSpec(
         family="pi3",
-        supports=_SUPPORTS,
+        upstream=UPSTREAM,
         recognise=recognise_pi3,
         describe=_describe("pi3", "pi3"),
         targets=PI3_TARGETS,
         predict=predict,
         builders={"pi3": _builder("pi3")},
-        check=_check("pi3", PI3_ROPE_OWNERS),
+        rope_classes=ROPE_CLASSES,
+        rope_base_attribute=ROPE_BASE_ATTRIBUTE,
+        check=_check("pi3"),
     )
 )
 PI3X_SPEC = register(
     BackboneSpec(
         family="pi3x",
-        supports=_SUPPORTS,
+        upstream=UPSTREAM,
         recognise=recognise_pi3x,
         describe=_describe("pi3x", "pi3x"),
         targets=PI3X_TARGETS,
         predict=predict,
         builders={"pi3x": _builder("pi3x")},
-        check=_check("pi3x", PI3X_ROPE_OWNERS),
+        rope_classes=ROPE_CLASSES,
+        rope_base_attribute=ROPE_BASE_ATTRIBUTE,
+        check=_check("pi3x"),
     )
 )
 SPEC = PI3_SPEC

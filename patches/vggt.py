@@ -36,12 +36,23 @@ from raytun3r_plugin.errors import (
     WeightsError,
 )
 from raytun3r_plugin.prediction import Prediction, as_batched_images, to_homogeneous
-from raytun3r_plugin.registry import BackboneInfo, BackboneSpec, PatchTarget, register
+from raytun3r_plugin.registry import (
+    BackboneInfo,
+    BackboneSpec,
+    PatchTarget,
+    UpstreamVersion,
+    register,
+)
 from raytun3r_plugin.weights import load_into, read_state_dict
 
 FAMILY = "vggt"
 UPSTREAM_MODULE = "vggt"
 UPSTREAM_COMMIT = "44b3afbd1869d8bde4894dd8ea1e293112dd5eba"
+UPSTREAM = UpstreamVersion(source="facebookresearch/vggt", version=UPSTREAM_COMMIT, module=UPSTREAM_MODULE)
+#: One ``RotaryPositionEmbedding2D`` serves every frame and global block.
+ROPE_CLASSES = ("RotaryPositionEmbedding2D",)
+#: ``RotaryPositionEmbedding2D.__init__(frequency)`` stores the base as ``base_frequency``.
+ROPE_BASE_ATTRIBUTE = "base_frequency"
 
 # (embed_dim, aggregator depth) -> name; VGGT-1B is the only published configuration.
 _KNOWN = {(1024, 24): "vggt-1b"}
@@ -66,7 +77,7 @@ def _vit(root: nn.Module) -> nn.Module:
         found = type(vit).__qualname__ if vit is not None else "nothing"
         raise UnsupportedUpstreamError(
             f"vggt: expected a DINOv2 ViT with an absolute PE table at 'aggregator.patch_embed', found {found} "
-            "(the 'conv' patch embedding variant is not supported)"
+            f"(the 'conv' patch embedding variant is not supported; the vggt patch was checked against {UPSTREAM})"
         )
     return vit
 
@@ -133,7 +144,6 @@ TARGETS = (
 
 def check(root: nn.Module) -> None:
     _vit(root)
-    hooks.check_rope_coverage(root, ROPE_OWNERS, FAMILY)
 
 
 def _pose_decoder():
@@ -196,12 +206,14 @@ def _build_vggt_1b(path=None) -> nn.Module:
 SPEC = register(
     BackboneSpec(
         family=FAMILY,
-        supports=f"facebookresearch/vggt {UPSTREAM_COMMIT[:7]}",
+        upstream=UPSTREAM,
         recognise=recognise,
         describe=describe,
         targets=TARGETS,
         predict=predict,
         builders={"vggt-1b": _build_vggt_1b},
+        rope_classes=ROPE_CLASSES,
+        rope_base_attribute=ROPE_BASE_ATTRIBUTE,
         check=check,
     )
 )

@@ -19,6 +19,14 @@ class UnsupportedUpstreamError(Raytun3rError, TypeError):
     """The upstream model code does not have the structure a patch expects."""
 
 
+class BackboneRegistrationError(Raytun3rError, ValueError):
+    """A :class:`~raytun3r_plugin.registry.BackboneSpec` is inconsistent and cannot be registered."""
+
+
+class DuplicateBackboneError(BackboneRegistrationError):
+    """A backbone family, or a ``load_backbone`` name, is registered already."""
+
+
 class AlreadyAppliedError(Raytun3rError, RuntimeError):
     """The model already carries a raytun3r patch with another camera or adapter."""
 

@@ -16,9 +16,9 @@ import sys
 
 import torch
 import torch.nn.functional as F
-from torch import nn
 
 from raytun3r_plugin.errors import UnsupportedUpstreamError
+from raytun3r_plugin.registry import rope_base
 from raytun3r_plugin.rope import apply_rope_2d, displaced_positions
 
 
@@ -72,9 +72,10 @@ def continuous_rope(owner, state):
     """Wrap a RoPE module's ``forward(tokens, positions)`` to accept fractional positions.
 
     Integer positions (upstream's own, or a disabled handle) go to the original table look-up;
-    float positions are evaluated directly, bit-identical to the table at integer values.
+    float positions are evaluated directly, bit-identical to the table at integer values. The
+    frequency base is the owner's ``BackboneSpec.rope_base_attribute`` (refused when missing).
     """
-    base = float(getattr(owner, "base_frequency", getattr(owner, "base", 100.0)))
+    base = rope_base(state.spec, owner)
 
     def forward(original, tokens, positions):
         if not positions.is_floating_point():
@@ -125,10 +126,6 @@ def uv_grid_embedding(owner, state):
     return add_pos_embed
 
 
-#: RoPE classes whose instances must all be covered by the ``rope`` target (see :func:`check_rope_coverage`).
-ROPE_CLASS_NAMES = ("RotaryPositionEmbedding2D", "RoPE2D", "cuRoPE2D")
-
-
 def displace_grid_positions(positions: torch.Tensor, state, patch_size: int) -> torch.Tensor:
     """Float positions: every patch token displaced by the adapter's radial RoPE table.
 
@@ -168,16 +165,3 @@ def grid_position_rope(owner, state):
         return continuous(original, tokens, displace_grid_positions(positions, state, patch_size))
 
     return forward
-
-
-def check_rope_coverage(root: nn.Module, owner_paths: tuple[str, ...], family: str) -> None:
-    """Refuse a model holding a RoPE instance that the ``rope`` target would not reach."""
-    from raytun3r_plugin.registry import resolve_path
-
-    covered = {id(resolve_path(root, path)) for path in owner_paths}
-    for name, module in root.named_modules():
-        if type(module).__name__ in ROPE_CLASS_NAMES and id(module) not in covered:
-            raise UnsupportedUpstreamError(
-                f"{family}: found a {type(module).__name__} at '{name}' that is not one of the patched RoPE "
-                f"instances ({', '.join(owner_paths)}); this upstream version is not supported"
-            )

@@ -43,6 +43,7 @@ from raytun3r_plugin.geometry import (
     resize_mask,
 )
 from raytun3r_plugin.registry import (
+    HOOK_COMPONENTS,
     BackboneInfo,
     BackboneSpec,
     PatchTarget,
@@ -50,13 +51,6 @@ from raytun3r_plugin.registry import (
     spec_for,
 )
 
-# Hook kind -> the components it serves (a hook is installed when any of them is on).
-_HOOK_COMPONENTS = {
-    "pe": ("pe",),
-    "rope": ("rope",),
-    "patch_embed": ("patch_resample", "border_tokens"),
-    "grid": ("grid",),
-}
 #: Class attribute that identifies an installed raytun3r wrapper.
 WRAPPER_MARK = "__raytun3r_wrapper__"
 #: Where the live handle is kept on the model given to :func:`apply`.
@@ -90,6 +84,7 @@ class PatchState:
         knee_deg: float,
         max_stretch: float,
         model: nn.Module | None = None,
+        spec: BackboneSpec | None = None,
     ):
         self.camera = camera
         self.adapter = adapter
@@ -98,6 +93,8 @@ class PatchState:
         self.mask = mask
         self.knee_deg = knee_deg
         self.max_stretch = max_stretch
+        # The backbone's declared facts (e.g. its RoPE frequency attribute) for the hook builders.
+        self.spec = spec
         self.geometry_cache = GeometryCache(camera, info.patch_size, mask, knee_deg, max_stretch)
         # Weak: the state is reachable from the model's own wrappers.
         self._model = weakref.ref(model) if model is not None else None
@@ -119,6 +116,7 @@ class PatchState:
         twin.info = copy.deepcopy(self.info, memo)  # pos_embed becomes the copy's own parameter
         twin.mask = copy.deepcopy(self.mask, memo)
         twin.knee_deg, twin.max_stretch = self.knee_deg, self.max_stretch
+        twin.spec = self.spec  # immutable registry data
         # Fresh: the cache's locks cannot be copied, and its tensors may sit on the source's device.
         twin.geometry_cache = GeometryCache(twin.camera, twin.info.patch_size, twin.mask, twin.knee_deg, twin.max_stretch)
         twin._model = weakref.ref(memo[id(model)])
@@ -488,9 +486,9 @@ def apply(
 
         if spec.check is not None:
             spec.check(root)
-        hooks = {hook for hook, served in _HOOK_COMPONENTS.items() if any(wanted.get(c) for c in served)}
+        hooks = {hook for hook, served in HOOK_COMPONENTS.items() if any(wanted.get(c) for c in served)}
         resolved = resolve_targets(spec, root, hooks)
-        state = PatchState(camera, adapter, wanted, info, mask, knee_deg, max_stretch, model=model)
+        state = PatchState(camera, adapter, wanted, info, mask, knee_deg, max_stretch, model=model, spec=spec)
         for target, path, owner in resolved:
             current = owner.__dict__.get(target.attribute)
             if getattr(current, WRAPPER_MARK, False):

@@ -1,14 +1,17 @@
 """One registry of supported backbones; each ``patches/<backbone>.py`` registers itself here.
 
 A backbone module declares, as data, the upstream code it wraps (:class:`PatchTarget`: where the
-method lives, what it is, the signature it must have) and how to recognise, describe, load and
-run the model (:class:`BackboneSpec`). The core iterates over the registered specs and knows no
-backbone by name.
+method lives, what it is, the signature it must have; :class:`UpstreamVersion`: the release or
+commit this was checked against; its RoPE classes and frequency attribute) and how to recognise,
+describe, load and run the model (:class:`BackboneSpec`). The core iterates over the registered
+specs and knows no backbone by name. The checklist for a new backbone is
+``docs/adding_a_backbone.md``.
 """
 
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 import inspect
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, ExitStack, contextmanager
@@ -18,10 +21,21 @@ from typing import Any
 import torch
 from torch import nn
 
-from raytun3r_plugin.errors import UnsupportedUpstreamError
+from raytun3r_plugin.errors import (
+    BackboneRegistrationError,
+    DuplicateBackboneError,
+    UnsupportedUpstreamError,
+)
 
-#: Hook kinds of docs/conventions.md section 1 and the components (adapter.COMPONENTS) each can serve.
-HOOK_KINDS = ("pe", "rope", "patch_embed", "grid")
+#: Hook kinds of docs/conventions.md section 1 -> the components (adapter.COMPONENTS) each serves;
+#: a hook is installed when any of its components is on.
+HOOK_COMPONENTS: dict[str, tuple[str, ...]] = {
+    "pe": ("pe",),
+    "rope": ("rope",),
+    "patch_embed": ("patch_resample", "border_tokens"),
+    "grid": ("grid",),
+}
+HOOK_KINDS = tuple(HOOK_COMPONENTS)
 
 
 @dataclass(frozen=True)
@@ -68,18 +82,62 @@ class BackboneInfo:
 
 
 @dataclass(frozen=True)
+class UpstreamVersion:
+    """The upstream code a backbone's targets were checked against (OpenTelemetry's ``_instruments``).
+
+    Attributes:
+        source: a PyPI distribution (``"depth-anything-3"``) or a GitHub ``owner/name``.
+        version: the release (``"0.1.1"``) or, for a GitHub source, the full commit SHA.
+        module: the top-level import name (``"depth_anything_3"``).
+        note: optional provenance, e.g. the GitHub commit a PyPI release was cut from.
+    """
+
+    source: str
+    version: str
+    module: str
+    note: str = ""
+
+    @property
+    def is_commit(self) -> bool:
+        """True for a GitHub checkout pinned by commit (not installable by version)."""
+        return "/" in self.source
+
+    def installed(self) -> str | None:
+        """The installed release of a PyPI source (None for a GitHub source or when absent)."""
+        if self.is_commit:
+            return None
+        try:
+            return importlib.metadata.version(self.source)
+        except importlib.metadata.PackageNotFoundError:
+            return None
+
+    def __str__(self) -> str:
+        text = f"{self.source} {self.version[:7] if self.is_commit else self.version}"
+        return f"{text} ({self.note})" if self.note else text
+
+
+@dataclass(frozen=True)
 class BackboneSpec:
     """Everything raytun3r knows about one backbone family.
 
+    A backbone module (``patches/<name>.py``) builds one spec per family and passes it to
+    :func:`register`; ``docs/adding_a_backbone.md`` is the checklist.
+
     Attributes:
-        family: e.g. ``"da3"``.
-        supports: human-readable upstream versions the targets were checked against.
+        family: e.g. ``"da3"``; unique among the registered specs.
+        upstream: the upstream release or commit the targets were checked against.
         recognise: ``recognise(model) -> root | None``: the module to patch (unwrapping wrapper
             classes), or None when ``model`` is not of this family. Must not import upstream.
         describe: ``describe(root) -> BackboneInfo``.
         targets: the patch targets, as data.
         predict: ``predict(root, images, **kwargs) -> Prediction`` for images in [0, 1].
         builders: ``{model_name: build(path | None) -> nn.Module}`` for :func:`load_backbone`.
+        rope_classes: upstream class names of the RoPE modules. Every instance of them in a model
+            must be an owner of a ``rope`` target, or :func:`resolve_targets` refuses the model
+            (an upstream that adds a RoPE copy would otherwise be patched only in part).
+        rope_base_attribute: the attribute of a RoPE instance holding its frequency base (e.g.
+            ``"base_frequency"``), which the continuous-angle evaluation reuses; read with
+            :func:`rope_base`, never defaulted.
         check: extra structural checks run before anything is changed (raise
             :class:`UnsupportedUpstreamError`).
         quiet: ``quiet() -> context manager`` that holds back the upstream's routine per-forward
@@ -88,12 +146,14 @@ class BackboneSpec:
     """
 
     family: str
-    supports: str
+    upstream: UpstreamVersion
     recognise: Callable[[nn.Module], nn.Module | None]
     describe: Callable[[nn.Module], BackboneInfo]
     targets: tuple[PatchTarget, ...]
     predict: Callable[..., Any]
     builders: dict[str, Callable[..., nn.Module]] = field(default_factory=dict)
+    rope_classes: tuple[str, ...] = ()
+    rope_base_attribute: str | None = None
     check: Callable[[nn.Module], None] | None = None
     quiet: Callable[[], AbstractContextManager] | None = None
 
@@ -102,8 +162,57 @@ _SPECS: dict[str, BackboneSpec] = {}
 _BUILTINS_LOADED = False
 
 
-def register(spec: BackboneSpec) -> BackboneSpec:
-    """Register (or replace) the spec of a backbone family."""
+def _validate(spec: BackboneSpec) -> None:
+    """Refuse a spec whose parts contradict each other (PEFT's ``register_peft_method`` checks)."""
+    where = f"backbone spec {spec.family!r}"
+    if not isinstance(spec.family, str) or not spec.family:
+        raise BackboneRegistrationError(f"a backbone spec needs a non-empty family name, got {spec.family!r}")
+    if not isinstance(spec.upstream, UpstreamVersion):
+        raise BackboneRegistrationError(f"{where}: upstream must be an UpstreamVersion, got {type(spec.upstream).__name__}")
+    if not spec.targets:
+        raise BackboneRegistrationError(f"{where}: declares no patch targets")
+    seen: set[tuple[str, str]] = set()
+    for target in spec.targets:
+        if target.hook not in HOOK_KINDS:
+            raise BackboneRegistrationError(f"{where}: target {target.name!r} has hook {target.hook!r}; expected one of {', '.join(HOOK_KINDS)}")
+        for path in target.owners:
+            if (path, target.attribute) in seen:
+                raise BackboneRegistrationError(f"{where}: {path}.{target.attribute} is the target of two PatchTargets")
+            seen.add((path, target.attribute))
+    rope_targets = [target for target in spec.targets if target.hook == "rope"]
+    if rope_targets:
+        if not spec.rope_classes or not spec.rope_base_attribute:
+            raise BackboneRegistrationError(f"{where}: has rope targets, so it must declare rope_classes and rope_base_attribute")
+        if not any(set(target.owner_classes) & set(spec.rope_classes) for target in rope_targets):
+            raise BackboneRegistrationError(
+                f"{where}: no rope target patches one of the rope_classes ({', '.join(spec.rope_classes)}), "
+                "so no RoPE instance could count as covered"
+            )
+
+
+def register(spec: BackboneSpec, *, overwrite: bool = False) -> BackboneSpec:
+    """Register the spec of a backbone family after checking it; returns ``spec``.
+
+    Raises:
+        DuplicateBackboneError: the family, or one of its builder names, is registered already
+            (``overwrite=True`` replaces a family of the same name; registering the very same
+            spec object again is a no-op).
+        BackboneRegistrationError: the spec is inconsistent (unknown hook kind, the same method
+            targeted twice, rope targets without ``rope_classes`` / ``rope_base_attribute``).
+    """
+    _validate(spec)
+    existing = _SPECS.get(spec.family)
+    if existing is spec:
+        return spec
+    if existing is not None and not overwrite:
+        raise DuplicateBackboneError(
+            f"backbone family {spec.family!r} is already registered (checked against {existing.upstream}); "
+            "pass overwrite=True to replace it"
+        )
+    for other in _SPECS.values():
+        clash = sorted(set(other.builders) & set(spec.builders)) if other.family != spec.family else []
+        if clash:
+            raise DuplicateBackboneError(f"backbone spec {spec.family!r}: load_backbone name(s) {clash} are already provided by {other.family!r}")
     _SPECS[spec.family] = spec
     return spec
 
@@ -116,6 +225,7 @@ def _load_builtins() -> None:
 
 
 def specs() -> dict[str, BackboneSpec]:
+    """The registered specs by family (loading the built-in backbone modules first)."""
     _load_builtins()
     return dict(_SPECS)
 
@@ -137,7 +247,7 @@ def spec_for(model: nn.Module) -> tuple[BackboneSpec, nn.Module]:
         root = spec.recognise(model)
         if root is not None:
             return spec, root
-    known = ", ".join(f"{s.family} ({s.supports})" for s in _SPECS.values())
+    known = ", ".join(f"{s.family} ({s.upstream})" for s in _SPECS.values())
     raise UnsupportedUpstreamError(f"no raytun3r patch recognises a {type(model).__module__}.{type(model).__qualname__}; supported: {known}")
 
 
@@ -168,12 +278,65 @@ def upstream_signature(owner: Any, attribute: str) -> tuple[str, ...] | None:
     return tuple(parameters[1:]) if parameters and parameters[0] == "self" else tuple(parameters)
 
 
+def _checked_against(spec: BackboneSpec) -> str:
+    """'expected X, found Y' for the upstream release, appended to every structural refusal."""
+    text = f"the {spec.family} patch was checked against {spec.upstream}"
+    installed = spec.upstream.installed()
+    if installed is not None and installed != spec.upstream.version:
+        text += f", found {spec.upstream.source} {installed} installed"
+    return text
+
+
+def _refuse(spec: BackboneSpec, text: str) -> UnsupportedUpstreamError:
+    return UnsupportedUpstreamError(f"{text} ({_checked_against(spec)})")
+
+
+def rope_base(spec: BackboneSpec, owner: Any) -> float:
+    """The frequency base of the RoPE instance ``owner``, read from ``spec.rope_base_attribute``.
+
+    Raises :class:`UnsupportedUpstreamError` ("expected X, found Y") when the attribute is
+    missing or not a positive number: a guessed default would give wrong angles silently.
+    """
+    name = spec.rope_base_attribute
+    value = getattr(owner, name, None) if name else None
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0:
+        return float(value)
+    if name is None:
+        found = "no rope_base_attribute declared on the spec"
+    elif not hasattr(owner, name):
+        numbers = {key: item for key, item in vars(owner).items() if isinstance(item, (int, float)) and not isinstance(item, bool)}
+        found = f"no attribute {name!r} (its numeric attributes: {', '.join(f'{k}={v!r}' for k, v in numbers.items()) or 'none'})"
+    else:
+        found = f"{name}={value!r}"
+    raise _refuse(spec, f"{spec.family}: expected the RoPE frequency base as a positive number in {type(owner).__qualname__}.{name}, found {found}")
+
+
+def _is_rope(spec: BackboneSpec, module: Any) -> bool:
+    return bool(set(_class_names(module)) & set(spec.rope_classes))
+
+
+def check_rope_coverage(spec: BackboneSpec, root: nn.Module) -> None:
+    """Refuse a model holding a RoPE instance (``spec.rope_classes``) that no ``rope`` target reaches."""
+    if not spec.rope_classes:
+        return
+    owner_paths = [path for target in spec.targets if target.hook == "rope" for path in target.owners]
+    covered = {id(resolve_path(root, path)) for path in owner_paths}
+    for name, module in root.named_modules():
+        if _is_rope(spec, module) and id(module) not in covered:
+            raise _refuse(
+                spec,
+                f"{spec.family}: found a {type(module).__name__} at '{name}' that is not one of the patched RoPE "
+                f"instances ({', '.join(owner_paths)}); this upstream version is not supported",
+            )
+
+
 def resolve_targets(spec: BackboneSpec, root: nn.Module, wanted_hooks: set[str]) -> list[tuple[PatchTarget, str, Any]]:
     """Check every target against the live model, without changing anything.
 
     Returns ``(target, owner_path, owner)`` for every owner to patch. Raises
     :class:`UnsupportedUpstreamError` saying what was expected and what was found.
     """
+    check_rope_coverage(spec, root)
     found: list[tuple[PatchTarget, str, Any]] = []
     for target in spec.targets:
         if target.hook not in wanted_hooks:
@@ -184,14 +347,16 @@ def resolve_targets(spec: BackboneSpec, root: nn.Module, wanted_hooks: set[str])
             if owner is None:
                 if target.optional:
                     continue
-                raise UnsupportedUpstreamError(f"{where}: expected a {' or '.join(target.owner_classes)} at '{path}', found nothing")
+                raise _refuse(spec, f"{where}: expected a {' or '.join(target.owner_classes)} at '{path}', found nothing")
             names = _class_names(owner)
             if not set(names) & set(target.owner_classes):
-                raise UnsupportedUpstreamError(f"{where}: expected a {' or '.join(target.owner_classes)} at '{path}', found {type(owner).__module__}.{type(owner).__qualname__}")
+                raise _refuse(spec, f"{where}: expected a {' or '.join(target.owner_classes)} at '{path}', found {type(owner).__module__}.{type(owner).__qualname__}")
             signature = upstream_signature(owner, target.attribute)
             if signature is None:
-                raise UnsupportedUpstreamError(f"{where}: expected method {target.attribute}{target.signature}, found no such method on {type(owner).__qualname__}")
+                raise _refuse(spec, f"{where}: expected method {target.attribute}{target.signature}, found no such method on {type(owner).__qualname__}")
             if signature != target.signature:
-                raise UnsupportedUpstreamError(f"{where}: expected signature {target.attribute}({', '.join(target.signature)}), found {target.attribute}({', '.join(signature)})")
+                raise _refuse(spec, f"{where}: expected signature {target.attribute}({', '.join(target.signature)}), found {target.attribute}({', '.join(signature)})")
+            if target.hook == "rope" and _is_rope(spec, owner):
+                rope_base(spec, owner)  # refused here, before anything is built
             found.append((target, path, owner))
     return found
