@@ -24,6 +24,7 @@ from raytun3r_plugin.adaptation.train import (
     read_loss_log,
 )
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
+from raytun3r_plugin.preprocess import RULE, RULE_VERSION
 from tests.helpers import fisheye
 from tests.test_losses import room_sequence
 
@@ -31,6 +32,7 @@ pytest.importorskip("depth_anything_3")
 from raytun3r_plugin.patches.da3 import build_tiny_network  # noqa: E402
 
 TERMS = ("reproj", "smooth", "l2", "tv", "pose")
+RECORDED_RULE = {"rule": RULE, "rule_version": RULE_VERSION}
 
 
 @pytest.fixture(scope="module")
@@ -149,7 +151,7 @@ def test_adapt_trains_only_the_adapter_and_restores_the_model(camera, frames, ca
     # The adapter moved, and every table received gradient.
     assert all(float(t.abs().max()) > 0 for t in tables(adapter).values())
     info = adapter.training_info
-    assert info["steps"] == 3 and not info["interrupted"] and info["input"] == {"width": 84, "height": 70, "crop": None}
+    assert info["steps"] == 3 and not info["interrupted"] and info["input"] == {"width": 84, "height": 70, "crop": None, **RECORDED_RULE, "long_side": 84, "patch": 14, "source": [84, 70]}
     assert set(info["final_losses"]) == {"loss", *TERMS}
     assert info["config"]["steps"] == 3 and len(info["segment"]["windows"]) == 3
 

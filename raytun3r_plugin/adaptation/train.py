@@ -40,7 +40,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from raytun3r_plugin.adaptation.losses import (
@@ -65,9 +64,10 @@ from raytun3r_plugin.adaptation.matchers import get_matcher
 from raytun3r_plugin.adaptation.windows import AdaptationSet, Window, prepare_adaptation_set
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AdapterError, AlreadyAppliedError, InputError
-from raytun3r_plugin.geometry import ASPECT_TOLERANCE, GeometryCache, resize_mask
+from raytun3r_plugin.geometry import GeometryCache
 from raytun3r_plugin.patching import apply, handle_of
 from raytun3r_plugin.prediction import predict
+from raytun3r_plugin.preprocess import InputLayout, input_layout
 from raytun3r_plugin.registry import spec_for
 
 __all__ = [
@@ -230,73 +230,6 @@ class AdaptConfig:
         return hashlib.sha256(json.dumps(kept, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-# --------------------------------------------------------------------------------------------
-# Input size
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class InputLayout:
-    """How native frames become network input.
-
-    Attributes:
-        width, height: network input size in pixels (multiples of the patch size).
-        crop: ``(x0, y0, w, h)`` centred crop of the native image applied before resizing, or
-            None (pure resize).
-        native_camera: camera of the (cropped) native image; what the model is patched with.
-        camera: the same camera at the network input size.
-    """
-
-    width: int
-    height: int
-    crop: tuple[int, int, int, int] | None
-    native_camera: Any
-    camera: Any
-
-    @property
-    def native_size(self) -> tuple[int, int]:
-        return int(self.native_camera.width), int(self.native_camera.height)
-
-    @property
-    def offset(self) -> tuple[int, int]:
-        return (0, 0) if self.crop is None else (self.crop[0], self.crop[1])
-
-
-def input_layout(camera: Any, long_side: int, patch: int = 14) -> InputLayout:
-    """Network input size for frames of ``camera``: long side ``long_side`` rounded to ``patch``.
-
-    Each side is ``round(side * long_side / max(W, H) / patch) * patch`` (at least one patch). If
-    that changes the aspect ratio by more than 1% (docs/conventions.md section 3 forbids a silent
-    stretch), the native image is centre-cropped to the input's aspect ratio first.
-    """
-    width, height = int(camera.width), int(camera.height)
-    scale = long_side / max(width, height)
-    in_w = max(patch, round(width * scale / patch) * patch)
-    in_h = max(patch, round(height * scale / patch) * patch)
-    native_aspect, input_aspect = width / height, in_w / in_h
-    crop = None
-    native = camera
-    if abs(input_aspect - native_aspect) / native_aspect > ASPECT_TOLERANCE:
-        if native_aspect > input_aspect:
-            crop_w, crop_h = round(height * input_aspect), height
-        else:
-            crop_w, crop_h = width, round(width / input_aspect)
-        crop = ((width - crop_w) // 2, (height - crop_h) // 2, crop_w, crop_h)
-        native = camera.cropped(*crop)
-    return InputLayout(in_w, in_h, crop, native, native.resized(in_w, in_h))
-
-
-def _resize_frames(images: np.ndarray, layout: InputLayout) -> torch.Tensor:
-    """(N, H, W, 3) float32 native frames -> (N, 3, h, w) network input in [0, 1]."""
-    tensor = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float()
-    if layout.crop is not None:
-        x0, y0, w, h = layout.crop
-        tensor = tensor[..., y0 : y0 + h, x0 : x0 + w]
-    if tuple(tensor.shape[-2:]) != (layout.height, layout.width):
-        tensor = F.interpolate(tensor, size=(layout.height, layout.width), mode="bilinear", align_corners=False, antialias=True)
-    return tensor.clamp(0.0, 1.0).contiguous()
-
-
 def scene_mask(mask: Any, camera: Any) -> np.ndarray:
     """A user mask of the native frames, checked and combined with the camera's valid region.
 
@@ -319,16 +252,6 @@ def scene_mask(mask: Any, camera: Any) -> np.ndarray:
     if not combined.any():
         raise InputError("mask leaves no pixel inside the camera's valid region")
     return combined
-
-
-def _mask_at_input(mask: np.ndarray, layout: InputLayout) -> tuple[torch.Tensor, torch.Tensor]:
-    """(native mask cropped like the frames, mask at the input size); nearest-neighbour resize,
-    as the patched model resizes an ``apply(mask=...)`` to its input."""
-    tensor = torch.from_numpy(mask)
-    if layout.crop is not None:
-        x0, y0, w, h = layout.crop
-        tensor = tensor[y0 : y0 + h, x0 : x0 + w]
-    return tensor.contiguous(), resize_mask(tensor, (layout.height, layout.width))
 
 
 # --------------------------------------------------------------------------------------------
@@ -902,11 +825,11 @@ def prepare_problem(camera: Any, frames: Any, config: AdaptConfig, patch: int = 
     valid = layout.camera.valid_mask().bool()
     native_mask = None
     if native_valid is not None:
-        native_mask, input_mask = _mask_at_input(native_valid, layout)
-        valid = valid & input_mask
+        native_mask = layout.native_mask(native_valid)
+        valid = valid & layout.mask(native_valid)
         segment["mask"] = {"valid_fraction": round(float(native_valid.mean()), 4), "sha256": hashlib.sha256(np.packbits(native_valid).tobytes()).hexdigest()}
     used = sorted({frame for window in adaptation.windows for frame in window.frames})
-    inputs = dict(zip(used, _resize_frames(images[used], layout), strict=True))
+    inputs = dict(zip(used, layout.frames(images[used]), strict=True))
     windows = [(window, _prepare_pairs(window, layout, valid)) for window in adaptation.windows]
     geometry = GeometryCache(layout.native_camera, patch).at(layout.height, layout.width)
     problem = AdaptationProblem(layout, adaptation, windows, inputs, valid, geometry, segment, native_mask)
@@ -1157,7 +1080,7 @@ def _training_info(
         "final_losses": final,
         "final_losses_over_steps": len(tail),
         "segment": {**problem.segment, "windows": [list(w.frames) for w in adaptation.windows], "skipped_static": adaptation.skipped_static},
-        "input": {"width": layout.width, "height": layout.height, "crop": list(layout.crop) if layout.crop else None},
+        "input": layout.record(),
         "adaptation_set": adaptation.cache_key,
         "config": config.to_dict(),
         "wall_time_s": round(seconds, 3),
