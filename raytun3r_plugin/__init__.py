@@ -34,7 +34,7 @@ from raytun3r_plugin.weights import available_backbones, load_backbone  # noqa: 
 _LAZY_SUBMODULES = frozenset(
     {
         "adaptation", "benchmark", "cameras", "cli", "datasets", "demo", "evaluation", "export",
-        "geometry", "hooks", "images", "inference", "metrics", "patches", "patching", "prediction",
+        "geometry", "hooks", "images", "inference", "metrics", "patches", "patching", "prediction", "preprocess",
         "registry", "rope", "synthetic", "weights",
     }
 )

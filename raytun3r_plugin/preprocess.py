@@ -52,7 +52,7 @@ from raytun3r_plugin.cameras.base import Camera
 from raytun3r_plugin.errors import AdapterError, InputError
 from raytun3r_plugin.geometry import ASPECT_TOLERANCE, camera_for_input, resize_mask
 
-__all__ = ["DEFAULT_LONG_SIDE", "RULE", "RULE_VERSION", "InputLayout", "input_layout", "layout_for_inference", "to_input_pixels"]
+__all__ = ["DEFAULT_LONG_SIDE", "RULE", "RULE_VERSION", "InputLayout", "fitted_source_camera", "input_layout", "layout_for_inference", "to_input_pixels"]
 
 #: Name of the rule in the module docstring, recorded in ``adapter.training_info["input"]["rule"]``.
 RULE = "patch-rounded-sides, centre-crop beyond 1% aspect change"
@@ -168,7 +168,7 @@ class InputLayout:
     def _check_frame_size(self, what: str, height: int, width: int) -> None:
         if (width, height) != self.source_size:
             raise InputError(
-                f"{what} is {width}x{height} px but the camera describes {self.source_size[0]}x{self.source_size[1]} px; "
+                f"{what} {width}x{height} px but the camera describes {self.source_size[0]}x{self.source_size[1]} px; "
                 "rescale the camera to the frames first (camera.resized(w, h)) or state a crop (camera.cropped(...))"
             )
 
@@ -190,7 +190,7 @@ class InputLayout:
         array = images.detach().cpu() if isinstance(images, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(images))
         if array.ndim != 4 or array.shape[-1] != 3:
             raise InputError(f"frames must be (N, H, W, 3) RGB in [0, 1], got shape {tuple(array.shape)}")
-        self._check_frame_size("frames", int(array.shape[1]), int(array.shape[2]))
+        self._check_frame_size("frames are", int(array.shape[1]), int(array.shape[2]))
         tensor = self._crop(array.permute(0, 3, 1, 2).float())
         if tuple(tensor.shape[-2:]) != (self.height, self.width):
             tensor = F.interpolate(tensor, size=(self.height, self.width), mode="bilinear", align_corners=False, antialias=True)
@@ -206,7 +206,7 @@ class InputLayout:
         tensor = mask.detach().cpu() if isinstance(mask, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(mask))
         if tensor.ndim != 2:
             raise InputError(f"mask must be (H, W), got shape {tuple(tensor.shape)}")
-        self._check_frame_size("mask", int(tensor.shape[0]), int(tensor.shape[1]))
+        self._check_frame_size("mask is", int(tensor.shape[0]), int(tensor.shape[1]))
         return self._crop(tensor.bool()).contiguous()
 
     def mask(self, mask: np.ndarray | torch.Tensor) -> torch.Tensor:
@@ -233,7 +233,7 @@ class InputLayout:
         tensor = maps.detach().cpu() if isinstance(maps, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(maps))
         if tensor.ndim != 3:
             raise InputError(f"depth maps must be (N, H, W), got shape {tuple(tensor.shape)}")
-        self._check_frame_size("depth maps", int(tensor.shape[1]), int(tensor.shape[2]))
+        self._check_frame_size("depth maps are", int(tensor.shape[1]), int(tensor.shape[2]))
         tensor = self._crop(tensor.float())
         if tuple(tensor.shape[-2:]) != (self.height, self.width):
             tensor = F.interpolate(tensor[:, None], size=(self.height, self.width), mode="nearest")[:, 0]
@@ -261,15 +261,35 @@ def input_layout(camera: Camera, long_side: int, patch: int = 14) -> InputLayout
     return InputLayout.for_camera(camera, long_side, patch)
 
 
+def fitted_source_camera(adapter: Any) -> Camera | None:
+    """The camera of the uncropped native frames ``adapter`` was fitted on, or None.
+
+    An adapter carries the layout's ``native_camera``, which is the calibration cropped when the
+    rule cropped; with the crop and the source size recorded in ``training_info["input"]`` the
+    crop is undone exactly (``cropped`` with a negative offset only shifts the principal point
+    back), so the rule applied to the result reproduces the adapter's camera.
+    """
+    camera = getattr(adapter, "camera", None)
+    if camera is None:
+        return None
+    recorded = (getattr(adapter, "training_info", None) or {}).get("input") or {}
+    crop, source = recorded.get("crop"), recorded.get("source")
+    if not crop or not source or (int(crop[2]), int(crop[3])) != (int(camera.width), int(camera.height)):
+        return camera
+    return camera.cropped(-int(crop[0]), -int(crop[1]), int(source[0]), int(source[1]))
+
+
 def layout_for_inference(
-    camera: Camera, frame_size: tuple[int, int], adapter: Any = None, long_side: int | None = None, patch: int | None = None, strict: bool = True,
+    camera: Camera | None, frame_size: tuple[int, int], adapter: Any = None, long_side: int | None = None, patch: int | None = None,
+    strict: bool = True,
 ) -> InputLayout:
     """The layout that prepares frames at use time as ``adapter`` was fitted (``raytun3r infer``).
 
     Args:
-        camera: camera of the calibration (or the adapter's camera). When ``frame_size`` differs,
-            it is rescaled to the frames by a pure resize (docs/conventions.md section 3); an
-            aspect change beyond 1% is refused, a crop must be stated on the camera.
+        camera: camera of the calibration; None: the adapter's (with its crop undone,
+            :func:`fitted_source_camera`). When ``frame_size`` differs from the camera's size,
+            the camera is rescaled to the frames by a pure resize (docs/conventions.md section 3);
+            an aspect change beyond 1% is refused, a crop must be stated on the camera.
         frame_size: ``(W, H)`` of the frames to be prepared (px).
         adapter: optional :class:`~raytun3r_plugin.adapter.Adapter`; its recorded input
             (``training_info["input"]``) gives the long side and the patch size when they are
@@ -281,7 +301,8 @@ def layout_for_inference(
             input this layout does not reproduce for the same native size and long side.
 
     Raises:
-        InputError: frames whose aspect ratio the camera cannot describe by a pure resize.
+        InputError: no camera, or frames whose aspect ratio the camera cannot describe by a pure
+            resize.
         AdapterError: (strict) the adapter's input was prepared by another rule.
     """
     recorded: Mapping[str, Any] = ((getattr(adapter, "training_info", None) or {}).get("input") or {}) if adapter is not None else {}
@@ -294,8 +315,10 @@ def layout_for_inference(
         long_side = int(recorded.get("long_side") or DEFAULT_LONG_SIDE)
     if patch is None:
         patch = int(recorded.get("patch") or getattr(adapter, "patch_size", None) or 14)
+    if camera is None:
+        camera = fitted_source_camera(adapter)
     if not isinstance(camera, Camera):
-        raise InputError(f"camera must be a raytun3r_plugin.cameras.Camera, got {type(camera).__name__}")
+        raise InputError(f"camera must be a raytun3r_plugin.cameras.Camera (or an adapter that carries one), got {type(camera).__name__}")
     width, height = (int(v) for v in frame_size)
     layout = InputLayout.for_camera(camera_for_input(camera, height, width), long_side, patch)
     # Same rule, same native size and long side: the input must be what the fit saw; a

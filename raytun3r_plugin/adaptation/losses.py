@@ -7,7 +7,8 @@ Conventions (docs/conventions.md section 2):
 
 * pixels ``(u, v)`` have the centre of the top-left pixel at ``(0, 0)``; every pixel argument of
   the functions here is in the pixels of the *network input* (the image the depth map belongs
-  to); :func:`to_input_pixels` converts matcher output from the native image;
+  to); :func:`to_input_pixels` (of :mod:`raytun3r_plugin.preprocess`) converts matcher output
+  from the native image;
 * depth is range along the unit ray (``X = D * ray``), or z-depth with ``depth_convention="z"``
   (``X = D * ray / ray_z``, only meaningful for rays in front of the camera);
 * poses are 4x4 rigid transforms; the relative pose of frame ``j`` w.r.t. ``i`` is
@@ -29,6 +30,7 @@ import torch
 import torch.nn.functional as F
 
 from raytun3r_plugin.errors import InputError
+from raytun3r_plugin.preprocess import to_input_pixels  # re-exported: the one mapping
 
 __all__ = [
     "LossWeights",
@@ -79,26 +81,6 @@ class LossWeights:
 # --------------------------------------------------------------------------------------------
 # Pixels, sampling, back-projection
 # --------------------------------------------------------------------------------------------
-
-
-def to_input_pixels(
-    uv: torch.Tensor, native_size: tuple[int, int], input_size: tuple[int, int], offset: tuple[float, float] = (0.0, 0.0)
-) -> torch.Tensor:
-    """Map native-image pixels to network-input pixels (pure resize, after an optional crop).
-
-    Args:
-        uv: (..., 2) pixel positions ``(u, v)`` in the native image.
-        native_size: ``(width, height)`` of the (cropped) native image the input was resized from.
-        input_size: ``(width, height)`` of the network input.
-        offset: ``(x0, y0)`` top-left pixel of the crop in the native image (0, 0 for none).
-
-    Returns:
-        (..., 2) positions in input pixels: ``u' = (u - x0 + 0.5) * W_in / W - 0.5`` (same for v),
-        the mapping of :meth:`raytun3r_plugin.cameras.Camera.scaled`.
-    """
-    scale = uv.new_tensor([input_size[0] / native_size[0], input_size[1] / native_size[1]])
-    shift = uv.new_tensor([float(offset[0]), float(offset[1])])
-    return (uv - shift + 0.5) * scale - 0.5
 
 
 def sample_bilinear(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
