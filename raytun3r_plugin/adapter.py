@@ -344,7 +344,8 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
     layout = training.get("input") or {}
     if layout:
         crop = layout.get("crop")
-        lines.append(f"{indent}input: {layout.get('width')}x{layout.get('height')} px, " + (f"crop {crop}" if crop else "no crop"))
+        rule = f" (long side {layout['long_side']}, input rule v{layout.get('rule_version')})" if layout.get("long_side") else ""
+        lines.append(f"{indent}input: {layout.get('width')}x{layout.get('height')} px, " + (f"crop {crop}" if crop else "no crop") + rule)
     extra = [key for key in training if key not in ("method", "steps", "requested_steps", "resumed_from", "interrupted", "wall_time_s",
                                                      "final_losses", "final_losses_over_steps", "segment", "input")]
     if extra:
@@ -396,14 +397,19 @@ def write_pe_picture(adapter: Adapter, path: str | os.PathLike, long_side: int =
     import numpy as np
 
     from raytun3r_plugin.adaptation.losses import pe_correction_grid
-    from raytun3r_plugin.adaptation.train import input_layout
     from raytun3r_plugin.geometry import GeometryCache
     from raytun3r_plugin.plots import heatmap
+    from raytun3r_plugin.preprocess import fitted_source_camera, input_layout
 
     if adapter.camera is None:
         raise AdapterError("the adapter carries no camera, so the PE correction has no image to be drawn on")
     trained = (adapter.training_info or {}).get("input") or {}
-    layout = input_layout(adapter.camera, int(max(trained.get("width", 0), trained.get("height", 0)) or long_side), adapter.patch_size)
+    if trained.get("long_side"):
+        # The fit's own layout: the rule applied again to the uncropped camera and long side.
+        layout = input_layout(fitted_source_camera(adapter), int(trained["long_side"]), adapter.patch_size)
+    else:
+        # Files from before the rule was recorded: the input's long side on the adapter's camera.
+        layout = input_layout(adapter.camera, int(max(trained.get("width", 0), trained.get("height", 0)) or long_side), adapter.patch_size)
     geometry = GeometryCache(layout.native_camera, adapter.patch_size).at(layout.height, layout.width)
     with torch.no_grad():
         size = pe_correction_grid(adapter, geometry).norm(dim=-1).cpu().numpy()

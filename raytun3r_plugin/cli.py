@@ -34,22 +34,28 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 def cmd_infer(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adapter import Adapter
     from raytun3r_plugin.cameras import load as load_camera
-    from raytun3r_plugin.images import fit_mask_to_network, fit_to_network, read_frames, read_mask
+    from raytun3r_plugin.images import read_frames, read_mask
     from raytun3r_plugin.inference import predict_with_camera, write_outputs
+    from raytun3r_plugin.preprocess import layout_for_inference
 
     adapter = Adapter.load(args.adapter) if args.adapter else None
     if args.camera:
         camera = load_camera(args.camera, camera=args.camera_id)
     elif adapter is not None and adapter.camera is not None:
-        camera = adapter.camera
+        camera = None  # the adapter's, its crop undone (preprocess.fitted_source_camera)
     else:
         raise Raytun3rError("infer needs --camera, or an --adapter that carries its camera")
     frames, names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
-    mask = fit_mask_to_network(read_mask(args.mask, frames.shape[2], frames.shape[1]), args.size) if args.mask else None
+    # The layout adapt used (its rule and long side come from the adapter when --size is not
+    # given); frames of another size than the camera rescale the camera, a pure resize.
+    layout = layout_for_inference(camera, (frames.shape[2], frames.shape[1]), adapter, long_side=args.size, strict=not args.no_strict)
+    mask = layout.native_mask(read_mask(args.mask, frames.shape[2], frames.shape[1])) if args.mask else None
     model = _load_model(args.backbone, args.weights)
-    images, input_camera = fit_to_network(frames, camera, args.size)
-    prediction = predict_with_camera(model, input_camera, adapter, images, strict=not args.no_strict, mask=mask)
-    summary = write_outputs(args.out, prediction, images, input_camera, names)
+    images = layout.frames(frames)[None]
+    # Patched with the (cropped) native camera, as adapt patched the model: the adapter's camera
+    # check compares like with like, and the patch rescales it to the input as during the fit.
+    prediction = predict_with_camera(model, layout.native_camera, adapter, images, strict=not args.no_strict, mask=mask)
+    summary = write_outputs(args.out, prediction, images, layout.camera, names)
     print(f"wrote depth for {summary['frames']} frames, trajectory.txt and points.ply ({summary['points']:,} points) to {args.out}")
     return 0
 
@@ -58,13 +64,14 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adaptation.train import AdaptConfig, adapt, artifact_paths
     from raytun3r_plugin.cameras import load as load_camera
     from raytun3r_plugin.images import read_depth_maps, read_frames, read_mask
+    from raytun3r_plugin.preprocess import DEFAULT_LONG_SIDE
 
     camera = load_camera(args.camera, camera=args.camera_id)
     frames, names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
     mask = read_mask(args.mask, frames.shape[2], frames.shape[1]) if args.mask else None
     depth = read_depth_maps(args.depth, names, frames.shape[2], frames.shape[1], args.depth_png_scale) if args.depth else None
     model = _load_model(args.backbone, args.weights)
-    settings = dict(steps=args.steps, input_size=args.size, n_windows=args.windows, matcher=args.matcher, seed=args.seed, pose_source=args.pose_source, cache_dir=args.cache_dir)
+    settings = dict(steps=args.steps, input_size=args.size or DEFAULT_LONG_SIDE, n_windows=args.windows, matcher=args.matcher, seed=args.seed, pose_source=args.pose_source, cache_dir=args.cache_dir)
     config = AdaptConfig(**settings) if depth is None else AdaptConfig.supervised(**settings)
     adapter = adapt(model, camera, frames, config, out_path=args.out, mask=mask, depth=depth)
     paths = artifact_paths(args.out)
@@ -77,12 +84,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adapter import Adapter
     from raytun3r_plugin.datasets import load_sequence
     from raytun3r_plugin.evaluation import fit_sequence, format_table, headline, run_method, score
+    from raytun3r_plugin.preprocess import DEFAULT_LONG_SIDE
 
     model = _load_model(args.backbone, args.weights)
-    seq = fit_sequence(load_sequence(args.dataset, kind=args.kind), args.size, max_frames=args.max_frames)
+    adapter = Adapter.load(args.adapter) if args.adapter else None
+    # Scored at the long side the adapter was fitted at unless --size says otherwise.
+    recorded = ((adapter.training_info or {}).get("input") or {}) if adapter is not None else {}
+    long_side = args.size or int(recorded.get("long_side") or DEFAULT_LONG_SIDE)
+    seq = fit_sequence(load_sequence(args.dataset, kind=args.kind), long_side, max_frames=args.max_frames)
     if seq.cam_from_world is None:
         raise Raytun3rError(f"{args.dataset}: the sequence has no ground-truth poses to score against")
-    adapter = Adapter.load(args.adapter) if args.adapter else None
     methods = args.method.split(",")
     rows = [{"method": method, **headline(score(seq, run_method(model, seq, method, adapter=adapter)))} for method in methods]
     print(f"{seq.name}: {len(seq)} frames at {seq.camera.width}x{seq.camera.height} px, camera {seq.camera!r}")
@@ -114,11 +125,11 @@ def _add_model_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", help="local weight file (.safetensors or .pt); never downloaded")
 
 
-def _add_frame_arguments(parser: argparse.ArgumentParser) -> None:
+def _add_frame_arguments(parser: argparse.ArgumentParser, size_help: str) -> None:
     parser.add_argument("--frames", required=True, help="image folder (sorted by name) or video file")
     parser.add_argument("--stride", type=int, default=1, help="use every n-th frame")
     parser.add_argument("--max-frames", type=int, default=None)
-    parser.add_argument("--size", type=int, default=504, help="network input long side in pixels (a multiple of 14 after cropping)")
+    parser.add_argument("--size", type=int, default=None, help=size_help)
     parser.add_argument("--mask", default=None, help="scene mask image at the frames' size: 255 = scene, 0 = excluded (vehicle body, mount)")
 
 
@@ -132,9 +143,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--picture", default=None, help="write the PE correction's size over the image (PNG) to this path")
     p.set_defaults(func=cmd_inspect)
 
+    rule = "each side rounded to multiples of the patch size, centre-cropped only beyond a 1%% aspect change (raytun3r_plugin.preprocess)"
     p = sub.add_parser("infer", help="apply an adapter and write depth (.npy, .png), poses (TUM) and a point cloud (.ply)")
     _add_model_arguments(p)
-    _add_frame_arguments(p)
+    _add_frame_arguments(p, f"network input long side in pixels (default: the adapter's, else 504); {rule}")
     p.add_argument("--camera", help="calibration file (Kalibr, basalt, COLMAP, KITTI-360, raytun3r JSON)")
     p.add_argument("--camera-id", default=None, help="which camera in the file (cam1, index, COLMAP id)")
     p.add_argument("--adapter", help="adapter .safetensors (optional: parameter-free corrections only)")
@@ -144,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("adapt", help="fit an adapter on a short fisheye segment (self-supervised, or from depth with --depth)")
     _add_model_arguments(p)
-    _add_frame_arguments(p)
+    _add_frame_arguments(p, f"network input long side in pixels (default 504; recorded in the adapter); {rule}")
     p.add_argument("--camera", required=True)
     p.add_argument("--camera-id", default=None)
     p.add_argument("--steps", type=int, default=300)
@@ -164,7 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--kind", default=None, help="reader to use (default: detect)")
     p.add_argument("--method", default="vanilla,center-ph,raytun3r", help="comma-separated: vanilla, center-ph, raytun3r")
     p.add_argument("--adapter", default=None)
-    p.add_argument("--size", type=int, default=504, help="network input long side (px)")
+    p.add_argument("--size", type=int, default=None, help=f"network input long side in pixels (default: the adapter's, else 504); {rule}")
     p.add_argument("--max-frames", type=int, default=None)
     p.set_defaults(func=cmd_eval)
 

@@ -197,33 +197,26 @@ def format_table(rows: list[dict[str, Any]], columns: list[str]) -> str:
 
 
 def fit_sequence(seq, long_side: int, patch: int = 14, max_frames: int | None = None):
-    """A copy of ``seq`` resized (and centre-cropped to patch multiples) to the network input.
+    """A copy of ``seq`` (its first ``max_frames`` frames) prepared for a network input of long
+    side ``long_side`` px by :class:`raytun3r_plugin.preprocess.InputLayout`, the preparation
+    ``raytun3r adapt`` and ``raytun3r infer`` use, so eval scores the network on the pixels an
+    adapter was fitted on.
 
-    Images are area-resampled, depth and masks nearest-neighbour; the camera is rescaled and the
-    crop stated on it, so it describes the new images exactly. Poses are unchanged.
+    Images: (N, h, w, 3) float32, bilinear antialiased; depth (N, h, w) and masks (N, h, w)
+    nearest neighbour; the camera is the layout's input camera (a stated crop, then a pure
+    resize), so it describes the new images exactly. Poses are unchanged.
     """
-    import cv2
-
     from raytun3r_plugin.datasets import Sequence
-    from raytun3r_plugin.images import network_size
+    from raytun3r_plugin.preprocess import InputLayout
 
     count = len(seq) if max_frames is None else min(len(seq), max_frames)
-    width, height = seq.camera.width, seq.camera.height
-    resized_w, resized_h, crop_w, crop_h = network_size(width, height, long_side, patch)
-    x0, y0 = (resized_w - crop_w) // 2, (resized_h - crop_h) // 2
-
-    def fit(array: np.ndarray, interpolation: int) -> np.ndarray:
-        out = cv2.resize(array, (resized_w, resized_h), interpolation=interpolation)
-        return out[y0 : y0 + crop_h, x0 : x0 + crop_w]
-
-    images = np.stack([fit(seq.image(k), cv2.INTER_AREA) for k in range(count)]).astype(np.float32)
-    depth = None if seq.depth is None else np.stack([fit(seq.depth[k].astype(np.float32), cv2.INTER_NEAREST) for k in range(count)])
+    layout = InputLayout.for_camera(seq.camera, long_side, patch)
+    # One frame at a time: a dataset sequence may be long and its native frames large.
+    images = np.stack([layout.frames(seq.image(k)[None])[0].permute(1, 2, 0).numpy() for k in range(count)])
+    depth = None if seq.depth is None else layout.depth(np.asarray(seq.depth[:count], dtype=np.float32)).numpy()
     mask = None
     if seq.mask is not None:
-        full = np.broadcast_to(seq.mask, (len(seq), height, width))[:count]
-        mask = np.stack([fit(m.astype(np.uint8), cv2.INTER_NEAREST) > 0 for m in full])
-    camera = seq.camera.resized(resized_w, resized_h)
-    if (crop_w, crop_h) != (resized_w, resized_h):
-        camera = camera.cropped(x0, y0, crop_w, crop_h)
+        native = np.asarray(seq.mask, dtype=bool)
+        mask = layout.mask(native[:count]).numpy() if native.ndim == 3 else np.repeat(layout.mask(native).numpy()[None], count, axis=0)
     poses = None if seq.cam_from_world is None else np.asarray(seq.cam_from_world)[:count]
-    return Sequence(name=seq.name, camera=camera, timestamps=np.asarray(seq.timestamps)[:count], cam_from_world=poses, images=images, depth=depth, depth_kind=seq.depth_kind, mask=mask)
+    return Sequence(name=seq.name, camera=layout.camera, timestamps=np.asarray(seq.timestamps)[:count], cam_from_world=poses, images=images, depth=depth, depth_kind=seq.depth_kind, mask=mask)

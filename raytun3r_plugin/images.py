@@ -1,4 +1,8 @@
-"""Reading frames and fitting them, with their camera, to a network input size."""
+"""Reading frames, scene masks and ground-truth depth maps at their native size.
+
+Fitting them to the network input is :class:`raytun3r_plugin.preprocess.InputLayout`'s job (the
+one preparation shared by adapt, infer and eval).
+"""
 
 from __future__ import annotations
 
@@ -6,7 +10,6 @@ import os
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from raytun3r_plugin.errors import InputError
 
@@ -99,19 +102,6 @@ def read_depth_maps(folder: str | os.PathLike, names: list[str], width: int, hei
     return np.stack(maps)
 
 
-def network_size(width: int, height: int, long_side: int, patch: int = 14) -> tuple[int, int, int, int]:
-    """Resized size (w, h) keeping the aspect ratio and the centred crop (w', h') to patch multiples."""
-    scale = long_side / max(width, height)
-    resized_w, resized_h = max(patch, round(width * scale)), max(patch, round(height * scale))
-    return resized_w, resized_h, resized_w - resized_w % patch, resized_h - resized_h % patch
-
-
-def _network_box(width: int, height: int, long_side: int, patch: int) -> tuple[int, int, int, int, int, int]:
-    """(resized w, h, crop x0, y0, crop w, h) of :func:`fit_to_network`: one place for its geometry."""
-    resized_w, resized_h, crop_w, crop_h = network_size(width, height, long_side, patch)
-    return resized_w, resized_h, (resized_w - crop_w) // 2, (resized_h - crop_h) // 2, crop_w, crop_h
-
-
 def read_mask(path: str | os.PathLike, width: int, height: int) -> np.ndarray:
     """A scene mask image: (H, W) bool, True where the pixel value is above 127 (255 = the scene
     is seen, 0 = excluded, e.g. the vehicle's body); the first channel of a colour image.
@@ -129,38 +119,3 @@ def read_mask(path: str | os.PathLike, width: int, height: int) -> np.ndarray:
     if image.shape != (height, width):
         raise InputError(f"{path}: mask is {image.shape[1]}x{image.shape[0]} px, the frames are {width}x{height}")
     return image > 127
-
-
-def fit_mask_to_network(mask: np.ndarray, long_side: int = 504, patch: int = 14) -> torch.Tensor:
-    """Resize and crop an (H, W) mask exactly as :func:`fit_to_network` does the frames
-    (nearest neighbour, so it stays binary); returns (h, w) bool."""
-    import cv2
-
-    height, width = mask.shape
-    resized_w, resized_h, x0, y0, crop_w, crop_h = _network_box(width, height, long_side, patch)
-    resized = cv2.resize(mask.astype(np.uint8), (resized_w, resized_h), interpolation=cv2.INTER_NEAREST)
-    return torch.from_numpy(np.ascontiguousarray(resized[y0 : y0 + crop_h, x0 : x0 + crop_w] > 0))
-
-
-def fit_to_network(images: np.ndarray, camera, long_side: int = 504, patch: int = 14) -> tuple[torch.Tensor, object]:
-    """Resize (N, H, W, 3) images so the long side is ``long_side``, centre-crop to patch multiples.
-
-    Returns (1, N, 3, h, w) float32 in [0, 1] and the camera of exactly that input (scaled, then
-    cropped: the crop is stated, so the camera stays exact).
-    """
-    import cv2
-
-    if images.ndim != 4 or images.shape[-1] != 3:
-        raise InputError(f"images must be (N, H, W, 3), got {images.shape}")
-    height, width = images.shape[1:3]
-    if (camera.width, camera.height) != (width, height):
-        raise InputError(f"frames are {width}x{height} px but the camera describes {camera.width}x{camera.height} px")
-    resized_w, resized_h, x0, y0, crop_w, crop_h = _network_box(width, height, long_side, patch)
-    interpolation = cv2.INTER_AREA if resized_w < width else cv2.INTER_CUBIC
-    resized = np.stack([cv2.resize(image, (resized_w, resized_h), interpolation=interpolation) for image in images])
-    cropped = np.clip(resized[:, y0 : y0 + crop_h, x0 : x0 + crop_w], 0.0, 1.0)
-    camera = camera.resized(resized_w, resized_h)
-    if (crop_w, crop_h) != (resized_w, resized_h):
-        camera = camera.cropped(x0, y0, crop_w, crop_h)
-    tensor = torch.from_numpy(np.ascontiguousarray(cropped)).permute(0, 3, 1, 2)[None].float()
-    return tensor, camera
