@@ -2,18 +2,19 @@
 
     python examples/apply_shared_adapter.py --adapter my_camera.safetensors [--backbone da3-small --weights model.safetensors]
 
-The adapter file carries its camera; the frames here are synthetic renders through that camera.
+The adapter file carries its camera and the input rule it was fitted with; the frames here are
+synthetic renders through that camera, prepared for the network by the same rule
+(``raytun3r_plugin.preprocess.InputLayout``).
 """
 
 from __future__ import annotations
 
 import argparse
 
-import torch
-
 import raytun3r_plugin as rt
 from raytun3r_plugin import synthetic
 from raytun3r_plugin.demo import default_network
+from raytun3r_plugin.preprocess import fitted_source_camera, input_layout
 
 
 def main() -> None:
@@ -26,11 +27,14 @@ def main() -> None:
 
     model = rt.load_backbone(args.backbone, args.weights) if args.backbone else default_network()[0]
     adapter = rt.Adapter.load(args.adapter)  # validated: format, shapes, dtypes, finite values
-    camera = adapter.camera.resized(args.size, round(args.size * adapter.camera.height / adapter.camera.width))
-    frames = synthetic.render_sequence("indoor", camera, n_frames=3, seed=11).images
-    images = torch.from_numpy(frames).permute(0, 3, 1, 2)  # (S, 3, H, W) in [0, 1]
+    # Native frames (here rendered through the camera the adapter was fitted on), prepared for
+    # the network exactly as adaptation prepared its frames: same rule, same crop, same resize.
+    camera = fitted_source_camera(adapter)
+    frames = synthetic.render_sequence("indoor", camera, n_frames=3, seed=11).images  # (S, H, W, 3)
+    layout = input_layout(camera, args.size, adapter.patch_size)
+    images = layout.frames(frames)  # (S, 3, h, w) in [0, 1]
 
-    with rt.apply(model, adapter.camera, adapter) as handle:  # camera is rescaled to the input
+    with rt.apply(model, layout.native_camera, adapter) as handle:  # camera is rescaled to the input
         prediction = rt.predict(model, images)
         with handle.disabled():
             plain = rt.predict(model, images)

@@ -10,7 +10,8 @@ import argparse
 import raytun3r_plugin as rt
 from raytun3r_plugin import synthetic
 from raytun3r_plugin.demo import default_network
-from raytun3r_plugin.evaluation import format_table, headline, run_method, score
+from raytun3r_plugin.evaluation import fit_sequence, format_table, headline, run_method, score
+from raytun3r_plugin.preprocess import fitted_source_camera
 
 
 def main() -> None:
@@ -22,8 +23,10 @@ def main() -> None:
 
     model = default_network()[0]
     adapter = rt.Adapter.load(args.adapter)
-    camera = adapter.camera.resized(args.size, round(args.size * adapter.camera.height / adapter.camera.width))
-    seq = synthetic.render_sequence("indoor", camera, n_frames=args.frames, seed=2024)  # held-out seed
+    # Rendered through the camera the adapter was fitted on, then prepared for the network by the
+    # rule adaptation used (raytun3r_plugin.preprocess.InputLayout, as `raytun3r eval` does).
+    native = synthetic.render_sequence("indoor", fitted_source_camera(adapter), n_frames=args.frames, seed=2024)  # held-out seed
+    seq = fit_sequence(native, args.size, adapter.patch_size)
     rows = []
     for method in ("vanilla", "center-ph", "raytun3r"):
         output = run_method(model, seq, method, adapter=adapter if method == "raytun3r" else None)
