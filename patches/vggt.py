@@ -74,7 +74,7 @@ def recognise(model: nn.Module) -> nn.Module | None:
 def _vit(root: nn.Module) -> nn.Module:
     vit = getattr(getattr(root, "aggregator", None), "patch_embed", None)
     if vit is None or not isinstance(getattr(vit, "pos_embed", None), torch.Tensor):
-        found = type(vit).__qualname__ if vit is not None else "nothing"
+        found = f"{type(vit).__module__}.{type(vit).__qualname__}" if vit is not None else "nothing"
         raise UnsupportedUpstreamError(
             f"vggt: expected a DINOv2 ViT with an absolute PE table at 'aggregator.patch_embed', found {found} "
             f"(the 'conv' patch embedding variant is not supported; the vggt patch was checked against {UPSTREAM})"

@@ -336,7 +336,6 @@ def resolve_targets(spec: BackboneSpec, root: nn.Module, wanted_hooks: set[str])
     Returns ``(target, owner_path, owner)`` for every owner to patch. Raises
     :class:`UnsupportedUpstreamError` saying what was expected and what was found.
     """
-    check_rope_coverage(spec, root)
     found: list[tuple[PatchTarget, str, Any]] = []
     for target in spec.targets:
         if target.hook not in wanted_hooks:
@@ -359,4 +358,6 @@ def resolve_targets(spec: BackboneSpec, root: nn.Module, wanted_hooks: set[str])
             if target.hook == "rope" and _is_rope(spec, owner):
                 rope_base(spec, owner)  # refused here, before anything is built
             found.append((target, path, owner))
+    # After the targets, so that a moved owner is reported as such, not as a stray RoPE.
+    check_rope_coverage(spec, root)
     return found

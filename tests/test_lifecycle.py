@@ -18,22 +18,16 @@ import torch
 import raytun3r_plugin as rt
 from raytun3r_plugin import patching
 from raytun3r_plugin.errors import NotAppliedError, PatchedCopyError, Raytun3rError
+from raytun3r_plugin.registry import resolve_targets, spec_for
+from tests.backbones import CASE, CASES, make
 from tests.helpers import fisheye, outputs, randomise_
-
-pytest.importorskip("depth_anything_3")
-from raytun3r_plugin.patches.da3 import build_tiny_network  # noqa: E402
-
-DA3_SIZE = (70, 84)
-KINDS = ("da3", "vggt", "pi3", "pi3x")
 
 
 def _make(kind: str):
-    """A fresh small model of ``kind`` and its input (height, width)."""
-    if kind == "da3":
-        return build_tiny_network(seed=0), DA3_SIZE
-    from tests.test_vggt_pi3_patch import H, W, make
-
-    return make(kind), (H, W)
+    """A fresh small model of ``kind`` (a row of tests/backbones.CASES) and its input (height, width)."""
+    case = CASE[kind]
+    pytest.importorskip(case.package)
+    return make(kind), case.size
 
 
 def _images(size, seed: int = 1) -> torch.Tensor:
@@ -41,14 +35,10 @@ def _images(size, seed: int = 1) -> torch.Tensor:
 
 
 def _patch_embed(model) -> torch.nn.Module:
-    """The patch-embedding convolution of the image path (the first thing every frame meets)."""
-    for path in ("backbone.pretrained.patch_embed.proj", "aggregator.patch_embed.patch_embed.proj", "encoder.patch_embed.proj"):
-        module = model
-        for part in path.split("."):
-            module = getattr(module, part, None)
-        if module is not None:
-            return module
-    raise AssertionError(f"no patch embedding found on {type(model).__name__}")
+    """The patch embedding of the image path (the first thing every frame meets), from the spec."""
+    spec, root = spec_for(model)
+    (owner,) = (owner for target, _, owner in resolve_targets(spec, root, {"patch_embed"}))
+    return owner
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -60,7 +50,7 @@ def _one_thread():
     torch.set_num_threads(threads)
 
 
-@pytest.fixture(params=KINDS)
+@pytest.fixture(params=[case.family for case in CASES])
 def kind(request):
     return request.param
 
@@ -113,7 +103,8 @@ def test_deepcopy_is_a_patched_copy_running_its_own_weights(kind):
     assert twin_handle.patched == handle.patched
     assert torch.equal(outputs(twin, images)["depth"], source["depth"])  # same weights, same patch
     with torch.no_grad():
-        _patch_embed(twin).weight.zero_()
+        for parameter in _patch_embed(twin).parameters():
+            parameter.zero_()
     assert not torch.equal(outputs(twin, images)["depth"], source["depth"])
     assert torch.equal(outputs(model, images)["depth"], source["depth"])  # the source is untouched
 
