@@ -2,6 +2,7 @@
 sequences of three lenses (KB4 120, KB4 185, double sphere 195 deg), indoor and outdoor.
 
     python benchmarks/fisheye_synthetic.py [--out runs/bench] [--readme README.md]
+    python benchmarks/fisheye_synthetic.py --development --out runs/dev   # seeds 80000+, for choosing settings
 
 With --readme the table replaces the block between the README's bench markers, so the README
 shows what this script produced, not typed numbers.
@@ -13,7 +14,12 @@ import argparse
 import re
 from pathlib import Path
 
-from raytun3r_plugin.benchmark import SEQUENCES_PER_CELL, run_benchmark
+from raytun3r_plugin.benchmark import (
+    DEVELOPMENT_SEED,
+    HELD_OUT_SEED,
+    SEQUENCES_PER_CELL,
+    run_benchmark,
+)
 from raytun3r_plugin.demo import default_network
 from raytun3r_plugin.registry import quiet_upstream
 
@@ -27,9 +33,12 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--sequences", type=int, default=SEQUENCES_PER_CELL, help="held-out sequences per camera and scene")
     parser.add_argument("--readme", default=None)
+    parser.add_argument("--development", action="store_true", help="development seeds (80000+) instead of the held-out ones; never with --readme")
     args = parser.parse_args()
+    if args.development and args.readme:
+        parser.error("--development tables are for choosing settings; the README shows held-out seeds")
     model, description = default_network()
-    table = run_benchmark(model, args.out, size=args.size, steps=args.steps, sequences=args.sequences, network=description, progress=False)
+    table = run_benchmark(model, args.out, size=args.size, steps=args.steps, sequences=args.sequences, network=description, progress=False, base_seed=DEVELOPMENT_SEED if args.development else HELD_OUT_SEED)
     print(table)
     if args.readme:
         readme = Path(args.readme)
