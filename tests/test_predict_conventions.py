@@ -183,9 +183,7 @@ def test_pi3_models_predict_consistent_poses(which):
     """
     pytest.importorskip("pi3")
     import raytun3r_plugin as rt
-    from tests.test_vggt_pi3_patch import (
-        build,  # the stub recipe, or a small network of the real classes
-    )
+    from tests.backbones import build  # the stub recipe, or a small network of the real classes
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
