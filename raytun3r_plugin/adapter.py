@@ -12,7 +12,6 @@ import hashlib
 import json
 import math
 import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -174,20 +173,10 @@ class Adapter(nn.Module):
         return {name: value.detach().to("cpu", torch.float32).contiguous().clone() for name, value in self.state_dict().items()}
 
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the adapter atomically (temporary file in the same folder, then rename)."""
-        from safetensors.torch import save_file
+        """Write the adapter atomically (:func:`raytun3r_plugin._io.atomic_save_safetensors`)."""
+        from raytun3r_plugin._io import atomic_save_safetensors
 
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        os.close(handle)
-        try:
-            save_file(self.tensors(), temporary, metadata=self.metadata())
-            os.replace(temporary, path)
-        except BaseException:
-            Path(temporary).unlink(missing_ok=True)
-            raise
-        return path
+        return atomic_save_safetensors(path, self.tensors(), self.metadata())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Adapter:

@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 import time
 import warnings
@@ -101,10 +100,11 @@ def load_or_render(cache: Path | None, seeds: list[int], size: int, n_frames: in
             out[f"{name}/{field}"] = np.stack([q[field] for q in seqs])
         log(f"rendered {len(seeds)} held-out {name} sequences ({time.time() - t0:.0f} s)")
     if cache is not None:
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache.with_suffix(".tmp.npz")
-        np.savez(tmp, key=np.array(key), **out)
-        os.replace(tmp, cache)
+        from raytun3r_plugin._io import atomic_path
+
+        # A file handle, not a name: np.savez appends ".npz" to a name that lacks it.
+        with atomic_path(cache) as tmp, open(tmp, "wb") as handle:
+            np.savez(handle, key=np.array(key), **out)
     return out
 
 

@@ -141,9 +141,11 @@ def build_dataset(path: Path, n_seq: int, size: int, n_frames: int, seed_base: i
         images[k], depth[k], poses[k], fov[k] = r["images"], r["depth"], r["poses"], r["fov"]
         if (k + 1) % 50 == 0:
             log(f"  rendered {k + 1}/{n_seq} ({time.time() - t0:.0f} s)")
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, images=images, depth=depth, poses=poses, fov=fov, meta=np.array(json.dumps(meta)))
-    os.replace(tmp, path)
+    from raytun3r_plugin._io import atomic_path
+
+    # A file handle, not a name: np.savez appends ".npz" to a name that lacks it.
+    with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+        np.savez(handle, images=images, depth=depth, poses=poses, fov=fov, meta=np.array(json.dumps(meta)))
     log(f"training set rendered in {time.time() - t0:.0f} s -> {path}")
     return {"images": images, "depth": depth, "poses": poses, "fov": fov}
 
@@ -312,11 +314,12 @@ def quaternion_target(rotation: torch.Tensor) -> torch.Tensor:
 
 
 def save_checkpoint(out: Path, model, opt, step: int, args: dict) -> None:
-    from safetensors.torch import save_file, save_model
+    from safetensors.torch import save_model
 
-    tmp = out / "checkpoint.tmp.safetensors"
-    save_model(model, str(tmp))
-    os.replace(tmp, out / "checkpoint.safetensors")
+    from raytun3r_plugin._io import atomic_path, atomic_save_safetensors, atomic_write_text
+
+    with atomic_path(out / "checkpoint.safetensors") as tmp:
+        save_model(model, str(tmp))
     names = {id(p): name for name, p in model.named_parameters()}
     tensors = {}
     for group in opt.param_groups:
@@ -326,13 +329,9 @@ def save_checkpoint(out: Path, model, opt, step: int, args: dict) -> None:
                 continue
             for key, value in st.items():
                 tensors[f"{names[id(p)]}::{key}"] = value.detach().clone().contiguous()
-    tmp = out / "optimizer.tmp.safetensors"
-    save_file(tensors, str(tmp))
-    os.replace(tmp, out / "optimizer.safetensors")
+    atomic_save_safetensors(out / "optimizer.safetensors", tensors)
     hyper = [{k: v for k, v in g.items() if k != "params"} for g in opt.param_groups]
-    tmp = out / "checkpoint.tmp.json"
-    tmp.write_text(json.dumps({"step": step, "args": args, "param_groups": hyper}, indent=1, default=list))
-    os.replace(tmp, out / "checkpoint.json")
+    atomic_write_text(out / "checkpoint.json", json.dumps({"step": step, "args": args, "param_groups": hyper}, indent=1, default=list))
 
 
 def load_checkpoint(out: Path, model, opt) -> int:
@@ -511,15 +510,14 @@ def export(model, kwargs: dict, path: Path, training: dict) -> None:
     """
     from safetensors.torch import save_file
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
+    from raytun3r_plugin._io import atomic_path
     from raytun3r_plugin.weights import alias_keys
 
     aliases = alias_keys(model)  # tensors shared with an earlier key are stored once
     state = {name: tensor.detach().to(torch.float16).contiguous() for name, tensor in model.eval().state_dict().items() if name not in aliases}
-    save_file(state, str(tmp), metadata={"format": "raytun3r-da3-tiny", "build_kwargs": json.dumps(kwargs)})
-    os.chmod(tmp, 0o644)  # a package data file: world-readable
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        save_file(state, str(tmp), metadata={"format": "raytun3r-da3-tiny", "build_kwargs": json.dumps(kwargs)})
+        os.chmod(tmp, 0o644)  # a package data file: world-readable
     side = path.with_suffix(".json")
     side.write_text(json.dumps({"build_kwargs": kwargs, "training": training}, indent=1) + "\n")
     log(f"exported {path} ({path.stat().st_size / 1e6:.2f} MB) and {side}")

@@ -30,7 +30,6 @@ import json
 import math
 import os
 import sys
-import tempfile
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
@@ -42,6 +41,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from raytun3r_plugin._io import atomic_save_safetensors
 from raytun3r_plugin.adaptation.losses import (
     LossWeights,
     backproject,
@@ -376,20 +376,6 @@ def read_loss_log(path: str | os.PathLike) -> list[dict[str, Any]]:
         return [json.loads(line) for line in handle if line.strip()]
 
 
-def _atomic_save(tensors: dict[str, torch.Tensor], metadata: dict[str, str], path: Path) -> None:
-    from safetensors.torch import save_file
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(handle)
-    try:
-        save_file(tensors, temporary, metadata=metadata)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-
-
 def _save_checkpoint(path: Path, adapter: Adapter, optimizer: torch.optim.Optimizer, step: int, identity: dict[str, str]) -> None:
     names = [name for name, _ in adapter.named_parameters()]
     tensors = {f"adapter.{name}": value for name, value in adapter.tensors().items()}
@@ -398,7 +384,7 @@ def _save_checkpoint(path: Path, adapter: Adapter, optimizer: torch.optim.Optimi
         for key, value in state.get(index, {}).items():
             tensors[f"adam.{name}.{key}"] = torch.as_tensor(value).detach().to("cpu", torch.float32).reshape(-1).clone()
     metadata = {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_VERSION, "step": str(step), **identity}
-    _atomic_save(tensors, metadata, path)
+    atomic_save_safetensors(path, tensors, metadata)
 
 
 def load_checkpoint(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], dict[str, str]]:

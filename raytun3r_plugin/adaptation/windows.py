@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from raytun3r_plugin._io import atomic_path
 from raytun3r_plugin.adaptation.matchers import Matcher, Matches
 from raytun3r_plugin.adaptation.pose_targets import PoseTarget, estimate_relative_pose
 from raytun3r_plugin.errors import InputError
@@ -252,15 +253,8 @@ def _save(
         "ok": np.array([pair_index[k][1].ok for k in keys], bool),
         "reason": np.array([pair_index[k][1].reason for k in keys], dtype=str),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as temporary, open(temporary, "wb") as handle:
+        np.savez(handle, **arrays)
 
 
 def _load(path: Path, payload: str, window_size: int) -> tuple[list[Window], list[tuple]] | None:

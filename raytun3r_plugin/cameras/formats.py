@@ -19,13 +19,13 @@ import json
 import math
 import os
 import re
-import tempfile
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from raytun3r_plugin._io import atomic_write_text
 from raytun3r_plugin.cameras.base import Camera, from_dict
 from raytun3r_plugin.cameras.fisheye624 import Fisheye624
 from raytun3r_plugin.cameras.fov import FOV
@@ -699,20 +699,4 @@ def save(camera: Camera, path: PathLike) -> None:
     """Write ``camera`` as raytun3r JSON (``camera.to_json()``), atomically (temp file + rename)."""
     if not isinstance(camera, Camera):
         raise CameraError(f"save needs a Camera, got {type(camera).__name__}")
-    p = Path(path)
-    text = camera.to_json() + "\n"
-    fd, tmp = tempfile.mkstemp(
-        prefix=f".{p.name}.", suffix=".tmp", dir=p.parent if str(p.parent) else "."
-    )
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, p)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    atomic_write_text(path, camera.to_json() + "\n")
