@@ -41,6 +41,7 @@ from torch import nn
 
 from raytun3r_plugin import hooks
 from raytun3r_plugin.errors import MissingDependencyError, UnsupportedUpstreamError, WeightsError
+from raytun3r_plugin.poses import invert_rigid  # re-exported: its one home
 from raytun3r_plugin.prediction import Prediction, as_batched_images
 from raytun3r_plugin.registry import (
     BackboneInfo,
@@ -293,14 +294,6 @@ PI3X_TARGETS = (
 # ---------------------------------------------------------------------------------------------
 # Prediction
 # ---------------------------------------------------------------------------------------------
-
-
-def invert_rigid(poses: torch.Tensor) -> torch.Tensor:
-    """Inverse of rigid (..., 4, 4) transforms: [R | t] -> [R^T | -R^T t]."""
-    rotation = poses[..., :3, :3].transpose(-1, -2)
-    translation = -(rotation @ poses[..., :3, 3:4])
-    top = torch.cat((rotation, translation), dim=-1)
-    return torch.cat((top, poses[..., 3:4, :]), dim=-2)
 
 
 _PREDICT_LOCKS: weakref.WeakKeyDictionary[nn.Module, threading.Lock] = weakref.WeakKeyDictionary()

@@ -20,6 +20,7 @@ import torch.nn.functional as F
 
 from raytun3r_plugin import metrics
 from raytun3r_plugin.patching import apply
+from raytun3r_plugin.poses import relative_pose
 from raytun3r_plugin.prediction import predict
 
 METHODS = ("vanilla", "center-ph", "raytun3r")
@@ -146,7 +147,7 @@ def score(seq, output: MethodOutput, min_translation: float = 1e-3, corresponden
             if sky is not None:
                 rows, cols = np.round(uv_i[:, 1]).astype(int), np.round(uv_i[:, 0]).astype(int)
                 keep &= ~np.asarray(sky, bool)[i][rows, cols]
-            relative = gt_poses[j] @ np.linalg.inv(gt_poses[i])
+            relative = relative_pose(gt_poses, i, j)
             d_values.append(metrics.d_reproj(output.depth[i], seq.camera, uv_i[keep], uv_j[keep], relative))
     abs_rel = delta = None
     if seq.depth is not None:

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from raytun3r_plugin.poses import invert_rigid, rotation_to_quaternion
+
 
 def colourise_depth(depth: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     """(H, W) depth -> (H, W, 3) uint8 BGR (OpenCV turbo map on inverse depth, 2-98% range)."""
@@ -108,33 +110,14 @@ def depth_panel(
     return np.concatenate([frame, coloured, bar], axis=1)
 
 
-def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation -> unit quaternion (qx, qy, qz, qw) with qw >= 0."""
-    m = rotation
-    trace = np.trace(m)
-    if trace > 0:
-        s = np.sqrt(trace + 1.0) * 2
-        q = np.array([(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s])
-    else:
-        i = int(np.argmax(np.diag(m)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k]) * 2
-        q = np.empty(4)
-        q[i] = 0.25 * s
-        q[j] = (m[j, i] + m[i, j]) / s
-        q[k] = (m[k, i] + m[i, k]) / s
-        q[3] = (m[k, j] - m[j, k]) / s
-    q /= np.linalg.norm(q)
-    return q if q[3] >= 0 else -q
-
-
 def write_tum(path: str | os.PathLike, timestamps: np.ndarray, cam_from_world: np.ndarray) -> None:
     """TUM trajectory: one line ``t tx ty tz qx qy qz qw`` per frame, camera-to-world poses."""
     lines = ["# timestamp tx ty tz qx qy qz qw (world_from_cam)"]
     for stamp, pose in zip(timestamps, cam_from_world, strict=True):
-        world_from_cam = np.linalg.inv(pose)
+        world_from_cam = invert_rigid(pose)
         t = world_from_cam[:3, 3]
-        q = rotation_to_quaternion(world_from_cam[:3, :3])
+        w, *xyz = rotation_to_quaternion(world_from_cam[:3, :3])  # TUM stores (x, y, z, w)
+        q = (*xyz, w)
         lines.append(" ".join(f"{v:.9g}" for v in (stamp, *t, *q)))
     Path(path).write_text("\n".join(lines) + "\n")
 

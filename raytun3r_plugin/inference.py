@@ -11,17 +11,11 @@ import torch
 
 from raytun3r_plugin.export import depth_panel, write_ply, write_tum
 from raytun3r_plugin.patching import apply
+from raytun3r_plugin.poses import backproject, invert_rigid
 from raytun3r_plugin.prediction import Prediction, predict
 
-
-def points_from_depth(depth: torch.Tensor, rays: torch.Tensor, depth_convention: str = "range") -> torch.Tensor:
-    """Back-project (..., H, W) depth along unit rays (H, W, 3): X = D * ray for range depth,
-    X = D / ray_z * ray for z-depth (only defined in front of the camera)."""
-    if depth_convention == "range":
-        return depth[..., None] * rays
-    if depth_convention == "z":
-        return depth[..., None] * rays / rays[..., 2:3].clamp_min(1e-6)
-    raise ValueError(f"depth_convention must be 'range' or 'z', got {depth_convention!r}")
+#: Back-projection of (..., H, W) depth along (H, W, 3) unit rays; kept under its old name.
+points_from_depth = backproject
 
 
 def predict_with_camera(model, camera, adapter, images: torch.Tensor, components=None, strict: bool = True, mask: torch.Tensor | None = None) -> Prediction:
@@ -65,7 +59,7 @@ def write_outputs(
     colours = images[0].permute(0, 2, 3, 1).cpu().numpy()
     world_points, world_colours = [], []
     for pose, points, colour in zip(cam_from_world, points_cam, colours, strict=True):
-        world_from_cam = np.linalg.inv(pose)
+        world_from_cam = invert_rigid(pose)
         keep = valid_np & np.isfinite(points).all(-1)
         world_points.append(points[keep] @ world_from_cam[:3, :3].T + world_from_cam[:3, 3])
         world_colours.append(colour[keep])

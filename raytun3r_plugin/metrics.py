@@ -27,6 +27,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from raytun3r_plugin.poses import _as_torch_pair, relative_poses, rotation_angle, translation_angle
+
 __all__ = [
     "abs_rel",
     "align_scale",
@@ -46,36 +48,14 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 
 
-def _torch_pair(a: Any, b: Any) -> tuple[torch.Tensor, torch.Tensor]:
-    ta = a if isinstance(a, torch.Tensor) else torch.as_tensor(np.asarray(a))
-    tb = b if isinstance(b, torch.Tensor) else torch.as_tensor(np.asarray(b))
-    dt = torch.promote_types(ta.dtype, tb.dtype)
-    if not dt.is_floating_point:
-        dt = torch.float64
-    dev = ta.device if isinstance(a, torch.Tensor) else tb.device
-    return ta.to(device=dev, dtype=dt), tb.to(device=dev, dtype=dt)
-
-
 def rotation_error_deg(R_pred: Any, R_gt: Any) -> Any:
     """Geodesic angle (degrees, 0..180) between rotations ``R_pred`` and ``R_gt`` (..., 3, 3).
 
-    numpy in -> numpy out (float64); a torch tensor in either argument -> torch out
-    (differentiable, promoted dtype).
+    :func:`raytun3r_plugin.poses.rotation_angle` in degrees. numpy in -> numpy out (float64);
+    a torch tensor in either argument -> torch out (promoted dtype).
     """
-    if isinstance(R_pred, torch.Tensor) or isinstance(R_gt, torch.Tensor):
-        a, b = _torch_pair(R_pred, R_gt)
-        M = a.transpose(-1, -2) @ b
-        cos = (M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2] - 1.0) / 2.0
-        v = torch.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1)
-        sin = torch.linalg.vector_norm(v, dim=-1) / 2.0
-        return torch.rad2deg(torch.atan2(sin, cos))
-    a = np.asarray(R_pred, dtype=np.float64)
-    b = np.asarray(R_gt, dtype=np.float64)
-    M = np.swapaxes(a, -1, -2) @ b
-    cos = (np.trace(M, axis1=-2, axis2=-1) - 1.0) / 2.0
-    v = np.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1)
-    sin = np.linalg.norm(v, axis=-1) / 2.0
-    return np.degrees(np.arctan2(sin, cos))
+    angle = rotation_angle(R_pred, R_gt)
+    return torch.rad2deg(angle) if isinstance(angle, torch.Tensor) else np.degrees(angle)
 
 
 def translation_direction_error_deg(t_pred: Any, t_gt: Any, folded: bool = False, eps: float = 1e-12) -> Any:
@@ -86,32 +66,17 @@ def translation_direction_error_deg(t_pred: Any, t_gt: Any, folded: bool = False
     the same out (torch if either argument is a tensor).
     """
     if isinstance(t_pred, torch.Tensor) or isinstance(t_gt, torch.Tensor):
-        a, b = _torch_pair(t_pred, t_gt)
-        cross = torch.linalg.vector_norm(torch.linalg.cross(a, b, dim=-1), dim=-1)
-        e = torch.rad2deg(torch.atan2(cross, (a * b).sum(-1)))
+        a, b = _as_torch_pair(t_pred, t_gt)
+        e = torch.rad2deg(translation_angle(a, b))
         short = (torch.linalg.vector_norm(a, dim=-1) < eps) | (torch.linalg.vector_norm(b, dim=-1) < eps)
         e = torch.where(short, torch.full_like(e, math.nan), e)
         return torch.minimum(e, 180.0 - e) if folded else e
     a = np.asarray(t_pred, dtype=np.float64)
     b = np.asarray(t_gt, dtype=np.float64)
-    cross = np.linalg.norm(np.cross(a, b), axis=-1)
-    e = np.degrees(np.arctan2(cross, np.sum(a * b, axis=-1)))
+    e = np.degrees(translation_angle(a, b))
     short = (np.linalg.norm(a, axis=-1) < eps) | (np.linalg.norm(b, axis=-1) < eps)
     e = np.where(short, np.nan, e)
     return np.minimum(e, 180.0 - e) if folded else e
-
-
-def relative_poses(cam_from_world: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-    """``cam_j_from_cam_i`` (P, 4, 4) for index pairs (P, 2) of a pose array (N, 4, 4)."""
-    T = np.asarray(cam_from_world, dtype=np.float64)
-    p = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    Ti, Tj = T[p[:, 0]], T[p[:, 1]]
-    Ri_t = np.swapaxes(Ti[:, :3, :3], -1, -2)
-    inv_i = np.zeros_like(Ti)
-    inv_i[:, :3, :3] = Ri_t
-    inv_i[:, :3, 3] = -np.einsum("nij,nj->ni", Ri_t, Ti[:, :3, 3])
-    inv_i[:, 3, 3] = 1.0
-    return Tj @ inv_i
 
 
 def relative_pose_errors(

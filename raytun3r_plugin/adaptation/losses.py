@@ -29,7 +29,9 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from raytun3r_plugin import poses
 from raytun3r_plugin.errors import InputError
+from raytun3r_plugin.poses import backproject, relative_pose  # re-exported: their one home
 from raytun3r_plugin.preprocess import to_input_pixels  # re-exported: the one mapping
 
 __all__ = [
@@ -111,31 +113,6 @@ def _inside_mask(uv: torch.Tensor, mask: torch.Tensor | None, width: int, height
         row = torch.round(uv[:, 1].detach()).clamp(0, height - 1).long()
         inside &= mask.to(uv.device)[row, col]
     return inside
-
-
-def backproject(depth: torch.Tensor, rays: torch.Tensor, depth_convention: str = "range") -> torch.Tensor:
-    """3-D points in the camera frame from depth values and unit rays.
-
-    Args:
-        depth: (...,) depth per ray (range along the ray, or z-depth).
-        rays: (..., 3) unit rays.
-        depth_convention: ``"range"`` (X = D ray) or ``"z"`` (X = D ray / ray_z).
-
-    Returns:
-        (..., 3) points, same unit as ``depth``.
-    """
-    if depth_convention == "range":
-        return depth[..., None] * rays
-    if depth_convention == "z":
-        z = rays[..., 2:3]
-        safe = torch.where(z.abs() > 1e-6, z, torch.full_like(z, 1e-6))
-        return depth[..., None] * rays / safe
-    raise InputError(f"depth_convention must be 'range' or 'z', got {depth_convention!r}")
-
-
-def relative_pose(cam_from_world: torch.Tensor, i: int, j: int) -> torch.Tensor:
-    """``cam_j_from_cam_i = cam_j_from_world @ inv(cam_i_from_world)`` from (S, 4, 4) poses."""
-    return cam_from_world[j] @ torch.linalg.inv(cam_from_world[i])
 
 
 # --------------------------------------------------------------------------------------------
@@ -373,8 +350,9 @@ def smoothness_loss(depth: torch.Tensor, image: torch.Tensor, valid: torch.Tenso
 def pe_correction_grid(adapter: Any, geometry: Any, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """The adapter's PE correction ``P' - P_A`` over the token grid, differentiable in the tables.
 
-    Uses the geometry's interpolation matrices (the same ones the patched PE hook uses), so it
-    depends only on the adapter and the (camera, input size), never on the backbone's table.
+    :meth:`Adapter.pe_correction <raytun3r_plugin.adapter.Adapter.pe_correction>` (the same
+    computation the patched PE hook adds) on the patch grid, so it depends only on the adapter
+    and the (camera, input size), never on the backbone's table.
 
     Args:
         adapter: a :class:`raytun3r_plugin.adapter.Adapter`.
@@ -384,9 +362,7 @@ def pe_correction_grid(adapter: Any, geometry: Any, device: torch.device | str |
     Returns:
         (h, w, C) correction, ``t_r(rho) + rho d_theta(theta)`` per token, h x w the patch grid.
     """
-    device = adapter.pe["radial"].device if device is None else device
-    radial, angular = geometry.pe_weights(adapter.n_r, adapter.n_theta, device, dtype)
-    correction = radial @ adapter.pe["radial"].to(device, dtype) + angular @ adapter.pe["angular"].to(device, dtype)
+    correction = adapter.pe_correction(geometry, device, dtype)
     rows, cols = geometry.height // geometry.patch, geometry.width // geometry.patch
     return correction.reshape(rows, cols, -1)
 
@@ -434,29 +410,18 @@ def pe_tv(correction: torch.Tensor) -> torch.Tensor:
 
 
 def rotation_angle(rotation_a: torch.Tensor, rotation_b: torch.Tensor) -> torch.Tensor:
-    """Geodesic angle (radians) between rotations (..., 3, 3): ``arccos((tr(A^T B) - 1) / 2)``.
-
-    Evaluated as ``atan2(|vee(M - M^T)| / 2, (tr M - 1) / 2)`` with ``M = A^T B``, the same
-    angle as the paper's arccos but accurate near 0 and pi and with finite gradients everywhere
-    (the vector norm carries a tiny epsilon, so the gradient at exactly zero is zero, not NaN).
-    """
-    m = rotation_a.transpose(-1, -2) @ rotation_b
-    cos = (m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2] - 1) / 2
-    axis = torch.stack((m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]), dim=-1)
-    sin = torch.sqrt(axis.pow(2).sum(dim=-1) + _EPS**2) / 2
-    return torch.atan2(sin, cos)
+    """Geodesic angle (radians) between rotations (..., 3, 3), the loss form of
+    :func:`raytun3r_plugin.poses.rotation_angle`: the paper's ``arccos((tr(A^T B) - 1) / 2)``
+    evaluated by atan2, with a tiny epsilon under the norm so the gradient at exactly zero is
+    zero, not NaN."""
+    return poses.rotation_angle(rotation_a, rotation_b, eps=_EPS)
 
 
 def translation_angle(t_a: torch.Tensor, t_b: torch.Tensor) -> torch.Tensor:
-    """Angle (radians) between translation directions (..., 3): ``arccos(<a, b> / (|a| |b|))``.
-
-    Evaluated as ``atan2(|a x b|, <a, b>)`` (scale-free, finite gradients, accurate near 0).
-    Returns 0 when either vector is zero (no direction to compare).
-    """
-    cross = torch.linalg.cross(t_a, t_b, dim=-1)
-    sin = torch.sqrt(cross.pow(2).sum(dim=-1) + _EPS**2)
-    cos = (t_a * t_b).sum(dim=-1)
-    return torch.atan2(sin, cos)
+    """Angle (radians) between translation directions (..., 3), the loss form of
+    :func:`raytun3r_plugin.poses.translation_angle` (finite gradients; 0 when either vector is
+    zero)."""
+    return poses.translation_angle(t_a, t_b, eps=_EPS)
 
 
 def pose_loss(cam_j_from_cam_i: torch.Tensor, target_rotation: torch.Tensor, target_translation: torch.Tensor) -> torch.Tensor:

@@ -41,6 +41,10 @@ import torch
 from raytun3r_plugin.adaptation.matchers import Matches
 from raytun3r_plugin.errors import InputError
 
+# Re-exported for the tests and benchmarks that score targets: one definition, the atan2 form
+# (the arccos copies that lived here lost precision near 0 degrees).
+from raytun3r_plugin.metrics import rotation_error_deg, translation_direction_error_deg
+
 __all__ = [
     "PoseTarget",
     "camera_focal_px",
@@ -408,23 +412,3 @@ def estimate_relative_pose(
                           f"too few inliers ({n_inl} < {min_inliers})")
     return PoseTarget(R, t, mask_full, n_inl, True)
 
-
-# --------------------------------------------------------------------------------------------
-# Errors (degrees), for tests and benchmarks
-# --------------------------------------------------------------------------------------------
-
-
-def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
-    """Geodesic angle between two rotations, degrees."""
-    c = (np.trace(np.asarray(R_est).T @ np.asarray(R_gt)) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-
-
-def translation_direction_error_deg(t_est: np.ndarray, t_gt: np.ndarray) -> float:
-    """Signed (0..180 degrees) angle between two translation directions (docs/conventions.md section 8)."""
-    a = np.asarray(t_est, np.float64).reshape(3)
-    b = np.asarray(t_gt, np.float64).reshape(3)
-    na, nb = np.linalg.norm(a), np.linalg.norm(b)
-    if na == 0 or nb == 0:
-        return float("nan")
-    return float(np.degrees(np.arccos(np.clip(a @ b / (na * nb), -1.0, 1.0))))

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 
 from raytun3r_plugin.errors import CameraError, DatasetError
+
+# Pose maths lives in raytun3r_plugin.poses; the readers keep their short names.
+from raytun3r_plugin.poses import invert_rigid as invert_pose
+from raytun3r_plugin.poses import quaternion_to_rotation as quat_to_rot
+from raytun3r_plugin.poses import rotation_to_quaternion as rot_to_quat
 
 __all__ = [
     "check_rigid",
@@ -64,46 +68,6 @@ def load_camera(path: str | Path, camera: str | int | None = None):
         raise DatasetError(str(e)) from e
 
 
-def quat_to_rot(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) from quaternions (..., 4) in (w, x, y, z) order (normalised
-    here; the caller checks for zero quaternions)."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=-2,
-    )
-
-
-def rot_to_quat(R: np.ndarray) -> np.ndarray:
-    """Quaternions (..., 4) (w, x, y, z), w >= 0, from rotation matrices (..., 3, 3)."""
-    R = np.asarray(R, dtype=np.float64)
-    m = R.reshape(-1, 3, 3)
-    out = np.empty((m.shape[0], 4))
-    for k, r in enumerate(m):
-        tr = r[0, 0] + r[1, 1] + r[2, 2]
-        if tr > 0:
-            s = 2.0 * math.sqrt(tr + 1.0)
-            q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
-        else:
-            i = int(np.argmax([r[0, 0], r[1, 1], r[2, 2]]))
-            j, m_ = (i + 1) % 3, (i + 2) % 3
-            s = 2.0 * math.sqrt(max(1.0 + r[i, i] - r[j, j] - r[m_, m_], 1e-300))
-            q = [0.0, 0.0, 0.0, 0.0]
-            q[0] = (r[m_, j] - r[j, m_]) / s
-            q[1 + i] = 0.25 * s
-            q[1 + j] = (r[j, i] + r[i, j]) / s
-            q[1 + m_] = (r[m_, i] + r[i, m_]) / s
-        q = np.array(q)
-        out[k] = q if q[0] >= 0 else -q
-    return out.reshape(R.shape[:-2] + (4,))
-
-
 def slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     """Spherical linear interpolation of unit quaternions (N, 4) (w, x, y, z) at ``alpha`` (N,)
     in [0, 1], along the shorter arc."""
@@ -120,19 +84,6 @@ def slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     w1 = np.where(small, a, np.sin(a * theta) / np.where(small, 1.0, sin))
     q = w0 * q0 + w1 * q1
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
-def invert_pose(T: np.ndarray) -> np.ndarray:
-    """Inverse of rigid transforms (..., 4, 4) (exact transpose of the rotation block)."""
-    T = np.asarray(T, dtype=np.float64)
-    R = T[..., :3, :3]
-    t = T[..., :3, 3]
-    out = np.zeros_like(T)
-    Rt = np.swapaxes(R, -1, -2)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
-    out[..., 3, 3] = 1.0
-    return out
 
 
 def check_rigid(path: str | Path, line: int | None, T: np.ndarray, what: str, tol: float = 1e-3) -> None:

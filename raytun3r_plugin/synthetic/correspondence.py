@@ -18,13 +18,9 @@ import numpy as np
 import torch
 
 from raytun3r_plugin.datasets.sequence import Sequence
+from raytun3r_plugin.poses import relative_pose  # re-exported: its one home
 
 __all__ = ["bilinear_sample", "correspondences", "dense_flow", "relative_pose"]
-
-
-def relative_pose(cam_from_world: np.ndarray, i: int, j: int) -> np.ndarray:
-    """``cam_j_from_cam_i`` (4, 4) float64 from a pose array (N, 4, 4)."""
-    return cam_from_world[j] @ np.linalg.inv(cam_from_world[i])
 
 
 def bilinear_sample(image: np.ndarray, uv: np.ndarray, valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

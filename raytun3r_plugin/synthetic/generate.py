@@ -6,6 +6,7 @@ import numpy as np
 import torch
 
 from raytun3r_plugin.datasets.sequence import Sequence
+from raytun3r_plugin.poses import relative_pose
 from raytun3r_plugin.synthetic.render import Renderer
 from raytun3r_plugin.synthetic.scene import Scene, make_scene
 from raytun3r_plugin.synthetic.trajectory import (
@@ -41,7 +42,7 @@ def median_flow(camera, cam_from_world: np.ndarray, depth: float, n_rays: int = 
     uv0 = uv0.detach().cpu().numpy()
     meds = []
     for k in range(cam_from_world.shape[0] - 1):
-        T = cam_from_world[k + 1] @ np.linalg.inv(cam_from_world[k])
+        T = relative_pose(cam_from_world, k, k + 1)
         uv1, ok1 = camera.project(torch.from_numpy(X @ T[:3, :3].T + T[:3, 3]))
         m = (ok0 & ok1).detach().cpu().numpy()
         if m.any():
