@@ -257,6 +257,27 @@ class Adapter(nn.Module):
                 value.copy_(tensors[name])
         return adapter
 
+    # ------------------------------------------------------------------ corrections
+    def pe_correction(self, geometry: Any, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """The PE update ``t_r(rho) + rho d_theta(theta)`` of every patch token, (h w, C).
+
+        The one place the tables meet the geometry: the patched PE hook adds it to the
+        backbone's table, and the adaptation's PE regularisers
+        (:func:`~raytun3r_plugin.adaptation.losses.pe_correction_grid`) read it, so both see
+        the same matmuls. Differentiable in the tables.
+
+        Args:
+            geometry: a :class:`raytun3r_plugin.geometry.SizeGeometry` (camera at the input
+                size), whose interpolation matrices spread the tables over the token grid.
+            device, dtype: of the result (default: the tables' device, float32).
+
+        Returns:
+            (h * w, C) correction in PE units, tokens in row-major order of the patch grid.
+        """
+        device = self.pe["radial"].device if device is None else device
+        radial, angular = geometry.pe_weights(self.n_r, self.n_theta, device, dtype)
+        return radial @ self.pe["radial"].to(device, dtype) + angular @ self.pe["angular"].to(device, dtype)
+
     # ------------------------------------------------------------------ comparisons
     def same_as(self, other: Adapter) -> bool:
         """True when ``other`` holds the same tables, sizes, backbone and camera."""

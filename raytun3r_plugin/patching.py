@@ -140,10 +140,8 @@ class PatchState:
         return self.geometry_cache.at(int(height), int(width))
 
     def pe_correction(self, geometry: SizeGeometry, device, dtype) -> torch.Tensor:
-        """(hw, C) PE update t_r(rho) + rho d_theta(theta) for the current grid."""
-        adapter = self.adapter
-        radial, angular = geometry.pe_weights(adapter.n_r, adapter.n_theta, device, dtype)
-        return radial @ adapter.pe["radial"].to(device, dtype) + angular @ adapter.pe["angular"].to(device, dtype)
+        """(hw, C) PE update t_r(rho) + rho d_theta(theta) for the current grid (:meth:`Adapter.pe_correction`)."""
+        return self.adapter.pe_correction(geometry, device, dtype)
 
     def rope_displacement(self, geometry: SizeGeometry, device, dtype) -> torch.Tensor:
         """(hw, 2) RoPE position displacement in (y, x) token units along the outward direction."""
