@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import statistics
 import subprocess
 import sys
@@ -49,14 +48,9 @@ BACKBONE = "da3-small"
 
 def camera(size: int):
     """190-degree equidistant-like KB4 fisheye whose image circle fits the image."""
-    from raytun3r_plugin.cameras import KannalaBrandt4
+    from raytun3r_plugin.cameras import fisheye
 
-    half = math.radians(95.0)
-    focal = (size / 2) / half
-    centre = (size - 1) / 2
-    return KannalaBrandt4(
-        size, size, {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "k1": 0.0, "k2": 0.0, "k3": 0.0, "k4": 0.0}, max_fov_deg=190.0
-    )
+    return fisheye(size, 190.0, "kb4", k=(0.0, 0.0, 0.0, 0.0))
 
 
 def build_model() -> torch.nn.Module:

@@ -46,12 +46,7 @@ from raytun3r_plugin.adaptation.pose_targets import (
 
 def kb4_190(size: int) -> cameras.Camera:
     """Kannala-Brandt 4, 190-degree lens circle filling ~95% of the image width."""
-    theta_max = math.radians(95.0)
-    k = (0.01, -0.004, 0.0005, 0.0)
-    td = theta_max * (1 + k[0] * theta_max**2 + k[1] * theta_max**4 + k[2] * theta_max**6)
-    f = 0.475 * size / td
-    c = (size - 1) / 2
-    return cameras.KannalaBrandt4(size, size, [f, f, c, c, *k], max_fov_deg=190.0)
+    return cameras.fisheye(size, 190.0, "kb4", k=(0.01, -0.004, 0.0005, 0.0), radius_px=0.475 * size)
 
 
 def ds_195(size: int) -> cameras.Camera:

@@ -19,16 +19,13 @@ import torch
 from raytun3r_plugin.patches.da3 import build_network
 
 import raytun3r_plugin as rt
+from raytun3r_plugin import cameras
 from raytun3r_plugin.cameras import KannalaBrandt4
 
 
 def fisheye(size: int) -> KannalaBrandt4:
-    import math
-
-    half = math.radians(97.5)
-    focal = (size / 2) / half
-    centre = (size - 1) / 2
-    return KannalaBrandt4(size, size, {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "k1": 0.0, "k2": 0.0, "k3": 0.0, "k4": 0.0}, max_fov_deg=195.0)
+    """195-degree ideal equidistant KB4 whose image circle fills the image."""
+    return cameras.fisheye(size, 195.0, "kb4", k=(0.0, 0.0, 0.0, 0.0))
 
 
 def trained_looking(adapter: rt.Adapter) -> rt.Adapter:

@@ -72,24 +72,12 @@ def gap_closed(summary: list[dict], method: str = "raytun3r", lower: str = ZERO_
 
 
 def make_camera(spec: BenchCamera, size: int):
-    """A square camera whose image circle (``spec.fov_deg``) fills the image width."""
-    from raytun3r_plugin.cameras import DoubleSphere, KannalaBrandt4
+    """A ``size`` x ``size`` camera whose image circle (``spec.fov_deg``) fills the image width:
+    :func:`raytun3r_plugin.cameras.fisheye` with its default lens (KB4 ``k1 = 0.02``; DS
+    ``xi = -0.15``, ``alpha = 0.6``)."""
+    from raytun3r_plugin.cameras import fisheye
 
-    half = math.radians(spec.fov_deg / 2)
-    centre = (size - 1) / 2
-    if spec.model == "kb4":
-        k1 = 0.02
-        focal = (size / 2) / (half * (1 + k1 * half**2))
-        return KannalaBrandt4(size, size, {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "k1": k1, "k2": 0.0, "k3": 0.0, "k4": 0.0}, max_fov_deg=spec.fov_deg)
-    xi, alpha = -0.15, 0.6
-    # Radius of the boundary ray in the normalised DS image plane, then the focal that puts it at the edge.
-    x, z = math.sin(half), math.cos(half)
-    d1 = 1.0
-    k = xi * d1 + z
-    d2 = math.sqrt(x * x + k * k)
-    radius = x / (alpha * d2 + (1 - alpha) * k)
-    focal = (size / 2) / radius
-    return DoubleSphere(size, size, {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "xi": xi, "alpha": alpha}, max_fov_deg=spec.fov_deg)
+    return fisheye(size, spec.fov_deg, spec.model)
 
 
 def sequence_seed(camera_index: int, scene_index: int, k: int, base: int = HELD_OUT_SEED) -> int:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 from pathlib import Path
 
@@ -69,12 +68,11 @@ def default_network():
 
 
 def demo_camera(size: int):
-    from raytun3r_plugin.cameras import KannalaBrandt4
+    """The demo's lens: a ``size`` x ``size`` 190-degree KB4 (``k1 = 0.02``) whose image circle
+    fills the width (:func:`raytun3r_plugin.cameras.fisheye`)."""
+    from raytun3r_plugin.cameras import fisheye
 
-    half = math.radians(95.0)
-    focal = (size / 2) / (half * (1 + 0.02 * half**2))
-    centre = (size - 1) / 2
-    return KannalaBrandt4(size, size, {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "k1": 0.02, "k2": 0.0, "k3": 0.0, "k4": 0.0}, max_fov_deg=190.0)
+    return fisheye(size, 190.0, "kb4", k=(0.02, 0.0, 0.0, 0.0))
 
 
 def run_demo(args: argparse.Namespace) -> int:

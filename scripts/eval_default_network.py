@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 import warnings
@@ -53,13 +52,9 @@ def log(msg: str) -> None:
 
 def kb4_camera(size: int, fov_deg: float):
     """Equidistant fisheye (k1..k4 = 0) whose ``fov_deg`` image circle fills the square frame."""
-    from raytun3r_plugin.cameras import KannalaBrandt4
+    from raytun3r_plugin.cameras import fisheye
 
-    theta = math.radians(fov_deg) / 2.0
-    f = (size / 2.0) / theta
-    c = (size - 1) / 2.0
-    params = {"fx": f, "fy": f, "cx": c, "cy": c, "k1": 0.0, "k2": 0.0, "k3": 0.0, "k4": 0.0}
-    return KannalaBrandt4(size, size, params, max_fov_deg=fov_deg)
+    return fisheye(size, fov_deg, "kb4", k=(0.0, 0.0, 0.0, 0.0))
 
 
 def camera_for(name: str, size: int, seed: int):

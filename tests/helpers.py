@@ -13,16 +13,9 @@ def pinhole(width: int = 84, height: int = 70, focal: float = 60.0):
 
 def fisheye(width: int = 84, height: int = 70, fov_deg: float = 190.0, k1: float = 0.01):
     """An equidistant-like KB4 whose image circle (fov_deg) fits the shorter side."""
-    import math
+    from raytun3r_plugin.cameras import fisheye as build
 
-    from raytun3r_plugin.cameras import KannalaBrandt4
-
-    half = math.radians(fov_deg / 2)
-    focal = (min(width, height) / 2) / (half * (1 + k1 * half**2))
-    return KannalaBrandt4(
-        width, height, {"fx": focal, "fy": focal, "cx": (width - 1) / 2, "cy": (height - 1) / 2, "k1": k1, "k2": 0.0, "k3": 0.0, "k4": 0.0},
-        max_fov_deg=fov_deg,
-    )
+    return build((width, height), fov_deg, "kb4", k=(k1, 0.0, 0.0, 0.0))
 
 
 def outputs(model, images):

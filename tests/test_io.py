@@ -5,7 +5,12 @@ from __future__ import annotations
 import pytest
 import torch
 
-from raytun3r_plugin._io import atomic_path, atomic_save_safetensors, atomic_write_bytes, atomic_write_text
+from raytun3r_plugin._io import (
+    atomic_path,
+    atomic_save_safetensors,
+    atomic_write_bytes,
+    atomic_write_text,
+)
 
 
 def test_atomic_write_replaces_and_leaves_no_temporary(tmp_path):

@@ -3,12 +3,14 @@
 Every model is an immutable :class:`Camera` with batched, differentiable torch ``project`` /
 ``unproject`` (unit rays, valid masks), whole-image helpers (``ray_table``, ``valid_mask``,
 ``fov_deg``), resize/crop and an exact JSON form. ``load`` reads Kalibr, basalt, COLMAP,
-KITTI-360 (OpenCV YAML) and raytun3r's own JSON calibration files. See ``docs/cameras.md``.
+KITTI-360 (OpenCV YAML) and raytun3r's own JSON calibration files; ``fisheye`` builds the
+equidistant-like synthetic lens of a given size and field of view. See ``docs/cameras.md``.
 """
 
 from __future__ import annotations
 
 from raytun3r_plugin.cameras.base import CAMERA_MODELS, Camera, from_dict, pixel_grid
+from raytun3r_plugin.cameras.builders import fisheye
 from raytun3r_plugin.cameras.fisheye624 import Fisheye624
 from raytun3r_plugin.cameras.formats import load, save, to_colmap_line
 from raytun3r_plugin.cameras.fov import FOV
@@ -29,6 +31,7 @@ __all__ = [
     "OpenCVRadTan",
     "Pinhole",
     "ThinPrismFisheye",
+    "fisheye",
     "from_dict",
     "load",
     "pixel_grid",

@@ -1,0 +1,93 @@
+"""Synthetic-lens constructors: "an equidistant-like fisheye of size S and field of view F".
+
+The demo, the benchmark, the benchmark scripts and the tests all need a fisheye whose image
+circle (the boundary ray at ``fov_deg / 2``) lands at a chosen radius. :func:`fisheye` is the one
+constructor; its formulas are the ones those callers used by hand, so the cameras they build are
+unchanged to the last bit (``tests/test_cameras_builders.py`` holds the old formulas and checks).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+from raytun3r_plugin.cameras.base import Camera
+from raytun3r_plugin.cameras.kb import KannalaBrandt4
+from raytun3r_plugin.cameras.unified import DoubleSphere
+from raytun3r_plugin.errors import CameraError
+
+__all__ = ["FISHEYE_MODELS", "fisheye"]
+
+#: Lens models :func:`fisheye` builds.
+FISHEYE_MODELS = ("kb4", "ds")
+
+
+def _kb4_theta_d(theta: float, k: Sequence[float]) -> float:
+    # Written term by term, in the order the hand-built cameras used: with trailing zero
+    # coefficients the extra ``+ 0.0`` terms leave every bit of the old focal length unchanged.
+    k1, k2, k3, k4 = k
+    return theta * (1 + k1 * theta**2 + k2 * theta**4 + k3 * theta**6 + k4 * theta**8)
+
+
+def _ds_boundary_radius(half: float, xi: float, alpha: float) -> float:
+    """Radius of the ray at angle ``half`` in the normalised double-sphere image plane."""
+    x, z = math.sin(half), math.cos(half)
+    d1 = 1.0  # a unit ray
+    k = xi * d1 + z
+    d2 = math.sqrt(x * x + k * k)
+    return x / (alpha * d2 + (1 - alpha) * k)
+
+
+def fisheye(
+    size: int | tuple[int, int],
+    fov_deg: float,
+    model: str = "kb4",
+    *,
+    k: Sequence[float] = (0.02, 0.0, 0.0, 0.0),
+    xi: float = -0.15,
+    alpha: float = 0.6,
+    radius_px: float | None = None,
+) -> Camera:
+    """A centred fisheye whose ``fov_deg`` image circle has radius ``radius_px``.
+
+    The focal length (square pixels, ``fx = fy``) is chosen so the ray at ``fov_deg / 2`` from
+    the axis projects ``radius_px`` pixels from the principal point, which sits at the image
+    centre ``((W - 1) / 2, (H - 1) / 2)`` (pixel centres at integers). The camera's
+    ``max_fov_deg`` is ``fov_deg``.
+
+    Args:
+        size: ``S`` for an S x S image, or ``(width, height)`` in pixels.
+        fov_deg: full field of view of the image circle, degrees (may exceed 180).
+        model: ``"kb4"`` (:class:`KannalaBrandt4`, ``theta_d = theta (1 + k1 theta^2 + ...)``)
+            or ``"ds"`` (:class:`DoubleSphere` with ``xi`` and ``alpha``).
+        k: the four KB4 coefficients ``(k1, k2, k3, k4)``; the default ``k1 = 0.02`` is the lens
+            of the demo and the benchmark; ``(0, 0, 0, 0)`` is the ideal equidistant lens.
+        xi, alpha: the double-sphere parameters (the benchmark's DS 195 by default).
+        radius_px: image-circle radius in pixels; default half the shorter side (the circle
+            touches the shorter side's edges).
+
+    Returns:
+        The camera (immutable).
+
+    Raises:
+        CameraError: for an unknown ``model``, a size that is not positive, a field of view
+            outside (0, 360) degrees, or fewer or more than four ``k``.
+    """
+    width, height = (size, size) if isinstance(size, int) else (int(size[0]), int(size[1]))
+    if width <= 0 or height <= 0:
+        raise CameraError(f"fisheye: size must be positive, got {size!r}")
+    if not 0.0 < fov_deg < 360.0:
+        raise CameraError(f"fisheye: fov_deg must be in (0, 360) degrees, got {fov_deg!r}")
+    radius = min(width, height) / 2 if radius_px is None else float(radius_px)
+    half = math.radians(fov_deg / 2)
+    cx, cy = (width - 1) / 2, (height - 1) / 2
+    if model == "kb4":
+        if len(k) != 4:
+            raise CameraError(f"fisheye: k must hold the four KB4 coefficients (k1, k2, k3, k4), got {tuple(k)!r}")
+        focal = radius / _kb4_theta_d(half, k)
+        k1, k2, k3, k4 = (float(value) for value in k)
+        return KannalaBrandt4(width, height, {"fx": focal, "fy": focal, "cx": cx, "cy": cy, "k1": k1, "k2": k2, "k3": k3, "k4": k4}, max_fov_deg=fov_deg)
+    if model == "ds":
+        focal = radius / _ds_boundary_radius(half, xi, alpha)
+        return DoubleSphere(width, height, {"fx": focal, "fy": focal, "cx": cx, "cy": cy, "xi": xi, "alpha": alpha}, max_fov_deg=fov_deg)
+    raise CameraError(f"fisheye: model must be one of {FISHEYE_MODELS}, got {model!r}")

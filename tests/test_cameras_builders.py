@@ -1,0 +1,84 @@
+"""cameras.fisheye: the one constructor of the synthetic fisheye, bit-identical to the old hand-built lenses."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from raytun3r_plugin.cameras import DoubleSphere, KannalaBrandt4, fisheye
+from raytun3r_plugin.errors import CameraError
+
+
+# The formulas the benchmark (benchmark.make_camera) and the demo (demo.demo_camera) used before
+# the constructor existed, kept verbatim: the published benchmark numbers depend on every bit.
+def _old_benchmark_kb4(size: int, fov_deg: float) -> KannalaBrandt4:
+    half = math.radians(fov_deg / 2)
+    centre = (size - 1) / 2
+    k1 = 0.02
+    focal = (size / 2) / (half * (1 + k1 * half**2))
+    return KannalaBrandt4(size, size, {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "k1": k1, "k2": 0.0, "k3": 0.0, "k4": 0.0}, max_fov_deg=fov_deg)
+
+
+def _old_benchmark_ds(size: int, fov_deg: float) -> DoubleSphere:
+    half = math.radians(fov_deg / 2)
+    centre = (size - 1) / 2
+    xi, alpha = -0.15, 0.6
+    x, z = math.sin(half), math.cos(half)
+    k = xi * 1.0 + z
+    d2 = math.sqrt(x * x + k * k)
+    focal = (size / 2) / (x / (alpha * d2 + (1 - alpha) * k))
+    return DoubleSphere(size, size, {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "xi": xi, "alpha": alpha}, max_fov_deg=fov_deg)
+
+
+def _old_demo(size: int) -> KannalaBrandt4:
+    half = math.radians(95.0)
+    focal = (size / 2) / (half * (1 + 0.02 * half**2))
+    centre = (size - 1) / 2
+    return KannalaBrandt4(size, size, {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "k1": 0.02, "k2": 0.0, "k3": 0.0, "k4": 0.0}, max_fov_deg=190.0)
+
+
+def _assert_identical(a, b) -> None:
+    assert type(a) is type(b)
+    assert (a.width, a.height, a.max_fov_deg) == (b.width, b.height, b.max_fov_deg)
+    assert a.params.dtype == b.params.dtype == torch.float64
+    assert torch.equal(a.params, b.params), (a.params - b.params)
+    assert a.to_json() == b.to_json()
+
+
+@pytest.mark.parametrize("size", [56, 112, 113, 518])
+def test_benchmark_and_demo_cameras_are_bit_identical_to_their_old_formulas(size):
+    from raytun3r_plugin.benchmark import CAMERAS, make_camera
+    from raytun3r_plugin.demo import demo_camera
+
+    old = {"kb4": _old_benchmark_kb4, "ds": _old_benchmark_ds}
+    for spec in CAMERAS:
+        _assert_identical(make_camera(spec, size), old[spec.model](size, spec.fov_deg))
+    _assert_identical(demo_camera(size), _old_demo(size))
+
+
+def test_the_boundary_ray_lands_on_the_requested_radius():
+    for camera, radius in (
+        (fisheye(112, 185.0), 56.0),
+        (fisheye((96, 80), 195.0, "ds"), 40.0),
+        (fisheye(100, 190.0, k=(0.01, -0.004, 0.0005, 0.0), radius_px=47.5), 47.5),
+        (fisheye(64, 120.0, k=(0.0, 0.0, 0.0, 0.0)), 32.0),
+    ):
+        half = math.radians(camera.max_fov_deg / 2)
+        ray = torch.tensor([[math.sin(half), 0.0, math.cos(half)]], dtype=torch.float64)
+        uv, ok = camera.project(ray)
+        assert bool(ok[0])
+        assert float(uv[0, 0] - camera.cx) == pytest.approx(radius, abs=1e-9)
+        assert float(camera.cy) == (camera.height - 1) / 2
+
+
+def test_fisheye_refuses_bad_arguments():
+    with pytest.raises(CameraError, match="model"):
+        fisheye(64, 190.0, "pinhole")
+    with pytest.raises(CameraError, match="fov_deg"):
+        fisheye(64, 0.0)
+    with pytest.raises(CameraError, match="four"):
+        fisheye(64, 190.0, k=(0.1,))
+    with pytest.raises(CameraError, match="size"):
+        fisheye((0, 64), 190.0)
