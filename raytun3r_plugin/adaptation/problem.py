@@ -1,0 +1,245 @@
+"""The adaptation problem, prepared once: input layout, windows and their pairs in network-input
+pixels, resized frames, valid region, token geometry and (supervised fit) depth targets.
+
+Part of :mod:`raytun3r_plugin.adaptation.train` (which re-exports the public names here).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from raytun3r_plugin.adaptation.config import AdaptConfig
+from raytun3r_plugin.adaptation.losses import to_input_pixels
+from raytun3r_plugin.adaptation.matchers import get_matcher
+from raytun3r_plugin.adaptation.windows import AdaptationSet, Window, prepare_adaptation_set
+from raytun3r_plugin.errors import InputError
+from raytun3r_plugin.geometry import GeometryCache
+from raytun3r_plugin.preprocess import InputLayout, input_layout
+
+__all__ = ["MAX_DEPTH_SAMPLES", "AdaptationProblem", "prepare_problem", "scene_mask"]
+
+def scene_mask(mask: Any, camera: Any) -> np.ndarray:
+    """A user mask of the native frames, checked and combined with the camera's valid region.
+
+    Args:
+        mask: (H, W) array-like, True (non-zero) where a pixel sees the scene; False marks what
+            never should be matched or supervised (the vehicle's body, a lens mount).
+        camera: camera of the native frames (``width == W``, ``height == H``).
+
+    Returns:
+        (H, W) bool: ``mask & camera.valid_mask()``.
+
+    Raises:
+        InputError: wrong shape, or no pixel left inside the lens.
+    """
+    array = np.asarray(mask.detach().cpu() if isinstance(mask, torch.Tensor) else mask)
+    expected = (int(camera.height), int(camera.width))
+    if array.shape != expected:
+        raise InputError(f"mask must be (H, W) = {expected} like the frames, got shape {array.shape}")
+    combined = (array != 0) & camera.valid_mask().cpu().numpy().astype(bool)
+    if not combined.any():
+        raise InputError("mask leaves no pixel inside the camera's valid region")
+    return combined
+
+
+# --------------------------------------------------------------------------------------------
+# Frames and pairs
+# --------------------------------------------------------------------------------------------
+
+
+def _frames_array(frames: Any) -> tuple[np.ndarray, dict[str, Any]]:
+    """Accept (N, H, W, 3) float32 arrays/tensors or a ``datasets.Sequence``; return the array
+    and a description of the segment."""
+    info: dict[str, Any] = {}
+    if hasattr(frames, "images") and hasattr(frames, "camera"):
+        info["name"] = str(getattr(frames, "name", ""))
+        images = frames.images
+        if images is None:
+            images = np.stack([frames.image(i) for i in range(len(frames))])
+        frames = images
+    if isinstance(frames, torch.Tensor):
+        frames = frames.detach().cpu().numpy()
+    array = np.asarray(frames)
+    if array.ndim != 4 or array.shape[-1] != 3:
+        raise InputError(f"frames must be (N, H, W, 3) RGB in [0, 1], got shape {array.shape}")
+    array = array.astype(np.float32, copy=False)
+    info.update(n_frames=int(array.shape[0]), width=int(array.shape[2]), height=int(array.shape[1]))
+    return array, info
+
+
+@dataclass
+class _Pair:
+    """One ordered pair of a window, in network-input pixels, filtered to usable matches."""
+
+    a: int
+    b: int
+    uv_i: torch.Tensor  # (M, 2) input pixels in frame a
+    uv_j: torch.Tensor  # (M, 2) input pixels in frame b
+    confidence: torch.Tensor  # (M,)
+    rays_i: torch.Tensor  # (M, 3) unit rays of uv_i
+    rays_j: torch.Tensor  # (M, 3) unit rays of uv_j
+    rotation: torch.Tensor | None  # (3, 3) float64 target R (cam_b_from_cam_a), None if unusable
+    direction: torch.Tensor | None  # (3,) float64 unit target translation
+
+
+def _inside(uv: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    height, width = valid.shape
+    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= height - 0.5)
+    col = torch.round(uv[:, 0]).clamp(0, width - 1).long()
+    row = torch.round(uv[:, 1]).clamp(0, height - 1).long()
+    return inside & valid[row, col]
+
+
+def _prepare_pairs(window: Window, layout: InputLayout, valid: torch.Tensor) -> list[_Pair]:
+    camera = layout.camera
+    pairs = []
+    for (a, b), matches in window.pairs.items():
+        uv_i = to_input_pixels(torch.from_numpy(matches.uv_i).float(), layout.native_size, (layout.width, layout.height), layout.offset)
+        uv_j = to_input_pixels(torch.from_numpy(matches.uv_j).float(), layout.native_size, (layout.width, layout.height), layout.offset)
+        with torch.no_grad():
+            rays_i, ok_i = camera.unproject(uv_i)
+            rays_j, ok_j = camera.unproject(uv_j)
+        keep = ok_i & ok_j & _inside(uv_i, valid) & _inside(uv_j, valid)
+        target = window.targets.get((a, b))
+        usable = target is not None and target.ok
+        pairs.append(
+            _Pair(
+                a, b, uv_i[keep], uv_j[keep], torch.from_numpy(matches.confidence).float()[keep],
+                rays_i[keep].float(), rays_j[keep].float(),
+                torch.from_numpy(target.R).double() if usable else None,
+                torch.from_numpy(target.t).double() if usable else None,
+            )
+        )
+    return pairs
+
+
+# --------------------------------------------------------------------------------------------
+# Prepared problem
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class AdaptationProblem:
+    """Everything a step needs, prepared once: input layout, windows with their pairs in
+    network-input pixels, resized frames, valid region and token geometry.
+
+    Attributes:
+        layout: :class:`InputLayout` of the frames.
+        adaptation: the :class:`~raytun3r_plugin.adaptation.windows.AdaptationSet`.
+        windows: ``[(window, pairs)]`` with the pairs filtered to usable matches.
+        inputs: ``{frame index: (3, h, w) network input in [0, 1]}`` for every used frame.
+        valid: (h, w) bool valid region at the input size.
+        geometry: :class:`raytun3r_plugin.geometry.SizeGeometry` at the input size.
+        segment: description of the frames (name, count, size).
+        mask: the user mask of the (cropped) native frames, (H, W) bool, or None; the model is
+            patched with it during adaptation.
+        pe_scale: divisor of the PE regularisers (set by :func:`adapt` from the backbone).
+        depth_targets: supervised mode: ``{frame: (uv (K, 2) input pixels, depth (K,))}``.
+        supervision: description of the ground truth (kind, coverage), or None.
+    """
+
+    layout: InputLayout
+    adaptation: AdaptationSet
+    windows: list[tuple[Window, list[_Pair]]]
+    inputs: dict[int, torch.Tensor]
+    valid: torch.Tensor
+    geometry: Any
+    segment: dict[str, Any]
+    mask: torch.Tensor | None = None
+    pe_scale: float = 1.0
+    depth_targets: dict[int, tuple[torch.Tensor, torch.Tensor]] | None = None
+    supervision: dict[str, Any] | None = None
+
+    def batch(self, index: int) -> torch.Tensor:
+        """(S, 3, h, w) network input of window ``index``."""
+        return torch.stack([self.inputs[frame] for frame in self.windows[index][0].frames])
+
+    def window_depth(self, index: int) -> list[tuple[torch.Tensor, torch.Tensor]] | None:
+        """Supervised mode: the depth samples of window ``index``'s frames, in window order."""
+        if self.depth_targets is None:
+            return None
+        return [self.depth_targets[frame] for frame in self.windows[index][0].frames]
+
+
+#: Most ground-truth depth samples kept per frame (a seeded subset; 112 px frames have fewer).
+MAX_DEPTH_SAMPLES = 8192
+
+
+def _depth_targets(
+    depth: Any, frames: list[int], layout: InputLayout, native_valid: np.ndarray | None, shape: tuple[int, ...], seed: int,
+) -> tuple[dict[int, tuple[torch.Tensor, torch.Tensor]], dict[str, Any]]:
+    """Ground-truth depth of the native frames -> per-frame samples at network-input pixels.
+
+    ``depth`` is (N, H, W) like the frames (a dense map, or a sparse one such as projected LiDAR
+    points: 0, negative or NaN = unknown). Each known pixel centre becomes a sample at the
+    input-pixel position of that centre (``to_input_pixels``, so a crop is honoured), where the
+    prediction is read bilinearly; no resampling of the ground truth blurs depth edges.
+    """
+    array = np.asarray(depth.detach().cpu() if isinstance(depth, torch.Tensor) else depth, dtype=np.float64)
+    if array.shape != tuple(shape):
+        raise InputError(f"depth must be (N, H, W) = {tuple(shape)} like the frames, got shape {array.shape}")
+    width, height = layout.native_size
+    x0, y0 = layout.offset
+    lens = layout.native_camera.valid_mask().cpu().numpy().astype(bool)
+    region = lens if native_valid is None else lens & native_valid[y0 : y0 + height, x0 : x0 + width]
+    generator = np.random.default_rng(seed)
+    targets, known = {}, []
+    for frame in frames:
+        values = array[frame, y0 : y0 + height, x0 : x0 + width]
+        ok = np.isfinite(values) & (values > 0) & region
+        rows, cols = np.nonzero(ok)
+        known.append(ok.sum() / max(1, lens.sum()))
+        if rows.size > MAX_DEPTH_SAMPLES:
+            keep = np.sort(generator.choice(rows.size, MAX_DEPTH_SAMPLES, replace=False))
+            rows, cols = rows[keep], cols[keep]
+        uv = torch.from_numpy(np.stack([cols + x0, rows + y0], axis=1).astype(np.float32))
+        uv = to_input_pixels(uv, layout.native_size, (layout.width, layout.height), layout.offset)
+        targets[frame] = (uv, torch.from_numpy(values[rows, cols].astype(np.float32)))
+    coverage = float(np.mean(known)) if known else 0.0
+    if coverage == 0.0:
+        raise InputError("depth has no positive, finite value inside the lens on the adaptation frames")
+    return targets, {"kind": "depth", "coverage": round(coverage, 4), "dense": coverage > 0.5, "frames": len(frames)}
+
+
+def prepare_problem(camera: Any, frames: Any, config: AdaptConfig, patch: int = 14, mask: Any = None, depth: Any = None) -> AdaptationProblem:
+    """Match, estimate targets (or load them from the cache) and lay the segment out for training.
+
+    ``mask`` (optional, (H, W) like the frames, True where the scene is seen) keeps matches,
+    reprojection and smoothness off the pixels it excludes (:func:`scene_mask`). ``depth``
+    (optional, (N, H, W) like the frames) switches to the supervised fit (:func:`adapt`).
+    """
+    images, segment = _frames_array(frames)
+    if (segment["width"], segment["height"]) != (int(camera.width), int(camera.height)):
+        raise InputError(f"frames are {segment['width']}x{segment['height']} px but the camera is {camera.width}x{camera.height}")
+    native_valid = None if mask is None else scene_mask(mask, camera)
+    segment["sequence_id"] = config.sequence_id
+    layout = input_layout(camera, config.input_size, patch)
+    adaptation = prepare_adaptation_set(
+        images, camera, get_matcher(config.matcher, **config.matcher_options), n_windows=config.n_windows,
+        stride=config.stride, cache_dir=config.cache_dir, sequence_id=config.sequence_id,
+        min_motion_px=config.min_motion_px, window_size=config.window_size, seed=config.seed, valid=native_valid,
+    )
+    if len(adaptation) == 0:
+        raise InputError(
+            f"no usable adaptation window: all {adaptation.skipped_static} candidate windows are static "
+            f"(mean correspondence displacement below {config.min_motion_px} px)"
+        )
+    valid = layout.camera.valid_mask().bool()
+    native_mask = None
+    if native_valid is not None:
+        native_mask = layout.native_mask(native_valid)
+        valid = valid & layout.mask(native_valid)
+        segment["mask"] = {"valid_fraction": round(float(native_valid.mean()), 4), "sha256": hashlib.sha256(np.packbits(native_valid).tobytes()).hexdigest()}
+    used = sorted({frame for window in adaptation.windows for frame in window.frames})
+    inputs = dict(zip(used, layout.frames(images[used]), strict=True))
+    windows = [(window, _prepare_pairs(window, layout, valid)) for window in adaptation.windows]
+    geometry = GeometryCache(layout.native_camera, patch).at(layout.height, layout.width)
+    problem = AdaptationProblem(layout, adaptation, windows, inputs, valid, geometry, segment, native_mask)
+    if depth is not None:
+        problem.depth_targets, problem.supervision = _depth_targets(depth, used, layout, native_valid, tuple(images.shape[:3]), config.seed)
+    return problem

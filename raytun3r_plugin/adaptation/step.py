@@ -1,0 +1,252 @@
+"""One adaptation step: the loss terms of a window, the optimiser step, and the objective of a
+fixed adapter.
+
+Part of :mod:`raytun3r_plugin.adaptation.train` (which re-exports the public names here).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import torch
+from torch import nn
+
+from raytun3r_plugin.adaptation.config import AdaptConfig
+from raytun3r_plugin.adaptation.losses import (
+    backproject,
+    fit_translation_scale,
+    pe_correction_grid,
+    pe_l2,
+    pe_tv,
+    pixel_optimal_scale,
+    pose_loss,
+    relative_pose,
+    reprojection_loss,
+    sample_bilinear,
+    silog_loss,
+    smoothness_loss,
+    total_loss,
+)
+from raytun3r_plugin.adaptation.problem import AdaptationProblem, _Pair
+from raytun3r_plugin.adapter import Adapter
+from raytun3r_plugin.errors import AlreadyAppliedError
+from raytun3r_plugin.patching import apply, handle_of
+from raytun3r_plugin.prediction import predict
+from raytun3r_plugin.preprocess import InputLayout
+
+__all__ = ["adaptation_step", "objective_value", "window_of_step", "window_terms"]
+
+@contextmanager
+def _frozen(model: nn.Module) -> Iterator[None]:
+    """Backbone parameters without gradients and every module in eval mode; restored after."""
+    flags = [(parameter, parameter.requires_grad) for parameter in model.parameters()]
+    modes = [(module, module.training) for module in model.modules()]
+    try:
+        for parameter, _ in flags:
+            parameter.requires_grad_(False)
+        model.eval()
+        yield
+    finally:
+        for parameter, flag in flags:
+            parameter.requires_grad_(flag)
+        for module, mode in modes:
+            module.training = mode
+
+
+# --------------------------------------------------------------------------------------------
+# Loss terms of one window
+# --------------------------------------------------------------------------------------------
+
+
+def _subset(pair: _Pair, max_matches: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
+    count = pair.uv_i.shape[0]
+    if max_matches and count > max_matches:
+        index = torch.randperm(count, generator=generator)[:max_matches]
+        return pair.uv_i[index], pair.uv_j[index], pair.confidence[index], pair.rays_i[index], pair.rays_j[index]
+    return pair.uv_i, pair.uv_j, pair.confidence, pair.rays_i, pair.rays_j
+
+
+def _targets_pose(
+    pair: _Pair, depth_i: torch.Tensor, uv_i: torch.Tensor, uv_j: torch.Tensor, confidence: torch.Tensor,
+    rays_i: torch.Tensor, rays_j: torch.Tensor, camera: Any, config: AdaptConfig,
+) -> torch.Tensor:
+    """``cam_j_from_cam_i`` from the MAGSAC++ target, translation scaled to the predicted depth
+    (``config.scale``: pixel-optimal and detached, or the differentiable least-squares scale)."""
+    depth = sample_bilinear(depth_i, uv_i)
+    usable = torch.isfinite(depth) & (depth > 0)
+    points = backproject(torch.where(usable, depth, torch.ones_like(depth)), rays_i, config.depth_convention)
+    rotation = pair.rotation.to(depth_i.dtype)
+    direction = pair.direction.to(depth_i.dtype)
+    scale = fit_translation_scale(points[usable], rays_j[usable], rotation, direction, confidence[usable])
+    if config.scale == "pixel":
+        scale = pixel_optimal_scale(
+            points[usable], uv_j[usable], rotation, direction, camera, confidence[usable],
+            robust_px=config.robust_px or 1.0, initial=scale.detach(),
+        )
+    pose = torch.eye(4, dtype=depth_i.dtype)
+    return torch.cat((torch.cat((rotation, (scale * direction)[:, None]), dim=1), pose[3:]), dim=0)
+
+
+def window_terms(
+    model: nn.Module,
+    adapter: Adapter,
+    images: torch.Tensor,
+    pairs: list[_Pair],
+    layout: InputLayout,
+    valid: torch.Tensor,
+    geometry: Any,
+    config: AdaptConfig,
+    generator: torch.Generator,
+    *,
+    pe_scale: float = 1.0,
+    depth_targets: list[tuple[torch.Tensor, torch.Tensor]] | None = None,
+) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
+    """Forward one window through the patched model and compute every loss term.
+
+    Args:
+        images: (S, 3, h, w) network input in [0, 1].
+        pairs: the window's ordered pairs (network-input pixels).
+        valid: (h, w) bool valid region at the input size.
+        geometry: :class:`raytun3r_plugin.geometry.SizeGeometry` at the input size.
+        pe_scale: divisor of the L2 and TV terms (the backbone's PE energy for
+            ``pe_regulariser="relative"``, 1 for ``"absolute"``).
+        depth_targets: supervised mode: per frame of the window ``(uv (K, 2) input pixels,
+            depth (K,))``; the terms are then ``depth`` (:func:`silog_loss`), ``l2`` and ``tv``.
+
+    Returns:
+        (terms, counts): 0-d tensors per term name (pose absent in ``targets`` mode) and the
+        numbers of reprojection matches / pose targets that entered them.
+    """
+    prediction = predict(model, images[None])
+    depth, poses = prediction.depth[0], prediction.cam_from_world[0]
+    correction = pe_correction_grid(adapter, geometry)
+    regularisers = {"l2": pe_l2(correction) / pe_scale, "tv": pe_tv(correction) / pe_scale}
+    if depth_targets is not None:
+        losses = [silog_loss(sample_bilinear(depth[k], uv), target) for k, (uv, target) in enumerate(depth_targets) if uv.shape[0]]
+        n_depth = sum(int(uv.shape[0]) for uv, _ in depth_targets)
+        term = torch.stack(losses).mean() if losses else depth.sum() * 0.0
+        return {"depth": term, **regularisers}, {"n_matches": 0, "n_pose": 0, "n_depth": n_depth}
+    reproj, pose_terms, n_matches = [], [], 0
+    for pair in pairs:
+        if config.pose_source == "model":
+            relative = relative_pose(poses, pair.a, pair.b)
+            if pair.rotation is not None:
+                pose_terms.append(pose_loss(relative, pair.rotation, pair.direction))
+        if pair.uv_i.shape[0] == 0 or (config.pose_source == "targets" and pair.rotation is None):
+            continue
+        uv_i, uv_j, confidence, rays_i, rays_j = _subset(pair, config.max_matches, generator)
+        if config.pose_source == "targets":
+            relative = _targets_pose(pair, depth[pair.a], uv_i, uv_j, confidence, rays_i, rays_j, layout.camera, config)
+        loss, count = reprojection_loss(
+            depth[pair.a], relative, uv_i, uv_j, confidence, layout.camera, valid, config.depth_convention,
+            rays_i=(rays_i, torch.ones_like(confidence, dtype=torch.bool)), robust_px=config.robust_px,
+        )
+        if count:
+            reproj.append(loss)
+            n_matches += count
+    zero = depth.sum() * 0.0
+    terms = {
+        "reproj": torch.stack(reproj).mean() if reproj else zero,
+        "smooth": smoothness_loss(depth, images.to(depth.dtype), valid),
+        **regularisers,
+    }
+    if config.pose_source == "model":
+        terms["pose"] = torch.stack(pose_terms).mean() if pose_terms else zero
+    return terms, {"n_matches": n_matches, "n_pose": len(pose_terms)}
+
+
+# --------------------------------------------------------------------------------------------
+# One optimisation step
+# --------------------------------------------------------------------------------------------
+
+
+def window_of_step(step: int, n_windows: int, seed: int) -> int:
+    """Window index of a step: a seeded permutation of the windows per pass (epoch)."""
+    epoch, position = divmod(step, n_windows)
+    generator = torch.Generator().manual_seed(int(seed) * 1_000_003 + epoch)
+    return int(torch.randperm(n_windows, generator=generator)[position])
+
+
+def adaptation_step(
+    model: nn.Module,
+    adapter: Adapter,
+    optimizer: torch.optim.Optimizer,
+    problem: AdaptationProblem,
+    config: AdaptConfig,
+    step: int,
+    index: int | None = None,
+) -> dict[str, Any]:
+    """One step on a model already patched with ``adapter``: forward a window, every loss term,
+    backward, gradient clipping, Adam step. A non-finite loss or gradient skips the update.
+
+    Args:
+        step: global step number (selects the window unless ``index`` is given, and seeds the
+            match subsets).
+        index: window index to use instead of the scheduled one.
+
+    Returns:
+        The step's log record: loss, every term, gradient norm, counts, wall time.
+    """
+    began = time.perf_counter()
+    index = window_of_step(step, len(problem.windows), config.seed) if index is None else index
+    window, pairs = problem.windows[index]
+    generator = torch.Generator().manual_seed(int(config.seed) * 7_919 + step)
+    terms, counts = window_terms(
+        model, adapter, problem.batch(index), pairs, problem.layout, problem.valid, problem.geometry, config, generator,
+        pe_scale=problem.pe_scale, depth_targets=problem.window_depth(index),
+    )
+    loss = total_loss(terms, config.weights)
+    parameters = [p for group in optimizer.param_groups for p in group["params"]]
+    optimizer.zero_grad(set_to_none=True)
+    grad_norm = float("nan")
+    if bool(torch.isfinite(loss)):
+        loss.backward()
+        grads = [p.grad for p in parameters if p.grad is not None]
+        if config.clip is not None:
+            grad_norm = float(torch.nn.utils.clip_grad_norm_(parameters, config.clip))
+        elif grads:
+            grad_norm = float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads])))
+        if math.isfinite(grad_norm):
+            optimizer.step()
+    return {
+        "step": step,
+        "window": index,
+        "frames": list(window.frames),
+        "loss": float(loss.detach()),
+        **{name: float(value.detach()) for name, value in terms.items()},
+        "grad_norm": grad_norm,
+        "skipped": not math.isfinite(grad_norm),
+        **counts,
+        "time_s": round(time.perf_counter() - began, 4),
+    }
+
+
+def objective_value(model: nn.Module, adapter: Adapter, problem: AdaptationProblem, config: AdaptConfig, seed: int = 0) -> dict[str, float]:
+    """The objective of ``config`` for ``adapter``, averaged over every window of ``problem``.
+
+    Runs the model patched with ``adapter`` (the model must be unpatched; it is again
+    afterwards), without gradients. Match subsets come from a generator seeded by ``seed`` and
+    the window index, so two adapters are scored on the same samples. Used to check that the
+    objective ranks a better adapter lower (``tests``, ``docs/adaptation.md``).
+
+    Returns:
+        ``{"loss": total, <term>: mean value, ...}``.
+    """
+    if handle_of(model) is not None:
+        raise AlreadyAppliedError("objective_value needs an unpatched model")
+    sums: dict[str, float] = {}
+    with _frozen(model), torch.no_grad(), apply(model, problem.layout.native_camera, adapter, components=config.components, strict=False, mask=problem.mask):
+        for index, (_, pairs) in enumerate(problem.windows):
+            generator = torch.Generator().manual_seed(int(seed) * 7_919 + index)
+            terms, _ = window_terms(
+                model, adapter, problem.batch(index), pairs, problem.layout, problem.valid, problem.geometry, config, generator,
+                pe_scale=problem.pe_scale, depth_targets=problem.window_depth(index),
+            )
+            terms = {**terms, "loss": total_loss(terms, config.weights)}
+            for name, value in terms.items():
+                sums[name] = sums.get(name, 0.0) + float(value) / len(problem.windows)
+    return sums
