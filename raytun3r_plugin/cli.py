@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from raytun3r_plugin.errors import Raytun3rError
+from raytun3r_plugin.errors import InputError, Raytun3rError
 
 
 def _load_model(backbone: str, weights: str | None):
@@ -44,7 +44,7 @@ def cmd_infer(args: argparse.Namespace) -> int:
     elif adapter is not None and adapter.camera is not None:
         camera = None  # the adapter's, its crop undone (preprocess.fitted_source_camera)
     else:
-        raise Raytun3rError("infer needs --camera, or an --adapter that carries its camera")
+        raise InputError("infer needs --camera, or an --adapter that carries its camera")
     frames, names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
     # The layout adapt used (its rule and long side come from the adapter when --size is not
     # given); frames of another size than the camera rescale the camera, a pure resize.
@@ -93,7 +93,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     long_side = args.size or int(recorded.get("long_side") or DEFAULT_LONG_SIDE)
     seq = fit_sequence(load_sequence(args.dataset, kind=args.kind), long_side, max_frames=args.max_frames)
     if seq.cam_from_world is None:
-        raise Raytun3rError(f"{args.dataset}: the sequence has no ground-truth poses to score against")
+        raise InputError(f"{args.dataset}: the sequence has no ground-truth poses to score against")
     methods = args.method.split(",")
     rows = [{"method": method, **headline(score(seq, run_method(model, seq, method, adapter=adapter)))} for method in methods]
     print(f"{seq.name}: {len(seq)} frames at {seq.camera.width}x{seq.camera.height} px, camera {seq.camera!r}")

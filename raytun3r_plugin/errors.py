@@ -11,6 +11,11 @@ class CameraError(Raytun3rError, ValueError):
     """A camera or calibration file is malformed, incomplete or outside the model's domain."""
 
 
+class CameraModelError(CameraError, TypeError):
+    """A camera model class is defined or used wrongly (the abstract base instantiated, or a
+    subclass whose parameter names do not start with the four intrinsics)."""
+
+
 class AdapterError(Raytun3rError, ValueError):
     """An adapter file or adapter object is corrupt, inconsistent or made for another model."""
 

@@ -19,6 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from raytun3r_plugin import metrics
+from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.patching import apply
 from raytun3r_plugin.poses import relative_pose
 from raytun3r_plugin.prediction import predict
@@ -95,7 +96,7 @@ def center_pinhole_depth_to_fisheye(depth_z: torch.Tensor, camera, pinhole) -> t
 def run_method(model, seq, method: str, adapter=None, frames: list[int] | None = None, window: int = 3, components=None) -> MethodOutput:
     """Run ``method`` on ``frames`` of ``seq`` (images already at the network input size)."""
     if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; choose from {METHODS}")
+        raise InputError(f"unknown method {method!r}; choose from {METHODS}")
     camera = seq.camera
     frames = list(range(len(seq))) if frames is None else list(frames)
     depth = np.zeros((len(seq), camera.height, camera.width), np.float32)

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.poses import _as_torch_pair, relative_poses, rotation_angle, translation_angle
 
 __all__ = [
@@ -105,14 +106,14 @@ def relative_pose_errors(
     pred = np.asarray(cam_from_world_pred.detach().cpu() if isinstance(cam_from_world_pred, torch.Tensor) else cam_from_world_pred, dtype=np.float64)
     gt = np.asarray(cam_from_world_gt.detach().cpu() if isinstance(cam_from_world_gt, torch.Tensor) else cam_from_world_gt, dtype=np.float64)
     if pred.shape != gt.shape or pred.ndim != 3 or pred.shape[1:] != (4, 4):
-        raise ValueError(f"pose arrays must both be (N, 4, 4), got {pred.shape} and {gt.shape}")
+        raise InputError(f"pose arrays must both be (N, 4, 4), got {pred.shape} and {gt.shape}")
     n = gt.shape[0]
     if pairs is None:
         p = np.stack([np.arange(n - 1), np.arange(1, n)], -1) if n > 1 else np.zeros((0, 2), np.int64)
     else:
         p = np.asarray(list(pairs) if not isinstance(pairs, np.ndarray) else pairs, dtype=np.int64).reshape(-1, 2)
     if p.size and (p.min() < 0 or p.max() >= n):
-        raise ValueError(f"pair indices must be in [0, {n})")
+        raise InputError(f"pair indices must be in [0, {n})")
     rel_gt = relative_poses(gt, p)
     rel_pred = relative_poses(pred, p)
     base = np.linalg.norm(rel_gt[:, :3, 3], axis=1)
@@ -177,7 +178,7 @@ def _points(depth: np.ndarray, camera, uv: np.ndarray, depth_kind: str) -> tuple
         ok &= rz > 1e-9
         d = d / np.where(rz > 1e-9, rz, 1.0)
     elif depth_kind != "range":
-        raise ValueError(f"depth_kind must be 'range' or 'z', got {depth_kind!r}")
+        raise InputError(f"depth_kind must be 'range' or 'z', got {depth_kind!r}")
     return d[:, None] * rays, ok
 
 
@@ -247,7 +248,7 @@ def d_reproj(
     ui = _np(uv_i).reshape(-1, 2)
     uj = _np(uv_j).reshape(-1, 2)
     if ui.shape != uj.shape:
-        raise ValueError(f"uv_i and uv_j must have the same shape, got {ui.shape} and {uj.shape}")
+        raise InputError(f"uv_i and uv_j must have the same shape, got {ui.shape} and {uj.shape}")
     m = ui.shape[0]
     T = _np(cam_j_from_cam_i_gt).reshape(4, 4)
     R, t = T[:3, :3], T[:3, 3]
@@ -344,20 +345,20 @@ def align_scale(pred: Any, gt: Any, valid: Any = None, method: str = "median") -
     if method == "lstsq":
         den = float(np.sum(pv * pv))
         return float(np.sum(pv * gv)) / den if den > 0 else math.nan
-    raise ValueError(f"align must be 'median', 'lstsq' or 'none', got {method!r}")
+    raise InputError(f"align must be 'median', 'lstsq' or 'none', got {method!r}")
 
 
 def _per_image(fn, pred: Any, gt: Any, valid: Any, align: str) -> float | np.ndarray:
     p = _np(pred)
     g = _np(gt)
     if p.shape != g.shape:
-        raise ValueError(f"pred and gt must have the same shape, got {p.shape} and {g.shape}")
+        raise InputError(f"pred and gt must have the same shape, got {p.shape} and {g.shape}")
     if p.ndim == 2:
         ok = _depth_valid(p, g, valid)
         s = align_scale(p, g, ok, align)
         return fn(s * p[ok], g[ok]) if ok.any() and math.isfinite(s) else math.nan
     if p.ndim != 3:
-        raise ValueError(f"depth must be (H, W) or (N, H, W), got shape {p.shape}")
+        raise InputError(f"depth must be (H, W) or (N, H, W), got shape {p.shape}")
     v = None if valid is None else np.broadcast_to(_np(valid, bool), p.shape)
     return np.array([_per_image(fn, p[k], g[k], None if v is None else v[k], align) for k in range(p.shape[0])])
 

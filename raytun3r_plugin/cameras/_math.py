@@ -13,6 +13,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from raytun3r_plugin.errors import CameraError
+
 
 def safe_sqrt(x: Tensor) -> Tensor:
     """sqrt with a finite gradient everywhere.
@@ -254,7 +256,7 @@ class RadialTable:
     def __init__(self, t: np.ndarray, g_end: float, diverges: bool) -> None:
         t = np.ascontiguousarray(t, dtype=np.float64)
         if not (np.all(np.isfinite(t)) and np.all(np.diff(t) >= 0) and math.isfinite(g_end)):
-            raise ValueError("radial table must be finite and increasing")
+            raise CameraError("radial table must be finite and increasing")
         self.t_max = float(t[-1])
         self.g_max = float(g_end)
         self.n = t.shape[0] - 1

@@ -22,7 +22,7 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from raytun3r_plugin.errors import CameraError
+from raytun3r_plugin.errors import CameraError, CameraModelError
 
 __all__ = ["CAMERA_MODELS", "Camera", "from_dict", "param_error", "pixel_grid"]
 
@@ -110,7 +110,7 @@ class Camera:
         super().__init_subclass__(**kwargs)
         if cls.model:
             if cls.param_names[:4] != _INTRINSIC_NAMES:
-                raise TypeError(f"{cls.__name__}.param_names must start with {_INTRINSIC_NAMES}")
+                raise CameraModelError(f"{cls.__name__}.param_names must start with {_INTRINSIC_NAMES}")
             CAMERA_MODELS[cls.model] = cls
 
     def __init__(
@@ -123,7 +123,7 @@ class Camera:
     ) -> None:
         cls = type(self)
         if not cls.model:
-            raise TypeError("Camera is abstract: use a model such as Pinhole or KannalaBrandt4")
+            raise CameraModelError("Camera is abstract: use a model such as Pinhole or KannalaBrandt4")
         width = _check_size("width", width)
         height = _check_size("height", height)
         p = self._params_tensor(params)

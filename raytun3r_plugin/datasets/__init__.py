@@ -92,4 +92,4 @@ def load_sequence(path: str | Path, kind: str | None = None, **kw: Any) -> Seque
                 raise DatasetError(f"{p / 'data_poses'}: {len(seqs)} sequences {seqs[:5]}; pass sequence=")
             kw["sequence"] = seqs[0]
         return load_kitti360(p, **kw)
-    raise ValueError(f"unknown dataset kind {kind!r}; expected one of {KINDS}")
+    raise DatasetError(f"unknown dataset kind {kind!r}; expected one of {KINDS}")

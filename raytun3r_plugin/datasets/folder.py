@@ -62,7 +62,7 @@ def write_sequence(seq: Sequence, folder: str | Path, depth_format: str = "npy")
     from raytun3r_plugin import cameras
 
     if depth_format not in ("npy", "png16"):
-        raise ValueError(f"depth_format must be 'npy' or 'png16', got {depth_format!r}")
+        raise DatasetError(f"depth_format must be 'npy' or 'png16', got {depth_format!r}")
     out = Path(folder)
     (out / "images").mkdir(parents=True, exist_ok=True)
     n = len(seq)

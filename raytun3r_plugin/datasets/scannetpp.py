@@ -101,7 +101,7 @@ def load_scannetpp_transforms(
     if not p.is_file():
         raise fail(p, None, "file not found")
     if split not in ("all", "train", "test"):
-        raise ValueError(f"split must be 'all', 'train' or 'test', got {split!r}")
+        raise DatasetError(f"split must be 'all', 'train' or 'test', got {split!r}")
     text = p.read_text(encoding="utf-8")
     try:
         d = json.loads(text)

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from raytun3r_plugin.datasets.sequence import Sequence
+from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.poses import relative_pose  # re-exported: its one home
 
 __all__ = ["bilinear_sample", "correspondences", "dense_flow", "relative_pose"]
@@ -55,7 +56,7 @@ def bilinear_sample(image: np.ndarray, uv: np.ndarray, valid: np.ndarray | None 
 def _range_and_mask(seq: Sequence, i: int) -> tuple[np.ndarray, np.ndarray]:
     d = seq.range_depth(i)
     if d is None:
-        raise ValueError(f"sequence {seq.name!r} has no depth; correspondences need ground-truth depth")
+        raise InputError(f"sequence {seq.name!r} has no depth; correspondences need ground-truth depth")
     d = np.asarray(d, dtype=np.float64)
     m = d > 0
     fm = seq.frame_mask(i)
@@ -88,7 +89,7 @@ def correspondences(
         ``visible`` (M,) bool.
     """
     if seq.cam_from_world is None:
-        raise ValueError(f"sequence {seq.name!r} has no poses")
+        raise InputError(f"sequence {seq.name!r} has no poses")
     cam = seq.camera
     h, w = seq.height, seq.width
     d_i, m_i = _range_and_mask(seq, i)
@@ -123,7 +124,7 @@ def correspondences(
     elif occlusion == "raycast":
         visible = inside & _raycast_visible(seq, j, X_j, rng_j, rel_tol)
     else:
-        raise ValueError(f"occlusion must be 'depth' or 'raycast', got {occlusion!r}")
+        raise InputError(f"occlusion must be 'depth' or 'raycast', got {occlusion!r}")
     return uv_i, uv_j, visible
 
 

@@ -6,6 +6,7 @@ import numpy as np
 import torch
 
 from raytun3r_plugin.datasets.sequence import Sequence
+from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.poses import relative_pose
 from raytun3r_plugin.synthetic.render import Renderer
 from raytun3r_plugin.synthetic.scene import Scene, make_scene
@@ -70,7 +71,7 @@ def make_trajectory(
         def make(n: int, step: float) -> np.ndarray:
             return driving_trajectory(n, seed, step=step, start=start)
     else:
-        raise ValueError(f"unknown motion {motion!r}; expected 'handheld' or 'driving'")
+        raise InputError(f"unknown motion {motion!r}; expected 'handheld' or 'driving'")
     depth = _DEPTH_SCALE[kind]
     step = calibrate_step(make, n_frames, lambda poses: median_flow(camera, poses, depth), flow_px)
     return make(n_frames, step), step
@@ -84,7 +85,7 @@ def scene_of(seq: Sequence) -> Scene:
         return scene
     gen = seq.meta.get("synthetic")
     if not gen or seq.cam_from_world is None:
-        raise ValueError(f"sequence {seq.name!r} is not a raytun3r synthetic sequence")
+        raise InputError(f"sequence {seq.name!r} is not a raytun3r synthetic sequence")
     path = np.asarray(gen.get("path", camera_centres(seq.cam_from_world)), dtype=np.float64)
     scene = make_scene(gen["kind"], int(gen["seed"]), path)
     seq.meta["scene"] = scene
@@ -128,9 +129,9 @@ def render_sequence(
         z-depth (``"z_depth"``, N x H x W float32) and sky masks (``"sky"``, N x H x W bool).
     """
     if kind not in _DEPTH_SCALE:
-        raise ValueError(f"unknown scene kind {kind!r}; expected 'indoor' or 'outdoor'")
+        raise InputError(f"unknown scene kind {kind!r}; expected 'indoor' or 'outdoor'")
     if n_frames < 1:
-        raise ValueError("n_frames must be >= 1")
+        raise InputError("n_frames must be >= 1")
     motion = motion or ("handheld" if kind == "indoor" else "driving")
     poses, step = make_trajectory(kind, motion, camera, n_frames, seed, flow_px)
     path = camera_centres(poses)

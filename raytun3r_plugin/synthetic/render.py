@@ -32,6 +32,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.synthetic.noise import SolidNoise, band_weight, smoothstep
 from raytun3r_plugin.synthetic.scene import (
     MAT_BASE,
@@ -206,7 +207,7 @@ class Renderer:
 
     def __init__(self, camera, supersample: int = 2, adaptive: bool = True, num_threads: int | None = 1) -> None:
         if supersample < 1:
-            raise ValueError("supersample must be >= 1")
+            raise InputError("supersample must be >= 1")
         self.camera = camera
         self.adaptive = adaptive
         self.num_threads = num_threads

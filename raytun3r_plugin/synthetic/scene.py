@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from raytun3r_plugin.errors import InputError
+
 __all__ = ["Hit", "RayTiles", "Scene", "intersect", "make_indoor_scene", "make_outdoor_scene", "make_scene"]
 
 # Material table columns.
@@ -654,4 +656,4 @@ def make_scene(kind: str, seed: int, path: np.ndarray | None = None) -> Scene:
         return make_indoor_scene(seed, path)
     if kind == "outdoor":
         return make_outdoor_scene(seed, path)
-    raise ValueError(f"unknown scene kind {kind!r}; expected 'indoor' or 'outdoor'")
+    raise InputError(f"unknown scene kind {kind!r}; expected 'indoor' or 'outdoor'")
