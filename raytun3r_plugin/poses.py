@@ -168,8 +168,9 @@ def backproject(depth: torch.Tensor, rays: torch.Tensor, depth_convention: str =
         depth: (...,) depth per ray: range along the ray, or z-depth.
         rays: (..., 3) unit rays (broadcast against ``depth``).
         depth_convention: ``"range"`` (``X = D ray``) or ``"z"`` (``X = D ray / ray_z``; only
-            meaningful in front of the camera: ``|ray_z|`` is floored at :data:`MIN_RAY_Z`
-            keeping its sign, so a ray behind the camera stays behind it).
+            meaningful in front of the camera: a ``ray_z`` with ``|ray_z| <= MIN_RAY_Z`` is
+            replaced by :data:`MIN_RAY_Z` so nothing divides by zero, and a ray behind the
+            camera is divided by its own negative ``ray_z``).
 
     Returns:
         (..., 3) points, in the unit of ``depth``.
