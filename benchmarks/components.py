@@ -14,9 +14,9 @@ from __future__ import annotations
 import argparse
 
 from raytun3r_plugin import synthetic
-from raytun3r_plugin.benchmark import CAMERAS, SCENES, make_camera
-from raytun3r_plugin.demo import default_network, demo_camera
-from raytun3r_plugin.evaluation import format_table, headline, run_method, score
+from raytun3r_plugin.apps.benchmark import CAMERAS, SCENES, make_camera
+from raytun3r_plugin.apps.demo import default_network, demo_camera
+from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
 from raytun3r_plugin.registry import quiet_upstream
 
 SETS = (["patch_resample"], ["border_tokens"], ["grid"], ["patch_resample", "grid"], ["patch_resample", "border_tokens", "grid"])

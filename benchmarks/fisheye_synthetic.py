@@ -14,13 +14,13 @@ import argparse
 import re
 from pathlib import Path
 
-from raytun3r_plugin.benchmark import (
+from raytun3r_plugin.apps.benchmark import (
     DEVELOPMENT_SEED,
     HELD_OUT_SEED,
     SEQUENCES_PER_CELL,
     run_benchmark,
 )
-from raytun3r_plugin.demo import default_network
+from raytun3r_plugin.apps.demo import default_network
 from raytun3r_plugin.registry import quiet_upstream
 
 START, END = "<!-- bench:start -->", "<!-- bench:end -->"

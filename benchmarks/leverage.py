@@ -25,8 +25,8 @@ import torch
 
 from raytun3r_plugin import apply, synthetic
 from raytun3r_plugin.adapter import Adapter
-from raytun3r_plugin.benchmark import CAMERAS, make_camera
-from raytun3r_plugin.evaluation import format_table
+from raytun3r_plugin.apps.benchmark import CAMERAS, make_camera
+from raytun3r_plugin.apps.evaluation import format_table
 from raytun3r_plugin.prediction import predict
 from raytun3r_plugin.registry import quiet_upstream
 from raytun3r_plugin.weights import load_backbone

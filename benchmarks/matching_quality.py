@@ -87,7 +87,7 @@ def displacement_bins(seqs, matcher: Matcher, gaps: tuple[int, ...] = (1, 2)) ->
 
 def bins_table(n_frames: int, seeds: list[int]) -> None:
     """The displacement-bin table on the benchmark's cameras (development seeds 80000+)."""
-    from raytun3r_plugin.benchmark import CAMERAS, make_camera
+    from raytun3r_plugin.apps.benchmark import CAMERAS, make_camera
 
     labels = [f"{int(lo)}-{int(hi)} px" if math.isfinite(hi) else f"{int(lo)}+ px" for lo, hi in zip(BINS[:-1], BINS[1:], strict=True)]
     print("Share of matches and median end-point error (px) per bin of the true motion; pairs (k, k+1) and (k, k+2), both directions; "

@@ -37,9 +37,9 @@ from raytun3r_plugin.adaptation.losses import (
 )
 from raytun3r_plugin.adaptation.train import adapt, objective_value, prepare_problem
 from raytun3r_plugin.adapter import Adapter
-from raytun3r_plugin.benchmark import CAMERAS, ground_truth_depth, make_camera
-from raytun3r_plugin.demo import adapt_config, default_network, supervised_config
-from raytun3r_plugin.evaluation import format_table
+from raytun3r_plugin.apps.benchmark import CAMERAS, ground_truth_depth, make_camera
+from raytun3r_plugin.apps.demo import adapt_config, default_network, supervised_config
+from raytun3r_plugin.apps.evaluation import format_table
 from raytun3r_plugin.registry import quiet_upstream, spec_for
 
 SEQUENCES = (("KB4 185", "indoor", 80_010), ("DS 195", "indoor", 80_020), ("KB4 185", "outdoor", 80_011))

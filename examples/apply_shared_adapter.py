@@ -13,7 +13,7 @@ import argparse
 
 import raytun3r_plugin as rt
 from raytun3r_plugin import synthetic
-from raytun3r_plugin.demo import default_network
+from raytun3r_plugin.apps.demo import default_network
 from raytun3r_plugin.preprocess import fitted_source_camera, input_layout
 
 

@@ -9,8 +9,8 @@ import argparse
 
 import raytun3r_plugin as rt
 from raytun3r_plugin import synthetic
-from raytun3r_plugin.demo import default_network
-from raytun3r_plugin.evaluation import fit_sequence, format_table, headline, run_method, score
+from raytun3r_plugin.apps.demo import default_network
+from raytun3r_plugin.apps.evaluation import fit_sequence, format_table, headline, run_method, score
 from raytun3r_plugin.preprocess import fitted_source_camera
 
 

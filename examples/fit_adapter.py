@@ -12,7 +12,7 @@ import argparse
 import raytun3r_plugin as rt
 from raytun3r_plugin import cameras, synthetic
 from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
-from raytun3r_plugin.demo import POSE_SOURCE, default_network, demo_camera
+from raytun3r_plugin.apps.demo import POSE_SOURCE, default_network, demo_camera
 from raytun3r_plugin.images import read_frames, read_mask
 
 

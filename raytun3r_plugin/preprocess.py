@@ -2,7 +2,7 @@
 
 Every path that feeds frames to a network (``raytun3r adapt`` through
 :func:`raytun3r_plugin.adaptation.train.prepare_problem`, ``raytun3r infer``, ``raytun3r eval``
-through :func:`raytun3r_plugin.evaluation.fit_sequence`, and the examples) builds one
+through :func:`raytun3r_plugin.apps.evaluation.fit_sequence`, and the examples) builds one
 :class:`InputLayout` and lets it prepare frames, masks, depth maps and pixel coordinates. There is
 no second policy: an adapter fitted on some frames sees, at use time, pixels prepared exactly as
 at fit time, and its camera (the layout's ``native_camera``) is the one ``apply`` is given again

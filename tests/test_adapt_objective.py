@@ -210,8 +210,8 @@ def test_objective_scores_the_supervised_solution_below_the_zero_adapter(tmp_pat
     adapter fitted to ground-truth depth has a lower self-supervised objective than the zero
     adapter: the objective points towards the correction that depth says is right."""
     from raytun3r_plugin import synthetic
-    from raytun3r_plugin.benchmark import CAMERAS, make_camera
-    from raytun3r_plugin.demo import adapt_config
+    from raytun3r_plugin.apps.benchmark import CAMERAS, make_camera
+    from raytun3r_plugin.apps.demo import adapt_config
     from raytun3r_plugin.weights import load_backbone
 
     model = load_backbone("raytun3r-da3-tiny")

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from raytun3r_plugin.benchmark import (
+from raytun3r_plugin.apps.benchmark import (
     CAMERAS,
     HELD_OUT_SEED,
     SCENES,

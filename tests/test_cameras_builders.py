@@ -49,8 +49,8 @@ def _assert_identical(a, b) -> None:
 
 @pytest.mark.parametrize("size", [56, 112, 113, 518])
 def test_benchmark_and_demo_cameras_are_bit_identical_to_their_old_formulas(size):
-    from raytun3r_plugin.benchmark import CAMERAS, make_camera
-    from raytun3r_plugin.demo import demo_camera
+    from raytun3r_plugin.apps.benchmark import CAMERAS, make_camera
+    from raytun3r_plugin.apps.demo import demo_camera
 
     old = {"kb4": _old_benchmark_kb4, "ds": _old_benchmark_ds}
     for spec in CAMERAS:

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from raytun3r_plugin import cameras, synthetic
-from raytun3r_plugin.cli import main
-from raytun3r_plugin.export import read_ply
+from raytun3r_plugin.apps.cli import main
+from raytun3r_plugin.apps.export import read_ply
 from tests.helpers import fisheye, randomise_
 
 pytest.importorskip("depth_anything_3")
@@ -266,10 +266,10 @@ def test_infer_rescales_the_camera_to_frames_of_another_size(setup, tmp_path, ca
 
 def test_adapt_infer_and_eval_feed_the_network_the_same_input(setup, tmp_path, monkeypatch):
     """The three paths from native frames to the network share one preparation."""
-    from raytun3r_plugin import inference
     from raytun3r_plugin.adaptation.train import AdaptConfig, prepare_problem
+    from raytun3r_plugin.apps import inference
+    from raytun3r_plugin.apps.evaluation import fit_sequence
     from raytun3r_plugin.datasets import Sequence
-    from raytun3r_plugin.evaluation import fit_sequence
     from raytun3r_plugin.images import read_frames
 
     camera = fisheye(160, 128, 190.0)  # needs a crop at 84 px

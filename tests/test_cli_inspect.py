@@ -7,7 +7,7 @@ import json
 import pytest
 
 from raytun3r_plugin.adapter import Adapter
-from raytun3r_plugin.cli import main
+from raytun3r_plugin.apps.cli import main
 from tests.helpers import fisheye, randomise_
 
 TRAINING = {

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from raytun3r_plugin import synthetic
-from raytun3r_plugin.evaluation import (
+from raytun3r_plugin.apps.evaluation import (
     center_pinhole,
     center_pinhole_depth_to_fisheye,
     fisheye_to_center_pinhole,
@@ -75,7 +75,7 @@ def test_methods_are_scored_on_the_same_pairs(seq):
 
 
 def test_ground_truth_depth_scores_perfectly(seq):
-    from raytun3r_plugin.evaluation import MethodOutput
+    from raytun3r_plugin.apps.evaluation import MethodOutput
 
     windows = [([0, 1, 2], seq.cam_from_world[[0, 1, 2]]), ([3, 4], seq.cam_from_world[[3, 4]])]
     summary = score(seq, MethodOutput(depth=seq.depth.copy(), window_poses=windows))

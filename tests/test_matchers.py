@@ -359,7 +359,7 @@ def test_dis_default_holds_at_large_motion_on_the_benchmark_cameras() -> None:
     5 % of the matches the median end-point error is below 1 px; without the check the
     zero-flow failure puts medians of several pixels into the 8-16 or 16-32 px bins."""
     from raytun3r_plugin import synthetic
-    from raytun3r_plugin.benchmark import CAMERAS, make_camera
+    from raytun3r_plugin.apps.benchmark import CAMERAS, make_camera
 
     bins = [0, 4, 8, 16, 32, np.inf]
     for index, spec in enumerate(CAMERAS):

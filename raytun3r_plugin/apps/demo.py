@@ -78,8 +78,8 @@ def demo_camera(size: int):
 def run_demo(args: argparse.Namespace) -> int:
     from raytun3r_plugin import synthetic
     from raytun3r_plugin.adaptation.train import adapt
-    from raytun3r_plugin.benchmark import ground_truth_depth, summarise
-    from raytun3r_plugin.evaluation import format_table, headline, run_method, score
+    from raytun3r_plugin.apps.benchmark import ground_truth_depth, summarise
+    from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
 
     started = time.perf_counter()
     size = args.size or 112  # the default network's training resolution

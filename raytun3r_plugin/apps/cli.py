@@ -33,9 +33,9 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 def cmd_infer(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adapter import Adapter
+    from raytun3r_plugin.apps.inference import predict_with_camera, write_outputs
     from raytun3r_plugin.cameras import load as load_camera
     from raytun3r_plugin.images import read_frames, read_mask
-    from raytun3r_plugin.inference import predict_with_camera, write_outputs
     from raytun3r_plugin.preprocess import layout_for_inference
 
     adapter = Adapter.load(args.adapter) if args.adapter else None
@@ -82,8 +82,14 @@ def cmd_adapt(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adapter import Adapter
+    from raytun3r_plugin.apps.evaluation import (
+        fit_sequence,
+        format_table,
+        headline,
+        run_method,
+        score,
+    )
     from raytun3r_plugin.datasets import load_sequence
-    from raytun3r_plugin.evaluation import fit_sequence, format_table, headline, run_method, score
     from raytun3r_plugin.preprocess import DEFAULT_LONG_SIDE
 
     model = _load_model(args.backbone, args.weights)
@@ -102,14 +108,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from raytun3r_plugin.demo import run_demo
+    from raytun3r_plugin.apps.demo import run_demo
 
     return run_demo(args)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from raytun3r_plugin.benchmark import CAMERAS, SEQUENCES_PER_CELL, run_benchmark
-    from raytun3r_plugin.demo import default_network
+    from raytun3r_plugin.apps.benchmark import CAMERAS, SEQUENCES_PER_CELL, run_benchmark
+    from raytun3r_plugin.apps.demo import default_network
 
     model, description = default_network()
     if args.quick:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from raytun3r_plugin.export import depth_panel, write_ply, write_tum
+from raytun3r_plugin.apps.export import depth_panel, write_ply, write_tum
 from raytun3r_plugin.patching import apply
 from raytun3r_plugin.poses import backproject, invert_rigid
 from raytun3r_plugin.prediction import Prediction, predict
@@ -39,7 +39,7 @@ def write_outputs(
 
     images: (1, S, 3, h, w) network input in [0, 1]; camera: the camera of that input. The PNG
     shows the input frame, the colourised depth and a colour bar labelled in ``depth_unit``
-    (see :func:`raytun3r_plugin.export.depth_panel`); the .npy is the raw (h, w) float32 depth.
+    (see :func:`raytun3r_plugin.apps.export.depth_panel`); the .npy is the raw (h, w) float32 depth.
     """
     out = Path(out_dir)
     (out / "depth").mkdir(parents=True, exist_ok=True)

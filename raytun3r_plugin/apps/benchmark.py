@@ -14,8 +14,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from raytun3r_plugin.demo import adapt_config, supervised_config
-from raytun3r_plugin.evaluation import format_table, headline, run_method, score
+from raytun3r_plugin.apps.demo import adapt_config, supervised_config
+from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
 
 HELD_OUT_SEED = 90_000  # training of the default network uses seeds far below this
 #: Development sequences: the benchmark's cameras and scenes at other seeds, for choosing settings
