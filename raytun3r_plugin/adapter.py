@@ -14,12 +14,15 @@ import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
 
 from raytun3r_plugin.errors import AdapterError, CameraError
+
+if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
+    from raytun3r_plugin.cameras.base import Camera
 
 FORMAT = "raytun3r-adapter"
 FORMAT_VERSION = "1"
@@ -87,7 +90,7 @@ class Adapter(nn.Module):
         n_r: int = DEFAULT_N_R,
         n_theta: int = DEFAULT_N_THETA,
         n_r_rope: int = DEFAULT_N_R_ROPE,
-        camera=None,
+        camera: Camera | None = None,
         components=None,
         pe_fingerprint: str = "",
         training: Mapping[str, Any] | None = None,
@@ -130,7 +133,7 @@ class Adapter(nn.Module):
         return {"pe": pe, "rope": self.n_r_rope, "total": pe + self.n_r_rope}
 
     @classmethod
-    def for_model(cls, model: nn.Module, camera=None, *, n_r: int = DEFAULT_N_R, n_theta: int = DEFAULT_N_THETA, n_r_rope: int = DEFAULT_N_R_ROPE, components=None) -> Adapter:
+    def for_model(cls, model: nn.Module, camera: Camera | None = None, *, n_r: int = DEFAULT_N_R, n_theta: int = DEFAULT_N_THETA, n_r_rope: int = DEFAULT_N_R_ROPE, components=None) -> Adapter:
         """A zero (identity) adapter sized for ``model``'s backbone."""
         from raytun3r_plugin.registry import spec_for
 

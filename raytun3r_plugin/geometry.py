@@ -18,11 +18,15 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 
 from raytun3r_plugin.errors import InputError
+
+if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
+    from raytun3r_plugin.cameras.base import Camera
 
 DEFAULT_KNEE_DEG = 60.0
 DEFAULT_MAX_STRETCH = 2.0
@@ -32,7 +36,7 @@ IDENTITY_TOLERANCE_PX = 1e-6
 ASPECT_TOLERANCE = 0.01
 
 
-def camera_for_input(camera, height: int, width: int):
+def camera_for_input(camera: Camera, height: int, width: int):
     """Return ``camera`` rescaled to a network input of ``height`` x ``width`` pixels.
 
     A pure resize is assumed (docs/conventions.md section 3). Crops must be stated by the caller with
@@ -58,7 +62,7 @@ def _g(angle: torch.Tensor, knee: float) -> torch.Tensor:
     return torch.where(angle <= knee, torch.tan(torch.clamp(angle, max=knee)), tan_k + (angle - knee) * slope)
 
 
-def fisheye_to_pinhole(camera, uv: torch.Tensor, knee_deg: float = DEFAULT_KNEE_DEG) -> torch.Tensor:
+def fisheye_to_pinhole(camera: Camera, uv: torch.Tensor, knee_deg: float = DEFAULT_KNEE_DEG) -> torch.Tensor:
     """Apply the map ``M`` to pixels ``uv`` (..., 2) of ``camera``; returns pinhole pixels (..., 2).
 
     Pixels whose ray is invalid are returned unchanged.
@@ -99,7 +103,7 @@ class TokenPolar:
     direction_yx: torch.Tensor
 
 
-def token_polar(camera, height: int, width: int, patch: int) -> TokenPolar:
+def token_polar(camera: Camera, height: int, width: int, patch: int) -> TokenPolar:
     centres = token_centres(height, width, patch)
     offset = torch.stack(
         ((centres[:, 0] - float(camera.cx)) / patch, (centres[:, 1] - float(camera.cy)) / patch), dim=-1
@@ -136,7 +140,7 @@ def angular_weights(theta: torch.Tensor, n_bins: int) -> torch.Tensor:
     return weights
 
 
-def _jacobian_of_map(camera, points: torch.Tensor, knee_deg: float, step: float = 0.25) -> torch.Tensor:
+def _jacobian_of_map(camera: Camera, points: torch.Tensor, knee_deg: float, step: float = 0.25) -> torch.Tensor:
     """Central-difference Jacobian dM/dx at ``points`` (n, 2) -> (n, 2, 2) (rows: output x, y)."""
     columns = []
     for axis in range(2):
@@ -149,7 +153,7 @@ def _jacobian_of_map(camera, points: torch.Tensor, knee_deg: float, step: float 
 
 
 def patch_resample_grid(
-    camera, height: int, width: int, patch: int, knee_deg: float = DEFAULT_KNEE_DEG, max_stretch: float = DEFAULT_MAX_STRETCH
+    camera: Camera, height: int, width: int, patch: int, knee_deg: float = DEFAULT_KNEE_DEG, max_stretch: float = DEFAULT_MAX_STRETCH
 ) -> torch.Tensor | None:
     """Normalised ``grid_sample`` grid (1, H, W, 2) that locally undistorts every patch.
 
@@ -192,7 +196,7 @@ def token_validity(valid_pixels: torch.Tensor, patch: int) -> torch.Tensor:
     return (fraction >= 0.5).reshape(-1)
 
 
-def head_uv_grid(camera, height: int, width: int, cells_h: int, cells_w: int, knee_deg: float = DEFAULT_KNEE_DEG) -> torch.Tensor:
+def head_uv_grid(camera: Camera, height: int, width: int, cells_h: int, cells_w: int, knee_deg: float = DEFAULT_KNEE_DEG) -> torch.Tensor:
     """Camera-aware version of the DPT heads' normalised uv grid, (cells_h, cells_w, 2) as (u, v).
 
     Cell centres of a cells_h x cells_w grid over the image go through ``M``; the affine
@@ -210,7 +214,7 @@ def head_uv_grid(camera, height: int, width: int, cells_h: int, cells_w: int, kn
     return torch.stack((u, v), dim=-1)
 
 
-def map_is_identity(camera, knee_deg: float = DEFAULT_KNEE_DEG) -> bool:
+def map_is_identity(camera: Camera, knee_deg: float = DEFAULT_KNEE_DEG) -> bool:
     """True when ``M`` moves no pixel of the image (a pinhole whose field lies inside the knee)."""
     ys = torch.linspace(0, camera.height - 1, 17, dtype=torch.float64)
     xs = torch.linspace(0, camera.width - 1, 17, dtype=torch.float64)
@@ -225,7 +229,7 @@ class SizeGeometry:
     cached too, so a forward pass only pays a table add and one ``grid_sample``.
     """
 
-    def __init__(self, camera, height: int, width: int, patch: int, mask: torch.Tensor | None, knee_deg: float, max_stretch: float):
+    def __init__(self, camera: Camera, height: int, width: int, patch: int, mask: torch.Tensor | None, knee_deg: float, max_stretch: float):
         if height % patch or width % patch:
             raise InputError(f"input of {width}x{height} px is not a multiple of the patch size {patch}")
         self.camera = camera_for_input(camera, height, width)
@@ -326,7 +330,7 @@ class SizeGeometry:
 class GeometryCache:
     """Per-handle cache of :class:`SizeGeometry` keyed by (input height, width)."""
 
-    def __init__(self, camera, patch: int, mask: torch.Tensor | None = None, knee_deg: float = DEFAULT_KNEE_DEG, max_stretch: float = DEFAULT_MAX_STRETCH):
+    def __init__(self, camera: Camera, patch: int, mask: torch.Tensor | None = None, knee_deg: float = DEFAULT_KNEE_DEG, max_stretch: float = DEFAULT_MAX_STRETCH):
         self.camera = camera
         self.patch = patch
         self.mask = mask

@@ -22,13 +22,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.poses import _as_torch_pair, relative_poses, rotation_angle, translation_angle
+
+if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
+    from raytun3r_plugin.cameras.base import Camera
 
 __all__ = [
     "abs_rel",
@@ -167,7 +170,7 @@ def _sample_depth(depth: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.nda
     return out, ok
 
 
-def _points(depth: np.ndarray, camera, uv: np.ndarray, depth_kind: str) -> tuple[np.ndarray, np.ndarray]:
+def _points(depth: np.ndarray, camera: Camera, uv: np.ndarray, depth_kind: str) -> tuple[np.ndarray, np.ndarray]:
     """Back-projected points (M, 3) at uv with bilinear depth, and their validity (M,)."""
     d, ok = _sample_depth(depth, uv)
     rays, okr = camera.unproject(torch.from_numpy(np.where(np.isfinite(uv), uv, 0.0)))
@@ -182,7 +185,7 @@ def _points(depth: np.ndarray, camera, uv: np.ndarray, depth_kind: str) -> tuple
     return d[:, None] * rays, ok
 
 
-def _project_error(camera, X: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _project_error(camera: Camera, X: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     uvp, okp = camera.project(torch.from_numpy(X))
     uvp = uvp.detach().cpu().numpy().astype(np.float64)
     okp = okp.detach().cpu().numpy().astype(bool) & np.isfinite(uvp).all(axis=1)
@@ -192,7 +195,7 @@ def _project_error(camera, X: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, n
 
 def d_reproj(
     depth_i: Any,
-    camera,
+    camera: Camera,
     uv_i: Any,
     uv_j: Any,
     cam_j_from_cam_i_gt: Any,

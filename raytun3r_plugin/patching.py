@@ -22,7 +22,7 @@ import threading
 import weakref
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
@@ -51,6 +51,9 @@ from raytun3r_plugin.registry import (
     spec_for,
 )
 
+if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
+    from raytun3r_plugin.cameras.base import Camera
+
 #: Class attribute that identifies an installed raytun3r wrapper.
 WRAPPER_MARK = "__raytun3r_wrapper__"
 #: Where the live handle is kept on the model given to :func:`apply`.
@@ -76,7 +79,7 @@ class PatchState:
 
     def __init__(
         self,
-        camera,
+        camera: Camera,
         adapter: Adapter | None,
         components: dict[str, bool],
         info: BackboneInfo,
@@ -377,7 +380,7 @@ def _same_camera(a, b) -> bool:
     return bool(torch.allclose(a.params.detach().double(), b.params.detach().double(), rtol=1e-6, atol=1e-6))
 
 
-def _check_adapter(adapter: Adapter, info: BackboneInfo, camera, strict: bool) -> None:
+def _check_adapter(adapter: Adapter, info: BackboneInfo, camera: Camera, strict: bool) -> None:
     if adapter.backbone != info.name:
         raise AdapterError(f"adapter was made for backbone {adapter.backbone!r}, this model is {info.name!r}")
     if adapter.embed_dim != info.embed_dim:
@@ -403,7 +406,7 @@ def _components_for(components, adapter: Adapter | None) -> dict[str, bool]:
     return normalise_components(components)
 
 
-def _checked_mask(mask: Any, camera: Any) -> torch.Tensor:
+def _checked_mask(mask: Any, camera: Camera) -> torch.Tensor:
     """The scene mask as (H, W) bool, refused when it cannot belong to ``camera``.
 
     It may be at the camera's size or at another size of the same aspect ratio (it is resized
@@ -424,7 +427,7 @@ def _checked_mask(mask: Any, camera: Any) -> torch.Tensor:
 
 def apply(
     model: nn.Module,
-    camera=None,
+    camera: Camera | None = None,
     adapter: Adapter | str | None = None,
     *,
     components: Mapping[str, bool] | list[str] | None = None,

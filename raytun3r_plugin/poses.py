@@ -125,13 +125,14 @@ def rotation_angle(rotation_a: Any, rotation_b: Any, eps: float = 0.0) -> Any:
         axis = torch.stack((m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]), dim=-1)
         sin = torch.sqrt(axis.pow(2).sum(dim=-1) + eps**2) / 2
         return torch.atan2(sin, cos)
-    a = np.asarray(rotation_a, dtype=np.float64)
-    b = np.asarray(rotation_b, dtype=np.float64)
-    m = np.swapaxes(a, -1, -2) @ b
-    cos = (np.trace(m, axis1=-2, axis2=-1) - 1.0) / 2.0
-    axis = np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1)
-    sin = (np.linalg.norm(axis, axis=-1) if eps == 0 else np.sqrt(np.sum(axis * axis, axis=-1) + eps**2)) / 2.0
-    return np.arctan2(sin, cos)
+    # numpy branch: own names, so each variable has one type (the torch branch above uses a, b, m).
+    a_np = np.asarray(rotation_a, dtype=np.float64)
+    b_np = np.asarray(rotation_b, dtype=np.float64)
+    m_np = np.swapaxes(a_np, -1, -2) @ b_np
+    cos_np = (np.trace(m_np, axis1=-2, axis2=-1) - 1.0) / 2.0
+    axis_np = np.stack([m_np[..., 2, 1] - m_np[..., 1, 2], m_np[..., 0, 2] - m_np[..., 2, 0], m_np[..., 1, 0] - m_np[..., 0, 1]], -1)
+    sin_np = (np.linalg.norm(axis_np, axis=-1) if eps == 0 else np.sqrt(np.sum(axis_np * axis_np, axis=-1) + eps**2)) / 2.0
+    return np.arctan2(sin_np, cos_np)
 
 
 def translation_angle(t_a: Any, t_b: Any, eps: float = 0.0) -> Any:
@@ -146,11 +147,11 @@ def translation_angle(t_a: Any, t_b: Any, eps: float = 0.0) -> Any:
         cross = torch.linalg.cross(a, b, dim=-1)
         sin = torch.sqrt(cross.pow(2).sum(dim=-1) + eps**2)
         return torch.atan2(sin, (a * b).sum(dim=-1))
-    a = np.asarray(t_a, dtype=np.float64)
-    b = np.asarray(t_b, dtype=np.float64)
-    cross = np.cross(a, b)
-    sin = np.linalg.norm(cross, axis=-1) if eps == 0 else np.sqrt(np.sum(cross * cross, axis=-1) + eps**2)
-    return np.arctan2(sin, np.sum(a * b, axis=-1))
+    a_np = np.asarray(t_a, dtype=np.float64)  # own names again, as in rotation_angle
+    b_np = np.asarray(t_b, dtype=np.float64)
+    cross_np = np.cross(a_np, b_np)
+    sin_np = np.linalg.norm(cross_np, axis=-1) if eps == 0 else np.sqrt(np.sum(cross_np * cross_np, axis=-1) + eps**2)
+    return np.arctan2(sin_np, np.sum(a_np * b_np, axis=-1))
 
 
 # --------------------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.nn.functional as F
@@ -33,6 +33,9 @@ from raytun3r_plugin import poses
 from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.poses import backproject, relative_pose  # re-exported: their one home
 from raytun3r_plugin.preprocess import to_input_pixels  # re-exported: the one mapping
+
+if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
+    from raytun3r_plugin.cameras.base import Camera
 
 __all__ = [
     "LossWeights",
@@ -126,7 +129,7 @@ def reprojection_loss(
     uv_i: torch.Tensor,
     uv_j: torch.Tensor,
     confidence: torch.Tensor | None,
-    camera: Any,
+    camera: Camera,
     valid: torch.Tensor | None = None,
     depth_convention: str = "range",
     rays_i: tuple[torch.Tensor, torch.Tensor] | None = None,
@@ -205,7 +208,7 @@ def robust_px_error(error: torch.Tensor, scale_px: float) -> torch.Tensor:
     return scale_px * torch.log1p(error / scale_px)
 
 
-def _projected_error(points_i: torch.Tensor, rotation: torch.Tensor, direction: torch.Tensor, scales: torch.Tensor, uv_j: torch.Tensor, camera: Any) -> torch.Tensor:
+def _projected_error(points_i: torch.Tensor, rotation: torch.Tensor, direction: torch.Tensor, scales: torch.Tensor, uv_j: torch.Tensor, camera: Camera) -> torch.Tensor:
     """(S, M) L1 pixel errors of ``R X + s t`` for each candidate scale ``s`` (S,)."""
     moved = (points_i @ rotation.T)[None] + scales[:, None, None] * direction[None, None]
     projected, ok = camera.project(moved.reshape(-1, 3))
@@ -220,7 +223,7 @@ def pixel_optimal_scale(
     uv_j: torch.Tensor,
     rotation: torch.Tensor,
     direction: torch.Tensor,
-    camera: Any,
+    camera: Camera,
     weights: torch.Tensor | None = None,
     *,
     robust_px: float = 1.0,

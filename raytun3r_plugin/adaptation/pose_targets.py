@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -44,6 +44,9 @@ from raytun3r_plugin.errors import InputError
 # Re-exported for the tests and benchmarks that score targets: one definition, the atan2 form
 # (the arccos copies that lived here lost precision near 0 degrees).
 from raytun3r_plugin.metrics import rotation_error_deg, translation_direction_error_deg
+
+if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
+    from raytun3r_plugin.cameras.base import Camera
 
 __all__ = [
     "PoseTarget",
@@ -101,14 +104,14 @@ class PoseTarget:
 # --------------------------------------------------------------------------------------------
 
 
-def _camera_dtype(camera: Any) -> torch.dtype:
+def _camera_dtype(camera: Camera) -> torch.dtype:
     for value in vars(camera).values() if hasattr(camera, "__dict__") else ():
         if isinstance(value, torch.Tensor) and value.is_floating_point():
             return value.dtype
     return torch.float64
 
 
-def unproject_pixels(camera: Any, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def unproject_pixels(camera: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pixels ``(M, 2)`` -> unit rays ``(M, 3)`` float64 and validity ``(M,)`` bool.
 
     Uses ``camera.unproject`` (float64 when the camera accepts it); rays that are not finite
@@ -130,7 +133,7 @@ def unproject_pixels(camera: Any, uv: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return rays_np, valid_np
 
 
-def camera_focal_px(camera: Any) -> float:
+def camera_focal_px(camera: Camera) -> float:
     """Pixels per radian at the image centre (optical axis), measured through ``project``.
 
     For pinhole and Kannala-Brandt this is ``(fx + fy) / 2``; for unified / double-sphere
@@ -311,7 +314,7 @@ def _refine_pose(
 
 def estimate_relative_pose(
     matches: Matches,
-    camera: Any,
+    camera: Camera,
     max_angle_deg: float = 80.0,
     threshold_px: float = 1.0,
     seed: int = 0,

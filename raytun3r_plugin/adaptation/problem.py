@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -21,9 +21,12 @@ from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.geometry import GeometryCache
 from raytun3r_plugin.preprocess import InputLayout, input_layout
 
+if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
+    from raytun3r_plugin.cameras.base import Camera
+
 __all__ = ["MAX_DEPTH_SAMPLES", "AdaptationProblem", "prepare_problem", "scene_mask"]
 
-def scene_mask(mask: Any, camera: Any) -> np.ndarray:
+def scene_mask(mask: Any, camera: Camera) -> np.ndarray:
     """A user mask of the native frames, checked and combined with the camera's valid region.
 
     Args:
@@ -206,7 +209,7 @@ def _depth_targets(
     return targets, {"kind": "depth", "coverage": round(coverage, 4), "dense": coverage > 0.5, "frames": len(frames)}
 
 
-def prepare_problem(camera: Any, frames: Any, config: AdaptConfig, patch: int = 14, mask: Any = None, depth: Any = None) -> AdaptationProblem:
+def prepare_problem(camera: Camera, frames: Any, config: AdaptConfig, patch: int = 14, mask: Any = None, depth: Any = None) -> AdaptationProblem:
     """Match, estimate targets (or load them from the cache) and lay the segment out for training.
 
     ``mask`` (optional, (H, W) like the frames, True where the scene is seen) keeps matches,

@@ -10,7 +10,7 @@ import math
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
@@ -37,6 +37,9 @@ from raytun3r_plugin.errors import AlreadyAppliedError
 from raytun3r_plugin.patching import apply, handle_of
 from raytun3r_plugin.prediction import predict
 from raytun3r_plugin.preprocess import InputLayout
+
+if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
+    from raytun3r_plugin.cameras.base import Camera
 
 __all__ = ["adaptation_step", "objective_value", "window_of_step", "window_terms"]
 
@@ -72,7 +75,7 @@ def _subset(pair: _Pair, max_matches: int, generator: torch.Generator) -> tuple[
 
 def _targets_pose(
     pair: _Pair, depth_i: torch.Tensor, uv_i: torch.Tensor, uv_j: torch.Tensor, confidence: torch.Tensor,
-    rays_i: torch.Tensor, rays_j: torch.Tensor, camera: Any, config: AdaptConfig,
+    rays_i: torch.Tensor, rays_j: torch.Tensor, camera: Camera, config: AdaptConfig,
 ) -> torch.Tensor:
     """``cam_j_from_cam_i`` from the MAGSAC++ target, translation scaled to the predicted depth
     (``config.scale``: pixel-optimal and detached, or the differentiable least-squares scale)."""

@@ -41,7 +41,7 @@ import json
 import os
 import sys
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -93,6 +93,9 @@ from raytun3r_plugin.errors import AlreadyAppliedError
 from raytun3r_plugin.patching import apply, handle_of
 from raytun3r_plugin.preprocess import InputLayout, input_layout
 from raytun3r_plugin.registry import spec_for
+
+if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
+    from raytun3r_plugin.cameras.base import Camera
 
 __all__ = [
     "CHECKPOINT_FORMAT",
@@ -169,7 +172,7 @@ class _Progress:
 
 def adapt(
     model: nn.Module,
-    camera: Any,
+    camera: Camera,
     frames: Any,
     config: AdaptConfig | None = None,
     *,

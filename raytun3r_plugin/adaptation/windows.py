@@ -32,7 +32,7 @@ import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -41,6 +41,9 @@ from raytun3r_plugin._io import atomic_path
 from raytun3r_plugin.adaptation.matchers import Matcher, Matches
 from raytun3r_plugin.adaptation.pose_targets import PoseTarget, estimate_relative_pose
 from raytun3r_plugin.errors import InputError
+
+if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
+    from raytun3r_plugin.cameras.base import Camera
 
 __all__ = [
     "AdaptationSet",
@@ -183,7 +186,7 @@ def _as_images(images: Any) -> np.ndarray:
     return images
 
 
-def _camera_json(camera: Any) -> str:
+def _camera_json(camera: Camera) -> str:
     payload = camera.to_json()
     if isinstance(payload, str):
         try:
@@ -193,7 +196,7 @@ def _camera_json(camera: Any) -> str:
     return json.dumps(payload, sort_keys=True, default=str)
 
 
-def _valid_mask(camera: Any, valid: Any, shape: tuple[int, int]) -> np.ndarray:
+def _valid_mask(camera: Camera, valid: Any, shape: tuple[int, int]) -> np.ndarray:
     if valid is None:
         valid = camera.valid_mask()
     if isinstance(valid, torch.Tensor):
@@ -299,7 +302,7 @@ def _load(path: Path, payload: str, window_size: int) -> tuple[list[Window], lis
 
 def prepare_adaptation_set(
     images: np.ndarray,
-    camera: Any,
+    camera: Camera,
     matcher: Matcher,
     n_windows: int = 30,
     stride: int = 1,

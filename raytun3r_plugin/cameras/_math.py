@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -127,6 +128,17 @@ def radial_poly_d(t2: Tensor, ks: Sequence[Coef]) -> Tensor:
     return acc + ks[0]
 
 
+class Distortion(Protocol):
+    """What :func:`undistort` needs of a distortion of normalised coordinates: the forward map
+    and its Jacobian. :class:`RadTan` and Fisheye624's tangential/thin-prism stage provide it."""
+
+    def __call__(self, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]: ...
+
+    def with_jacobian(self, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]: ...
+
+    def with_jacobian_fast(self, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]: ...
+
+
 class RadTan:
     """Radial + tangential (+ optional thin-prism) distortion of normalised coordinates.
 
@@ -154,9 +166,10 @@ class RadTan:
         xy2 = 2.0 * x * y
         xd = x * rad + self.p1 * xy2 + self.p2 * (r2 + 2.0 * x * x)
         yd = y * rad + self.p1 * (r2 + 2.0 * y * y) + self.p2 * xy2
-        if self.s1 is not None:
-            xd = xd + self.s1 * r2
-            yd = yd + self.s2 * r2
+        s1, s2 = self.s1, self.s2
+        if s1 is not None and s2 is not None:  # the thin-prism pair is given together or not at all
+            xd = xd + s1 * r2
+            yd = yd + s2 * r2
         return xd, yd
 
     def with_jacobian(
@@ -178,13 +191,14 @@ class RadTan:
         a = rad + xx * drad2 + 3.0 * p2 * (2.0 * x) + p1 * (2.0 * y)
         d = rad + yy * drad2 + 3.0 * p1 * (2.0 * y) + p2 * (2.0 * x)
         c = b
-        if self.s1 is not None:
-            xd = xd + self.s1 * r2
-            yd = yd + self.s2 * r2
-            a = a + 2.0 * self.s1 * x
-            b = b + 2.0 * self.s1 * y
-            c = c + 2.0 * self.s2 * x
-            d = d + 2.0 * self.s2 * y
+        s1, s2 = self.s1, self.s2
+        if s1 is not None and s2 is not None:
+            xd = xd + s1 * r2
+            yd = yd + s2 * r2
+            a = a + 2.0 * s1 * x
+            b = b + 2.0 * s1 * y
+            c = c + 2.0 * s2 * x
+            d = d + 2.0 * s2 * y
         return xd, yd, a, b, c, d
 
     def with_jacobian_fast(
@@ -204,12 +218,12 @@ class RadTan:
             rad.add_(k).mul_(r2)
         rad.add_(1.0)
         # 2 dR/dr2 = sum_i 2 (i + 1) k_i r2^i, Horner again.
-        c = [2.0 * (i + 1) * k for i, k in enumerate(ks)]
-        if len(c) == 1:
-            drad2 = torch.full_like(r2, c[0])
+        dc = [2.0 * (i + 1) * k for i, k in enumerate(ks)]
+        if len(dc) == 1:
+            drad2 = torch.full_like(r2, dc[0])
         else:
-            drad2 = (r2 * c[-1]).add_(c[-2])
-            for ci in reversed(c[:-2]):
+            drad2 = (r2 * dc[-1]).add_(dc[-2])
+            for ci in reversed(dc[:-2]):
                 drad2.mul_(r2).add_(ci)
         xd = (x * rad).addcmul_(xy, xy.new_tensor(2.0 * p1)).add_(r2, alpha=p2)
         xd.add_(xx, alpha=2.0 * p2)
@@ -219,7 +233,7 @@ class RadTan:
         a = torch.addcmul(rad, xx, drad2).add_(x, alpha=6.0 * p2).add_(y, alpha=2.0 * p1)
         d = torch.addcmul(rad, yy, drad2).add_(y, alpha=6.0 * p1).add_(x, alpha=2.0 * p2)
         c = b
-        if self.s1 is not None:
+        if self.s1 is not None and self.s2 is not None:
             s1, s2 = float(self.s1), float(self.s2)
             xd.add_(r2, alpha=s1)
             yd.add_(r2, alpha=s2)
@@ -324,7 +338,7 @@ class RadialTable:
 
 
 def undistort(
-    dist: RadTan, dist_f: RadTan, mx: Tensor, my: Tensor, table: RadialTable, steps: int
+    dist: Distortion, dist_f: Distortion, mx: Tensor, my: Tensor, table: RadialTable, steps: int
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Invert ``dist`` at (mx, my) with a fixed number of 2-D Newton steps.
 
@@ -354,7 +368,7 @@ def undistort(
         return x * s, y * s
 
     def newton(
-        dd: RadTan, x: Tensor, y: Tensor, tx: Tensor, ty: Tensor
+        dd: Distortion, x: Tensor, y: Tensor, tx: Tensor, ty: Tensor
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         xd, yd, a, b, c, d = dd.with_jacobian(x, y)
         ex = xd - tx

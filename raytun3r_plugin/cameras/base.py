@@ -105,6 +105,13 @@ class Camera:
     width: int
     height: int
     params: Tensor
+    # Set once in __init__ through object.__setattr__; declared so the type checker knows them.
+    _values: tuple[float, ...]
+    _named: dict[str, float]
+    _max_fov_deg: float | None
+    _max_angle: float
+    _cap_cos: float | None
+    _cache: dict[Any, Any]
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)

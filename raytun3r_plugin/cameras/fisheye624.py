@@ -84,6 +84,10 @@ class Fisheye624(Camera):
     """
 
     model = "fisheye624"
+    # Derived in _natural_max_angle (via _set); declared for the type checker.
+    _fold: float
+    _table: RadialTable
+    _prism_table: RadialTable
     param_names = ("fx", "fy", "cx", "cy", "k0", "k1", "k2", "k3", "k4", "k5", "p0", "p1", "s0", "s1", "s2", "s3")
     newton_steps = 2
 

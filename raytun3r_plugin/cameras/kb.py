@@ -85,6 +85,10 @@ class KannalaBrandt4(Camera):
     """
 
     model = "kb4"
+    # Derived in _natural_max_angle (via _set); declared for the type checker.
+    _fold: float
+    _table: RadialTable
+    _td_max: float
     param_names = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")
     newton_steps = 2
 
@@ -141,6 +145,9 @@ class ThinPrismFisheye(Camera):
     """
 
     model = "thin_prism_fisheye"
+    # Derived in _natural_max_angle (via _set); declared for the type checker.
+    _fold: float
+    _table: RadialTable
     param_names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "sx1", "sy1")
     newton_steps = 2
 

@@ -85,6 +85,8 @@ class OpenCVRadTan(Camera):
     """
 
     model = "opencv"
+    # Derived in _natural_max_angle (via _set); declared for the type checker.
+    _table: RadialTable
     param_names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
     newton_steps = 2
 

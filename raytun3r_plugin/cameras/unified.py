@@ -72,6 +72,9 @@ class UCM(Camera):
     """
 
     model = "ucm"
+    # Derived in _natural_max_angle (via _set); declared for the type checker.
+    _w: float
+    _r2_max: float
     param_names = ("fx", "fy", "cx", "cy", "alpha")
 
     def _check_domain(self, p: dict[str, float]) -> None:
@@ -116,6 +119,9 @@ class EUCM(Camera):
     """
 
     model = "eucm"
+    # Derived in _natural_max_angle (via _set); declared for the type checker.
+    _w: float
+    _r2_max: float
     param_names = ("fx", "fy", "cx", "cy", "alpha", "beta")
 
     def _check_domain(self, p: dict[str, float]) -> None:
@@ -166,6 +172,9 @@ class DoubleSphere(Camera):
     """
 
     model = "ds"
+    # Derived in _natural_max_angle (via _set); declared for the type checker.
+    _w1: float
+    _r2_max: float
     param_names = ("fx", "fy", "cx", "cy", "xi", "alpha")
 
     def _check_domain(self, p: dict[str, float]) -> None:
@@ -255,6 +264,9 @@ class MEI(Camera):
     """
 
     model = "mei"
+    # Derived in _natural_max_angle (via _set); declared for the type checker.
+    _w: float
+    _table: RadialTable
     param_names = ("fx", "fy", "cx", "cy", "xi", "k1", "k2", "p1", "p2")
     newton_steps = 2
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
 
@@ -16,6 +18,9 @@ from raytun3r_plugin.synthetic.trajectory import (
     handheld_trajectory,
 )
 
+if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
+    from raytun3r_plugin.cameras.base import Camera
+
 __all__ = ["camera_centres", "make_trajectory", "median_flow", "render_sequence", "scene_of"]
 
 # Typical scene range (m) at which the apparent motion of a trajectory is measured.
@@ -28,7 +33,7 @@ def camera_centres(cam_from_world: np.ndarray) -> np.ndarray:
     return -np.einsum("nji,nj->ni", R, cam_from_world[:, :3, 3])
 
 
-def median_flow(camera, cam_from_world: np.ndarray, depth: float, n_rays: int = 256) -> float:
+def median_flow(camera: Camera, cam_from_world: np.ndarray, depth: float, n_rays: int = 256) -> float:
     """Median image motion (pixels) between consecutive poses of points at range ``depth`` (m)
     along ``n_rays`` rays spread over the camera's valid region (a scene-independent estimate
     of the optical flow of a trajectory)."""
@@ -52,7 +57,7 @@ def median_flow(camera, cam_from_world: np.ndarray, depth: float, n_rays: int = 
 
 
 def make_trajectory(
-    kind: str, motion: str, camera, n_frames: int, seed: int, flow_px: float = 6.0
+    kind: str, motion: str, camera: Camera, n_frames: int, seed: int, flow_px: float = 6.0
 ) -> tuple[np.ndarray, float]:
     """Poses (N, 4, 4) for ``motion`` ("handheld" | "driving") in a ``kind`` scene, with the
     time step chosen so the median apparent motion between frames is about ``flow_px`` pixels.
@@ -94,7 +99,7 @@ def scene_of(seq: Sequence) -> Scene:
 
 def render_sequence(
     kind: str,
-    camera,
+    camera: Camera,
     n_frames: int = 10,
     seed: int = 0,
     motion: str | None = None,

@@ -27,6 +27,7 @@ from collections import OrderedDict
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -48,6 +49,9 @@ from raytun3r_plugin.synthetic.scene import (
     Scene,
     intersect,
 )
+
+if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
+    from raytun3r_plugin.cameras.base import Camera
 
 __all__ = ["RenderedFrame", "Renderer", "render_frame", "torch_threads"]
 
@@ -71,7 +75,7 @@ class RenderedFrame:
 class _CameraRays:
     """Per-camera cached rays: centre rays, sub-pixel rays and angular pixel size."""
 
-    def __init__(self, camera, supersample: int) -> None:
+    def __init__(self, camera: Camera, supersample: int) -> None:
         h, w = int(camera.height), int(camera.width)
         # float64 table (the camera's authoritative validity, as valid_mask()), float32 rays
         rays, valid = camera.ray_table(dtype=torch.float64)
@@ -174,7 +178,7 @@ _RAY_CACHE: OrderedDict[tuple, _CameraRays] = OrderedDict()
 _RAY_CACHE_SIZE = 4
 
 
-def _camera_rays(camera, supersample: int) -> _CameraRays:
+def _camera_rays(camera: Camera, supersample: int) -> _CameraRays:
     """Cached :class:`_CameraRays` per (camera, supersample); cameras are immutable and hashable
     (a few most recent ones are kept)."""
     try:
@@ -205,7 +209,7 @@ class Renderer:
             keeps torch's setting.
     """
 
-    def __init__(self, camera, supersample: int = 2, adaptive: bool = True, num_threads: int | None = 1) -> None:
+    def __init__(self, camera: Camera, supersample: int = 2, adaptive: bool = True, num_threads: int | None = 1) -> None:
         if supersample < 1:
             raise InputError("supersample must be >= 1")
         self.camera = camera
@@ -367,7 +371,7 @@ class Renderer:
 
 def render_frame(
     scene: Scene,
-    camera,
+    camera: Camera,
     cam_from_world: np.ndarray,
     supersample: int = 2,
     adaptive: bool = True,
