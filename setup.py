@@ -7,6 +7,7 @@ automatic discovery cannot combine found packages with a renamed folder.
 from setuptools import find_packages, setup
 
 setup(
-    packages=find_packages(include=["raytun3r_plugin", "raytun3r_plugin.*"]) + ["raytun3r_plugin.patches"],
+    packages=find_packages(include=["raytun3r_plugin", "raytun3r_plugin.*"])
+    + ["raytun3r_plugin.patches"],
     package_dir={"raytun3r_plugin.patches": "patches"},
 )

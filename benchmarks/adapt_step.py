@@ -77,7 +77,9 @@ def frames(size: int, n_frames: int, cache_dir: str):
         return np.load(path, allow_pickle=False)
     from raytun3r_plugin import synthetic
 
-    images = synthetic.render_sequence("indoor", camera(size), n_frames=n_frames, seed=0, supersample=1).images
+    images = synthetic.render_sequence(
+        "indoor", camera(size), n_frames=n_frames, seed=0, supersample=1
+    ).images
     np.save(path, images, allow_pickle=False)
     return images
 
@@ -88,7 +90,12 @@ def setup(size: int, n_frames: int, cache_dir: str, config_changes: dict | None 
     from raytun3r_plugin.adaptation.train import AdaptConfig, prepare_problem
 
     model = build_model()
-    config = AdaptConfig(input_size=size, cache_dir=cache_dir, sequence_id=f"bench-indoor-s0-{size}-{n_frames}", **(config_changes or {}))
+    config = AdaptConfig(
+        input_size=size,
+        cache_dir=cache_dir,
+        sequence_id=f"bench-indoor-s0-{size}-{n_frames}",
+        **(config_changes or {}),
+    )
     problem = prepare_problem(camera(size), frames(size, n_frames, cache_dir), config)
     adapter = Adapter.for_model(model, problem.layout.native_camera)
     handle = apply(model, problem.layout.native_camera, adapter)
@@ -142,15 +149,40 @@ def memory_child(variant: str, size: int, n_frames: int, cache_dir: str, steps: 
         VARIANTS[variant](model, problem, adapter, optimizer, config, step)
     peak = status_kib("VmHWM")
     handle.remove()
-    print(json.dumps({"variant": variant, "rss_before_kib": before, "setup_peak_kib": setup_peak, "peak_kib": peak, "peak_reset": reset}))
+    print(
+        json.dumps(
+            {
+                "variant": variant,
+                "rss_before_kib": before,
+                "setup_peak_kib": setup_peak,
+                "peak_kib": peak,
+                "peak_reset": reset,
+            }
+        )
+    )
 
 
 def measure_memory(size: int, n_frames: int, cache_dir: str, steps: int) -> dict[str, dict]:
     out = {}
     for variant in ("plain", "adapt"):
         result = subprocess.run(
-            [sys.executable, __file__, "--memory-child", variant, "--size", str(size), "--frames", str(n_frames), "--cache-dir", cache_dir, "--memory-steps", str(steps)],
-            check=True, capture_output=True, text=True,
+            [
+                sys.executable,
+                __file__,
+                "--memory-child",
+                variant,
+                "--size",
+                str(size),
+                "--frames",
+                str(n_frames),
+                "--cache-dir",
+                cache_dir,
+                "--memory-steps",
+                str(steps),
+            ],
+            check=True,
+            capture_output=True,
+            text=True,
         )
         out[variant] = json.loads(result.stdout.strip().splitlines()[-1])
     return out
@@ -160,13 +192,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--size", type=int, default=280)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--steps", type=int, default=6, help="steps of the timed adapt() run (extrapolated to 300)")
+    parser.add_argument(
+        "--steps", type=int, default=6, help="steps of the timed adapt() run (extrapolated to 300)"
+    )
     parser.add_argument("--frames", type=int, default=32)
     parser.add_argument("--memory-steps", type=int, default=2)
     parser.add_argument("--skip-memory", action="store_true")
     parser.add_argument("--skip-adapt", action="store_true")
     parser.add_argument("--cache-dir", default=None)
-    parser.add_argument("--memory-child", choices=sorted(VARIANTS), default=None, help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--memory-child", choices=sorted(VARIANTS), default=None, help=argparse.SUPPRESS
+    )
     args = parser.parse_args()
     if args.memory_child:
         memory_child(args.memory_child, args.size, args.frames, args.cache_dir, args.memory_steps)
@@ -174,12 +210,16 @@ def main() -> None:
 
     torch.set_num_threads(2)
     cache_dir = args.cache_dir or tempfile.mkdtemp(prefix="raytun3r-bench-")
-    print(f"# adaptation step benchmark: {BACKBONE} (random weights), {args.size}x{args.size} px input, 3-frame window, torch {torch.__version__}, {torch.get_num_threads()} threads")
+    print(
+        f"# adaptation step benchmark: {BACKBONE} (random weights), {args.size}x{args.size} px input, 3-frame window, torch {torch.__version__}, {torch.get_num_threads()} threads"
+    )
 
     began = time.perf_counter()
     model, problem, adapter, optimizer, config, handle = setup(args.size, args.frames, cache_dir)
-    print(f"setup (render {args.frames} frames, match, MAGSAC++, build model): {time.perf_counter() - began:.1f} s; "
-          f"{len(problem.windows)} windows, window 0 has {sum(p.uv_i.shape[0] for p in problem.windows[0][1])} matches over 6 pairs")
+    print(
+        f"setup (render {args.frames} frames, match, MAGSAC++, build model): {time.perf_counter() - began:.1f} s; "
+        f"{len(problem.windows)} windows, window 0 has {sum(p.uv_i.shape[0] for p in problem.windows[0][1])} matches over 6 pairs"
+    )
 
     # 1. interleaved timing
     for run in VARIANTS.values():  # warm-up (allocator, geometry caches)
@@ -195,28 +235,42 @@ def main() -> None:
             cpu[name].append(time.process_time() - start_cpu)
     handle.remove()
     print(f"\n## time per step (s), {args.repeats} interleaved repeats (alternating order)")
-    print("| variant | wall median | wall min | wall max | CPU median | CPU min |\n|---|---|---|---|---|---|")
+    print(
+        "| variant | wall median | wall min | wall max | CPU median | CPU min |\n|---|---|---|---|---|---|"
+    )
     for name in VARIANTS:
-        print(f"| {name} | {statistics.median(times[name]):.3f} | {min(times[name]):.3f} | {max(times[name]):.3f} | "
-              f"{statistics.median(cpu[name]):.3f} | {min(cpu[name]):.3f} |")
+        print(
+            f"| {name} | {statistics.median(times[name]):.3f} | {min(times[name]):.3f} | {max(times[name]):.3f} | "
+            f"{statistics.median(cpu[name]):.3f} | {min(cpu[name]):.3f} |"
+        )
     for label, values in (("wall", times), ("CPU (process_time, both threads)", cpu)):
         ratios = [a / p for a, p in zip(values["adapt"], values["plain"], strict=True)]
-        print(f"{label}: median of per-repeat ratios adapt/plain {statistics.median(ratios):.3f}, ratio of medians "
-              f"{statistics.median(values['adapt']) / statistics.median(values['plain']):.3f}, ratio of minima "
-              f"{min(values['adapt']) / min(values['plain']):.3f} (goal <= 1.15)")
+        print(
+            f"{label}: median of per-repeat ratios adapt/plain {statistics.median(ratios):.3f}, ratio of medians "
+            f"{statistics.median(values['adapt']) / statistics.median(values['plain']):.3f}, ratio of minima "
+            f"{min(values['adapt']) / min(values['plain']):.3f} (goal <= 1.15)"
+        )
 
     # 2. memory
     if not args.skip_memory:
         memory = measure_memory(args.size, args.frames, cache_dir, args.memory_steps)
-        print(f"\n## peak memory (fresh process per variant; VmHWM after the steps minus VmRSS before them; peak reset after setup: {memory['adapt']['peak_reset']})")
-        print("| variant | setup peak RSS (MiB) | RSS before steps (MiB) | peak RSS (MiB) | step peak increase (MiB) |\n|---|---|---|---|---|")
+        print(
+            f"\n## peak memory (fresh process per variant; VmHWM after the steps minus VmRSS before them; peak reset after setup: {memory['adapt']['peak_reset']})"
+        )
+        print(
+            "| variant | setup peak RSS (MiB) | RSS before steps (MiB) | peak RSS (MiB) | step peak increase (MiB) |\n|---|---|---|---|---|"
+        )
         increase = {}
         for name in ("plain", "adapt"):
             m = memory[name]
             increase[name] = m["peak_kib"] - m["rss_before_kib"]
-            print(f"| {name} | {m['setup_peak_kib'] / 1024:.0f} | {m['rss_before_kib'] / 1024:.0f} | {m['peak_kib'] / 1024:.0f} | {increase[name] / 1024:.0f} |")
-        print(f"step peak increase ratio adapt/plain: {increase['adapt'] / increase['plain']:.3f}; "
-              f"whole-process peak ratio: {memory['adapt']['peak_kib'] / memory['plain']['peak_kib']:.3f} (goal <= 1.2)")
+            print(
+                f"| {name} | {m['setup_peak_kib'] / 1024:.0f} | {m['rss_before_kib'] / 1024:.0f} | {m['peak_kib'] / 1024:.0f} | {increase[name] / 1024:.0f} |"
+            )
+        print(
+            f"step peak increase ratio adapt/plain: {increase['adapt'] / increase['plain']:.3f}; "
+            f"whole-process peak ratio: {memory['adapt']['peak_kib'] / memory['plain']['peak_kib']:.3f} (goal <= 1.2)"
+        )
 
     # 3. wall time of a default adaptation, extrapolated
     if not args.skip_adapt:
@@ -226,7 +280,9 @@ def main() -> None:
         images = frames(args.size, args.frames, cache_dir)
         model = build_model()
         out = Path(fresh_cache) / "adapter.safetensors"
-        config = AdaptConfig(input_size=args.size, steps=args.steps, cache_dir=fresh_cache, checkpoint_every=0)
+        config = AdaptConfig(
+            input_size=args.size, steps=args.steps, cache_dir=fresh_cache, checkpoint_every=0
+        )
         start = time.perf_counter()
         adapt(model, camera(args.size), images, config, out_path=out, progress=False)
         total = time.perf_counter() - start
@@ -235,15 +291,23 @@ def main() -> None:
         per_step = statistics.median(step_times)
         preparation = total - sum(step_times)
         default_steps = AdaptConfig().steps
-        print(f"\n## default adaptation ({default_steps} steps, {config.n_windows} windows, {args.size} px)")
-        print(f"measured: adapt() with steps={args.steps}: {total:.1f} s in total, of which preparation "
-              f"(matching, MAGSAC++, resizing, saving) {preparation:.1f} s; step times {', '.join(f'{t:.2f}' for t in step_times)} s")
-        print(f"EXTRAPOLATED (not run): {default_steps} steps ~ {preparation:.1f} + {default_steps} x {per_step:.2f} = "
-              f"{preparation + default_steps * per_step:.0f} s ({(preparation + default_steps * per_step) / 60:.1f} min)")
+        print(
+            f"\n## default adaptation ({default_steps} steps, {config.n_windows} windows, {args.size} px)"
+        )
+        print(
+            f"measured: adapt() with steps={args.steps}: {total:.1f} s in total, of which preparation "
+            f"(matching, MAGSAC++, resizing, saving) {preparation:.1f} s; step times {', '.join(f'{t:.2f}' for t in step_times)} s"
+        )
+        print(
+            f"EXTRAPOLATED (not run): {default_steps} steps ~ {preparation:.1f} + {default_steps} x {per_step:.2f} = "
+            f"{preparation + default_steps * per_step:.0f} s ({(preparation + default_steps * per_step) / 60:.1f} min)"
+        )
 
 
 if __name__ == "__main__":
     from raytun3r_plugin.registry import quiet_upstream
 
-    with quiet_upstream():  # no per-forward INFO lines from the backbone's own logger (children too)
+    with (
+        quiet_upstream()
+    ):  # no per-forward INFO lines from the backbone's own logger (children too)
         main()

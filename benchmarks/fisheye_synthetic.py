@@ -31,20 +31,44 @@ def main() -> None:
     parser.add_argument("--out", default="runs/bench")
     parser.add_argument("--size", type=int, default=112)
     parser.add_argument("--steps", type=int, default=300)
-    parser.add_argument("--sequences", type=int, default=SEQUENCES_PER_CELL, help="held-out sequences per camera and scene")
+    parser.add_argument(
+        "--sequences",
+        type=int,
+        default=SEQUENCES_PER_CELL,
+        help="held-out sequences per camera and scene",
+    )
     parser.add_argument("--readme", default=None)
-    parser.add_argument("--development", action="store_true", help="development seeds (80000+) instead of the held-out ones; never with --readme")
+    parser.add_argument(
+        "--development",
+        action="store_true",
+        help="development seeds (80000+) instead of the held-out ones; never with --readme",
+    )
     args = parser.parse_args()
     if args.development and args.readme:
-        parser.error("--development tables are for choosing settings; the README shows held-out seeds")
+        parser.error(
+            "--development tables are for choosing settings; the README shows held-out seeds"
+        )
     model, description = default_network()
-    table = run_benchmark(model, args.out, size=args.size, steps=args.steps, sequences=args.sequences, network=description, progress=False, base_seed=DEVELOPMENT_SEED if args.development else HELD_OUT_SEED)
+    table = run_benchmark(
+        model,
+        args.out,
+        size=args.size,
+        steps=args.steps,
+        sequences=args.sequences,
+        network=description,
+        progress=False,
+        base_seed=DEVELOPMENT_SEED if args.development else HELD_OUT_SEED,
+    )
     print(table)
     if args.readme:
         readme = Path(args.readme)
         text = readme.read_text()
         block = f"{START}\n{table}\n{END}"
-        text = re.sub(re.escape(START) + ".*?" + re.escape(END), lambda _: block, text, flags=re.S) if START in text else text + "\n" + block + "\n"
+        text = (
+            re.sub(re.escape(START) + ".*?" + re.escape(END), lambda _: block, text, flags=re.S)
+            if START in text
+            else text + "\n" + block + "\n"
+        )
         readme.write_text(text)
 
 

@@ -72,8 +72,18 @@ def leverage(model, camera, images: torch.Tensor, seed: int = 0) -> dict[str, fl
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--weights", nargs="*", default=[None], help="raytun3r-da3-tiny weight files (default: packaged)")
-    parser.add_argument("--camera", type=int, default=1, help="index into the benchmark cameras (0 KB4 120, 1 KB4 185, 2 DS 195)")
+    parser.add_argument(
+        "--weights",
+        nargs="*",
+        default=[None],
+        help="raytun3r-da3-tiny weight files (default: packaged)",
+    )
+    parser.add_argument(
+        "--camera",
+        type=int,
+        default=1,
+        help="index into the benchmark cameras (0 KB4 120, 1 KB4 185, 2 DS 195)",
+    )
     parser.add_argument("--seed", type=int, default=90_010)
     args = parser.parse_args()
     torch.manual_seed(0)
@@ -84,8 +94,15 @@ def main() -> None:
     for weights in args.weights:
         model = load_backbone("raytun3r-da3-tiny", weights)
         rows.append({"weights": weights or "packaged", **leverage(model, camera, images)})
-    print(f"camera {CAMERAS[args.camera].label}, indoor seed {args.seed}, 3 views at 112 px; mean |d - d_ref| / d_ref")
-    print(format_table(rows, ["weights", "pe_std", "zero_pe", "pe_correction", "rope_1_token", "parameter_free"]))
+    print(
+        f"camera {CAMERAS[args.camera].label}, indoor seed {args.seed}, 3 views at 112 px; mean |d - d_ref| / d_ref"
+    )
+    print(
+        format_table(
+            rows,
+            ["weights", "pe_std", "zero_pe", "pe_correction", "rope_1_token", "parameter_free"],
+        )
+    )
 
 
 if __name__ == "__main__":

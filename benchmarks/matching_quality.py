@@ -46,25 +46,34 @@ from raytun3r_plugin.adaptation.pose_targets import (
 
 def kb4_190(size: int) -> cameras.Camera:
     """Kannala-Brandt 4, 190-degree lens circle filling ~95% of the image width."""
-    return cameras.fisheye(size, 190.0, "kb4", k=(0.01, -0.004, 0.0005, 0.0), radius_px=0.475 * size)
+    return cameras.fisheye(
+        size, 190.0, "kb4", k=(0.01, -0.004, 0.0005, 0.0), radius_px=0.475 * size
+    )
 
 
 def ds_195(size: int) -> cameras.Camera:
     """Double sphere with TUM-VI-like parameters (basalt calibration, 512x512), scaled."""
     s = size / 512
     return cameras.DoubleSphere(
-        size, size,
+        size,
+        size,
         [158.28 * s, 158.22 * s, 255.4 * s - 0.5, 257.4 * s - 0.5, -0.18, 0.59],
         max_fov_deg=195.0,
     )
 
 
 CAMERAS: dict[str, Callable[[int], cameras.Camera]] = {"KB4 190": kb4_190, "DS 195": ds_195}
-MATCHERS: dict[str, Callable[[], Matcher]] = {"dis": DISFlowMatcher, "sift": SIFTMatcher, "dis-unchecked": lambda: DISFlowMatcher(appearance_check=False)}
+MATCHERS: dict[str, Callable[[], Matcher]] = {
+    "dis": DISFlowMatcher,
+    "sift": SIFTMatcher,
+    "dis-unchecked": lambda: DISFlowMatcher(appearance_check=False),
+}
 BINS = (0.0, 4.0, 8.0, 16.0, 32.0, math.inf)
 
 
-def displacement_bins(seqs, matcher: Matcher, gaps: tuple[int, ...] = (1, 2)) -> list[tuple[float, float, int]]:
+def displacement_bins(
+    seqs, matcher: Matcher, gaps: tuple[int, ...] = (1, 2)
+) -> list[tuple[float, float, int]]:
     """(share of matches, median end-point error px, count) per bin of the true motion, pooled
     over the pairs ``(k, k + gap)`` and ``(k + gap, k)`` of every sequence."""
     errors, motion = [], []
@@ -81,7 +90,13 @@ def displacement_bins(seqs, matcher: Matcher, gaps: tuple[int, ...] = (1, 2)) ->
     out = []
     for low, high in zip(BINS[:-1], BINS[1:], strict=True):
         inside = (moved >= low) & (moved < high)
-        out.append((float(inside.mean()) if moved.size else 0.0, float(np.median(error[inside])) if inside.any() else math.nan, int(inside.sum())))
+        out.append(
+            (
+                float(inside.mean()) if moved.size else 0.0,
+                float(np.median(error[inside])) if inside.any() else math.nan,
+                int(inside.sum()),
+            )
+        )
     return out
 
 
@@ -89,22 +104,42 @@ def bins_table(n_frames: int, seeds: list[int]) -> None:
     """The displacement-bin table on the benchmark's cameras (development seeds 80000+)."""
     from raytun3r_plugin.apps.benchmark import CAMERAS, make_camera
 
-    labels = [f"{int(lo)}-{int(hi)} px" if math.isfinite(hi) else f"{int(lo)}+ px" for lo, hi in zip(BINS[:-1], BINS[1:], strict=True)]
-    print("Share of matches and median end-point error (px) per bin of the true motion; pairs (k, k+1) and (k, k+2), both directions; "
-          f"{n_frames} frames per sequence, development seeds {seeds} (80000 + 100 k + 10 camera + scene), 112 px. "
-          "A bin fails when it holds at least 5 % of the matches and its median is 1 px or more.\n")
+    labels = [
+        f"{int(lo)}-{int(hi)} px" if math.isfinite(hi) else f"{int(lo)}+ px"
+        for lo, hi in zip(BINS[:-1], BINS[1:], strict=True)
+    ]
+    print(
+        "Share of matches and median end-point error (px) per bin of the true motion; pairs (k, k+1) and (k, k+2), both directions; "
+        f"{n_frames} frames per sequence, development seeds {seeds} (80000 + 100 k + 10 camera + scene), 112 px. "
+        "A bin fails when it holds at least 5 % of the matches and its median is 1 px or more.\n"
+    )
     print("| camera | scene | matcher | matches/pair | " + " | ".join(labels) + " | target |")
     print("|" + "---|" * (5 + len(labels)))
     for c, spec in enumerate(CAMERAS):
         camera = make_camera(spec, 112)
         for s, kind in enumerate(("indoor", "outdoor")):
-            seqs = [synthetic.render_sequence(kind, camera, n_frames=n_frames, seed=80_000 + 100 * k + 10 * c + s) for k in seeds]
+            seqs = [
+                synthetic.render_sequence(
+                    kind, camera, n_frames=n_frames, seed=80_000 + 100 * k + 10 * c + s
+                )
+                for k in seeds
+            ]
             for name in ("dis", "dis-unchecked"):
                 rows = displacement_bins(seqs, MATCHERS[name]())
                 pairs = sum(2 * len(range(0, n_frames - g, 2)) for g in (1, 2)) * len(seqs)
-                fails = [label for label, (share, median, _) in zip(labels, rows, strict=True) if share >= 0.05 and not median < 1.0]
-                cells = " | ".join(f"{100 * share:.0f}% {median:.2f}" if count else "0% -" for share, median, count in rows)
-                print(f"| {spec.label} | {kind} | {name} | {sum(r[2] for r in rows) / pairs:.0f} | {cells} | {'met' if not fails else 'fails ' + ', '.join(fails)} |", flush=True)
+                fails = [
+                    label
+                    for label, (share, median, _) in zip(labels, rows, strict=True)
+                    if share >= 0.05 and not median < 1.0
+                ]
+                cells = " | ".join(
+                    f"{100 * share:.0f}% {median:.2f}" if count else "0% -"
+                    for share, median, count in rows
+                )
+                print(
+                    f"| {spec.label} | {kind} | {name} | {sum(r[2] for r in rows) / pairs:.0f} | {cells} | {'met' if not fails else 'fails ' + ', '.join(fails)} |",
+                    flush=True,
+                )
 
 
 def gt_end_points(seq, i: int, j: int, uv_i: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -181,9 +216,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--kinds", nargs="+", default=["indoor", "outdoor"])
     ap.add_argument("--cameras", nargs="+", default=list(CAMERAS), choices=list(CAMERAS))
     ap.add_argument("--matchers", nargs="+", default=list(MATCHERS), choices=list(MATCHERS))
-    ap.add_argument("--torch-threads", type=int, default=1,
-                    help="torch threads for rendering (1 is fastest on a shared machine)")
-    ap.add_argument("--bins", action="store_true", help="displacement-bin table on the benchmark's cameras (issue 12)")
+    ap.add_argument(
+        "--torch-threads",
+        type=int,
+        default=1,
+        help="torch threads for rendering (1 is fastest on a shared machine)",
+    )
+    ap.add_argument(
+        "--bins",
+        action="store_true",
+        help="displacement-bin table on the benchmark's cameras (issue 12)",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(args.torch_threads)
     if args.bins:
@@ -208,8 +251,9 @@ def main(argv: list[str] | None = None) -> None:
         camera = CAMERAS[cam_name](args.size)
         for kind in args.kinds:
             seqs = [
-                synthetic.render_sequence(kind, camera, n_frames=args.frames, seed=s,
-                                          flow_px=args.flow_px)
+                synthetic.render_sequence(
+                    kind, camera, n_frames=args.frames, seed=s, flow_px=args.flow_px
+                )
                 for s in args.seeds
             ]
             for gap in args.gaps:

@@ -42,8 +42,18 @@ from raytun3r_plugin.apps.demo import adapt_config, default_network, supervised_
 from raytun3r_plugin.apps.evaluation import format_table
 from raytun3r_plugin.registry import quiet_upstream, spec_for
 
-SEQUENCES = (("KB4 185", "indoor", 80_010), ("DS 195", "indoor", 80_020), ("KB4 185", "outdoor", 80_011))
-PAPER = {"weights": LossWeights(), "scale": "least_squares", "robust_px": None, "pe_regulariser": "absolute", "matcher_options": {"appearance_check": False}}
+SEQUENCES = (
+    ("KB4 185", "indoor", 80_010),
+    ("DS 195", "indoor", 80_020),
+    ("KB4 185", "outdoor", 80_011),
+)
+PAPER = {
+    "weights": LossWeights(),
+    "scale": "least_squares",
+    "robust_px": None,
+    "pe_regulariser": "absolute",
+    "matcher_options": {"appearance_check": False},
+}
 
 
 def scale_errors(problem, seq, depth_maps: torch.Tensor) -> dict[str, float]:
@@ -56,19 +66,34 @@ def scale_errors(problem, seq, depth_maps: torch.Tensor) -> dict[str, float]:
                 continue
             depth = sample_bilinear(depth_maps[window.frames[pair.a]], pair.uv_i)
             usable = torch.isfinite(depth) & (depth > 0)
-            points = backproject(torch.where(usable, depth, torch.ones_like(depth)), pair.rays_i, "range")[usable].double()
+            points = backproject(
+                torch.where(usable, depth, torch.ones_like(depth)), pair.rays_i, "range"
+            )[usable].double()
             rotation, direction = pair.rotation, pair.direction
             gi, gj = window.global_pair(pair.a, pair.b)
             truth = synthetic.relative_pose(seq.cam_from_world, gi, gj)
             scales = {
-                "least_squares": fit_translation_scale(points, pair.rays_j[usable].double(), rotation, direction),
-                "pixel_optimal": pixel_optimal_scale(points, pair.uv_j[usable].double(), rotation, direction, camera),
+                "least_squares": fit_translation_scale(
+                    points, pair.rays_j[usable].double(), rotation, direction
+                ),
+                "pixel_optimal": pixel_optimal_scale(
+                    points, pair.uv_j[usable].double(), rotation, direction, camera
+                ),
                 "true": torch.tensor(float(np.linalg.norm(truth[:3, 3])), dtype=torch.float64),
             }
             for name, scale in scales.items():
                 pose = torch.eye(4, dtype=torch.float64)
                 pose[:3, :3], pose[:3, 3] = rotation, scale * direction
-                loss, count = reprojection_loss(depth_maps[window.frames[pair.a]].double(), pose, pair.uv_i, pair.uv_j, None, camera, problem.valid, rays_i=(pair.rays_i, torch.ones(pair.uv_i.shape[0], dtype=torch.bool)))
+                loss, count = reprojection_loss(
+                    depth_maps[window.frames[pair.a]].double(),
+                    pose,
+                    pair.uv_i,
+                    pair.uv_j,
+                    None,
+                    camera,
+                    problem.valid,
+                    rays_i=(pair.rays_i, torch.ones(pair.uv_i.shape[0], dtype=torch.bool)),
+                )
                 if count:
                     errors[name].append(float(loss))
     return {name: float(np.mean(values)) for name, values in errors.items()}
@@ -98,19 +123,31 @@ def main() -> None:
         cell = f"{label} {scene} {seed}"
         new = adapt_config(112, 300)
         old = adapt_config(112, 300, **PAPER)
-        problem_new, problem_old = prepare_problem(camera, seq.images, new), prepare_problem(camera, seq.images, old)
+        problem_new, problem_old = (
+            prepare_problem(camera, seq.images, new),
+            prepare_problem(camera, seq.images, old),
+        )
         problem_new.pe_scale = energy
         gt = torch.from_numpy(ground_truth_depth(seq, 24))
-        at_truth = scale_errors(problem_new, seq, torch.where(gt > 0, gt, torch.full_like(gt, float("nan"))))
+        at_truth = scale_errors(
+            problem_new, seq, torch.where(gt > 0, gt, torch.full_like(gt, float("nan")))
+        )
         at_zero = scale_errors(problem_new, seq, zero_adapter_depth(model, problem_new))
-        unchecked = scale_errors(problem_old, seq, torch.where(gt > 0, gt, torch.full_like(gt, float("nan"))))
-        scale_rows.append({
-            "sequence": cell, **{f"GT depth, {k}": v for k, v in at_truth.items()},
-            **{f"zero adapter, {k}": v for k, v in at_zero.items() if k != "true"},
-            **{f"GT depth, unchecked DIS, {k}": v for k, v in unchecked.items()},
-        })
+        unchecked = scale_errors(
+            problem_old, seq, torch.where(gt > 0, gt, torch.full_like(gt, float("nan")))
+        )
+        scale_rows.append(
+            {
+                "sequence": cell,
+                **{f"GT depth, {k}": v for k, v in at_truth.items()},
+                **{f"zero adapter, {k}": v for k, v in at_zero.items() if k != "true"},
+                **{f"GT depth, unchecked DIS, {k}": v for k, v in unchecked.items()},
+            }
+        )
 
-        supervised = adapt(model, camera, seq.images, supervised_config(112, 100), depth=gt.numpy(), progress=False)
+        supervised = adapt(
+            model, camera, seq.images, supervised_config(112, 100), depth=gt.numpy(), progress=False
+        )
         quarter = copy.deepcopy(supervised)
         with torch.no_grad():
             for parameter in quarter.parameters():
@@ -121,20 +158,43 @@ def main() -> None:
             for name, adapter in (("zero", zero), ("quarter", quarter), ("supervised", supervised)):
                 values[(objective, name)] = objective_value(model, adapter, problem, config)
         sup_new, sup_old = values[("new", "supervised")], values[("paper", "supervised")]
-        price_rows.append({
-            "sequence": cell, "paper L2+TV price": 2 * sup_old["l2"] + 20 * sup_old["tv"],
-            "relative L2+TV price": 0.02 * sup_new["l2"] + 0.2 * sup_new["tv"],
-            "data terms (new, zero adapter)": values[("new", "zero")]["reproj"] + new.weights.smooth * values[("new", "zero")]["smooth"],
-            "data gain of the supervised fit (new)": (values[("new", "zero")]["reproj"] + new.weights.smooth * values[("new", "zero")]["smooth"]) - (sup_new["reproj"] + new.weights.smooth * sup_new["smooth"]),
-        })
+        price_rows.append(
+            {
+                "sequence": cell,
+                "paper L2+TV price": 2 * sup_old["l2"] + 20 * sup_old["tv"],
+                "relative L2+TV price": 0.02 * sup_new["l2"] + 0.2 * sup_new["tv"],
+                "data terms (new, zero adapter)": values[("new", "zero")]["reproj"]
+                + new.weights.smooth * values[("new", "zero")]["smooth"],
+                "data gain of the supervised fit (new)": (
+                    values[("new", "zero")]["reproj"]
+                    + new.weights.smooth * values[("new", "zero")]["smooth"]
+                )
+                - (sup_new["reproj"] + new.weights.smooth * sup_new["smooth"]),
+            }
+        )
         for objective in ("paper", "new"):
-            rank_rows.append({"sequence": cell, "objective": objective, **{name: values[(objective, name)]["loss"] for name in ("zero", "quarter", "supervised")}})
+            rank_rows.append(
+                {
+                    "sequence": cell,
+                    "objective": objective,
+                    **{
+                        name: values[(objective, name)]["loss"]
+                        for name in ("zero", "quarter", "supervised")
+                    },
+                }
+            )
         print(f"{cell}: done", flush=True)
-    print("\n1. Mean L1 reprojection error (px) of the matches, MAGSAC++ rotation and direction, by translation scale:\n")
+    print(
+        "\n1. Mean L1 reprojection error (px) of the matches, MAGSAC++ rotation and direction, by translation scale:\n"
+    )
     print(format_table(scale_rows, list(scale_rows[0])))
-    print("\n2. Price of the supervised correction under each regulariser, next to the data terms:\n")
+    print(
+        "\n2. Price of the supervised correction under each regulariser, next to the data terms:\n"
+    )
     print(format_table(price_rows, list(price_rows[0])))
-    print("\n3. Objective value (lower is preferred) of the zero adapter, a quarter of the supervised correction and the supervised correction:\n")
+    print(
+        "\n3. Objective value (lower is preferred) of the zero adapter, a quarter of the supervised correction and the supervised correction:\n"
+    )
     print(format_table(rank_rows, list(rank_rows[0])))
 
 

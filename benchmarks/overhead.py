@@ -32,8 +32,12 @@ def trained_looking(adapter: rt.Adapter) -> rt.Adapter:
     generator = torch.Generator().manual_seed(0)
     with torch.no_grad():
         rho = torch.linspace(0, 1, adapter.n_r)[:, None]
-        adapter.pe["radial"].copy_(rho**2 * torch.randn(1, adapter.embed_dim, generator=generator) * 0.05)
-        adapter.pe["angular"].copy_(torch.randn(adapter.pe["angular"].shape, generator=generator) * 0.01)
+        adapter.pe["radial"].copy_(
+            rho**2 * torch.randn(1, adapter.embed_dim, generator=generator) * 0.05
+        )
+        adapter.pe["angular"].copy_(
+            torch.randn(adapter.pe["angular"].shape, generator=generator) * 0.01
+        )
         if adapter.rope is not None:
             adapter.rope["radial"].copy_(torch.linspace(0, 1, adapter.n_r_rope) ** 2)
     return adapter
@@ -57,14 +61,18 @@ def main() -> None:
     with torch.no_grad():
         plain.backbone.pretrained.pos_embed.normal_(0, 0.02)
     patched = copy.deepcopy(plain)
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, da3-small, {args.views} views, {args.repeats} interleaved repeats")
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads, da3-small, {args.views} views, {args.repeats} interleaved repeats"
+    )
     print("| input | unpatched (s) | patched (s) | median ratio |")
     print("|---|---|---|---|")
     with torch.inference_mode():
         for size in args.sizes:
             camera = fisheye(size)
             adapter = trained_looking(rt.Adapter.for_model(patched, camera))
-            images = torch.rand(1, args.views, 3, size, size, generator=torch.Generator().manual_seed(size))
+            images = torch.rand(
+                1, args.views, 3, size, size, generator=torch.Generator().manual_seed(size)
+            )
             with rt.apply(patched, camera, adapter):
                 for _ in range(2):  # warm-up: fills the per-size geometry cache and allocator
                     timed(plain, images), timed(patched, images)
@@ -77,7 +85,9 @@ def main() -> None:
                     plain_times.append(a)
                     patched_times.append(b)
                     ratios.append(b / a)
-            print(f"| {size}x{size} | {statistics.median(plain_times):.3f} | {statistics.median(patched_times):.3f} | {statistics.median(ratios):.3f} |")
+            print(
+                f"| {size}x{size} | {statistics.median(plain_times):.3f} | {statistics.median(patched_times):.3f} | {statistics.median(ratios):.3f} |"
+            )
 
 
 if __name__ == "__main__":

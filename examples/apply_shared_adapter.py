@@ -34,13 +34,17 @@ def main() -> None:
     layout = input_layout(camera, args.size, adapter.patch_size)
     images = layout.frames(frames)  # (S, 3, h, w) in [0, 1]
 
-    with rt.apply(model, layout.native_camera, adapter) as handle:  # camera is rescaled to the input
+    with rt.apply(
+        model, layout.native_camera, adapter
+    ) as handle:  # camera is rescaled to the input
         prediction = rt.predict(model, images)
         with handle.disabled():
             plain = rt.predict(model, images)
     change = (prediction.depth - plain.depth).abs().mean() / plain.depth.abs().mean()
     print(f"patched {handle.patched}")
-    print(f"depth {tuple(prediction.depth.shape)}, cam_from_world {tuple(prediction.cam_from_world.shape)}")
+    print(
+        f"depth {tuple(prediction.depth.shape)}, cam_from_world {tuple(prediction.cam_from_world.shape)}"
+    )
     print(f"mean relative depth change from the adapter and corrections: {float(change):.3f}")
     print(f"model restored: {rt.handle_of(model) is None}")
 

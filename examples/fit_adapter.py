@@ -21,7 +21,9 @@ def main() -> None:
     parser.add_argument("--out", required=True)
     parser.add_argument("--frames", help="image folder or video of the segment")
     parser.add_argument("--camera", help="calibration file of the frames")
-    parser.add_argument("--mask", help="scene mask of the frames (255 = scene, 0 = the vehicle's body or the mount)")
+    parser.add_argument(
+        "--mask", help="scene mask of the frames (255 = scene, 0 = the vehicle's body or the mount)"
+    )
     parser.add_argument("--backbone", help="backbone name (default: the built-in network)")
     parser.add_argument("--weights", help="local weight file of --backbone")
     parser.add_argument("--size", type=int, default=112, help="network input long side (px)")
@@ -40,9 +42,16 @@ def main() -> None:
         camera = demo_camera(args.size)
         frames = synthetic.render_sequence("indoor", camera, n_frames=args.n_frames, seed=7).images
     # The built-in network's pose head is at chance: take relative poses from MAGSAC++ targets.
-    config = AdaptConfig(steps=args.steps, input_size=args.size, seed=0, pose_source="model" if args.backbone else POSE_SOURCE)
+    config = AdaptConfig(
+        steps=args.steps,
+        input_size=args.size,
+        seed=0,
+        pose_source="model" if args.backbone else POSE_SOURCE,
+    )
     adapter = adapt(model, camera, frames, config, out_path=args.out, progress=False, mask=mask)
-    print(f"saved {args.out}: {adapter.num_parameters()['total']:,} parameters, final losses {adapter.training_info.get('final_losses')}")
+    print(
+        f"saved {args.out}: {adapter.num_parameters()['total']:,} parameters, final losses {adapter.training_info.get('final_losses')}"
+    )
 
 
 if __name__ == "__main__":

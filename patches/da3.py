@@ -46,7 +46,10 @@ from raytun3r_plugin.weights import load_into, read_state_dict, strip_prefix
 FAMILY = "da3"
 UPSTREAM_MODULE = "depth_anything_3"
 UPSTREAM = UpstreamVersion(
-    source="depth-anything-3", version="0.1.1", module=UPSTREAM_MODULE, note="GitHub ByteDance-Seed/Depth-Anything-3 2c21ea8"
+    source="depth-anything-3",
+    version="0.1.1",
+    module=UPSTREAM_MODULE,
+    note="GitHub ByteDance-Seed/Depth-Anything-3 2c21ea8",
 )
 #: RoPE classes of the ViT (one instance, shared by every block from ``rope_start``).
 ROPE_CLASSES = ("RotaryPositionEmbedding2D",)
@@ -66,7 +69,9 @@ _INSTALL_HINT = "pip install --no-deps depth-anything-3 && pip install omegaconf
 
 def recognise(model: nn.Module) -> nn.Module | None:
     def is_net(module) -> bool:
-        return type(module).__name__ == "DepthAnything3Net" and type(module).__module__.startswith(UPSTREAM_MODULE)
+        return type(module).__name__ == "DepthAnything3Net" and type(module).__module__.startswith(
+            UPSTREAM_MODULE
+        )
 
     if is_net(model):
         return model
@@ -86,7 +91,11 @@ def describe(root: nn.Module) -> BackboneInfo:
         )
     has_rope = getattr(vit, "rope", None) is not None
     key = (vit.embed_dim, len(vit.blocks), has_rope)
-    name = getattr(root, "raytun3r_name", None) or _KNOWN.get(key) or f"da3-custom-e{vit.embed_dim}-d{len(vit.blocks)}"
+    name = (
+        getattr(root, "raytun3r_name", None)
+        or _KNOWN.get(key)
+        or f"da3-custom-e{vit.embed_dim}-d{len(vit.blocks)}"
+    )
     return BackboneInfo(
         name=name,
         embed_dim=vit.embed_dim,
@@ -182,7 +191,9 @@ def _import_upstream():
             from depth_anything_3.cfg import create_object, load_config
             from depth_anything_3.registry import MODEL_REGISTRY
     except ImportError as error:
-        raise MissingDependencyError(f"Depth Anything 3 is not importable ({error}); install it with: {_INSTALL_HINT}") from error
+        raise MissingDependencyError(
+            f"Depth Anything 3 is not importable ({error}); install it with: {_INSTALL_HINT}"
+        ) from error
     return create_object, load_config, MODEL_REGISTRY
 
 
@@ -190,7 +201,9 @@ def build_network(name: str) -> nn.Module:
     """A randomly initialised ``DepthAnything3Net`` from the package's own config ``name``."""
     create_object, load_config, registry = _import_upstream()
     if name not in registry:
-        raise WeightsError(f"depth_anything_3 defines no config {name!r}; it has {sorted(registry)}")
+        raise WeightsError(
+            f"depth_anything_3 defines no config {name!r}; it has {sorted(registry)}"
+        )
     return create_object(load_config(registry[name]))
 
 
@@ -203,7 +216,9 @@ def load_weights(model: nn.Module, path) -> nn.Module:
 def _builder(name: str):
     def build(path=None) -> nn.Module:
         if path is None:
-            raise WeightsError(f"{name} needs a local weight file (.safetensors or .pt); raytun3r never downloads")
+            raise WeightsError(
+                f"{name} needs a local weight file (.safetensors or .pt); raytun3r never downloads"
+            )
         return load_weights(build_network(name), path)
 
     return build
@@ -249,12 +264,25 @@ def build_tiny_network(
         backbone.alt_start = backbone.qknorm_start = backbone.rope_start = alt_start
         backbone.cat_token = True
         backbone.pretrained = DinoVisionTransformer(
-            img_size=518, patch_size=14, embed_dim=embed_dim, depth=depth, num_heads=num_heads,
-            mlp_ratio=4, alt_start=alt_start, qknorm_start=alt_start, rope_start=alt_start, cat_token=True,
+            img_size=518,
+            patch_size=14,
+            embed_dim=embed_dim,
+            depth=depth,
+            num_heads=num_heads,
+            mlp_ratio=4,
+            alt_start=alt_start,
+            qknorm_start=alt_start,
+            rope_start=alt_start,
+            cat_token=True,
         )
         nn.init.trunc_normal_(backbone.pretrained.pos_embed, std=0.02)
         nn.init.trunc_normal_(backbone.pretrained.cls_token, std=0.02)
-        head = DualDPT(dim_in=2 * embed_dim, output_dim=2, features=head_features, out_channels=list(head_channels))
+        head = DualDPT(
+            dim_in=2 * embed_dim,
+            output_dim=2,
+            features=head_features,
+            out_channels=list(head_channels),
+        )
         cam_dec = CameraDec(dim_in=2 * embed_dim) if camera_decoder else None
         # Built last, so dropping it (camera_encoder=False) leaves every other initial weight as it is.
         cam_enc = CameraEnc(dim_out=embed_dim, num_heads=num_heads) if camera_decoder else None

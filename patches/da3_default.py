@@ -42,7 +42,9 @@ def build_kwargs() -> dict:
         kwargs = json.loads(path.read_text())["build_kwargs"]
     except (ValueError, KeyError, TypeError) as error:
         raise WeightsError(f"{NAME}: {path} is not a valid build record ({error})") from error
-    return {key: (tuple(value) if isinstance(value, list) else value) for key, value in kwargs.items()}
+    return {
+        key: (tuple(value) if isinstance(value, list) else value) for key, value in kwargs.items()
+    }
 
 
 def build(path=None):

@@ -90,14 +90,20 @@ def _describe(family: str, official: str):
     def describe(root: nn.Module) -> BackboneInfo:
         encoder = getattr(root, "encoder", None)
         if encoder is None or not isinstance(getattr(encoder, "pos_embed", None), torch.Tensor):
-            found = f"{type(encoder).__module__}.{type(encoder).__qualname__}" if encoder is not None else "nothing"
+            found = (
+                f"{type(encoder).__module__}.{type(encoder).__qualname__}"
+                if encoder is not None
+                else "nothing"
+            )
             raise UnsupportedUpstreamError(
                 f"{family}: expected a DINOv2 ViT with an absolute PE table at 'encoder', found {found} "
                 f"(the {family} patch was checked against {UPSTREAM})"
             )
         depth = len(root.decoder)
         known = encoder.embed_dim == 1024 and depth == 36
-        name = getattr(root, "raytun3r_name", None) or (official if known else f"{family}-custom-e{encoder.embed_dim}-d{depth}")
+        name = getattr(root, "raytun3r_name", None) or (
+            official if known else f"{family}-custom-e{encoder.embed_dim}-d{depth}"
+        )
         return BackboneInfo(
             name=name,
             embed_dim=encoder.embed_dim,
@@ -136,7 +142,9 @@ def _check(family: str):
 # ---------------------------------------------------------------------------------------------
 
 #: (state, image height, image width) of the ConvHead forward running in this context, or None.
-_UV_CONTEXT: contextvars.ContextVar[tuple | None] = contextvars.ContextVar("raytun3r_pi3x_uv", default=None)
+_UV_CONTEXT: contextvars.ContextVar[tuple | None] = contextvars.ContextVar(
+    "raytun3r_pi3x_uv", default=None
+)
 
 
 class _UvTrampoline:
@@ -173,11 +181,16 @@ class _UvTrampoline:
             state, image_h, image_w = active
             if state.uses("grid"):
                 grid = state.geometry(image_h, image_w).uv_grid(
-                    int(height), int(width), device if device is not None else torch.device("cpu"), dtype or torch.get_default_dtype()
+                    int(height),
+                    int(width),
+                    device if device is not None else torch.device("cpu"),
+                    dtype or torch.get_default_dtype(),
                 )
                 if grid is not None:
                     return grid
-        return self.original(width=width, height=height, aspect_ratio=aspect_ratio, dtype=dtype, device=device)
+        return self.original(
+            width=width, height=height, aspect_ratio=aspect_ratio, dtype=dtype, device=device
+        )
 
     @classmethod
     def installed(cls, module) -> _UvTrampoline | None:
@@ -271,7 +284,10 @@ def _rope_target(owners: tuple[str, ...]) -> PatchTarget:
     )
 
 
-PI3_ROPE_OWNERS = ("rope", "conf_decoder.blocks.0.attn.rope")  # conf_decoder is a deepcopy: own instance
+PI3_ROPE_OWNERS = (
+    "rope",
+    "conf_decoder.blocks.0.attn.rope",
+)  # conf_decoder is a deepcopy: own instance
 PI3X_ROPE_OWNERS = ("rope",)  # one instance shared by the decoder and every head decoder
 
 PI3_TARGETS = (_PE, _rope_target(PI3_ROPE_OWNERS), _PATCH_EMBED)
@@ -300,7 +316,9 @@ _PREDICT_LOCKS: weakref.WeakKeyDictionary[nn.Module, threading.Lock] = weakref.W
 _PREDICT_LOCKS_GUARD = threading.Lock()
 
 
-def _run_keeping_pi3x_poses(root: nn.Module, images: torch.Tensor, kwargs: dict) -> tuple[dict, torch.Tensor]:
+def _run_keeping_pi3x_poses(
+    root: nn.Module, images: torch.Tensor, kwargs: dict
+) -> tuple[dict, torch.Tensor]:
     """Run Pi3X and return (outputs, differentiable world_from_cam (B, N, 4, 4)).
 
     Upstream ``Pi3X.forward_head`` scales the pose translations by the metric scale *in place*
@@ -327,7 +345,9 @@ def _run_keeping_pi3x_poses(root: nn.Module, images: torch.Tensor, kwargs: dict)
     batch, views = images.shape[:2]
     poses = kept[-1].reshape(batch, views, 4, 4)
     translation = poses[..., :3, 3:] * output["metric"].reshape(batch, 1, 1, 1)
-    world_from_cam = torch.cat((torch.cat((poses[..., :3, :3], translation), dim=-1), poses[..., 3:, :]), dim=-2)
+    world_from_cam = torch.cat(
+        (torch.cat((poses[..., :3, :3], translation), dim=-1), poses[..., 3:, :]), dim=-2
+    )
     return output, world_from_cam
 
 
@@ -353,7 +373,11 @@ def predict(root: nn.Module, images: torch.Tensor, **kwargs) -> Prediction:
         output = root(images, **kwargs)
         world_from_cam = output["camera_poses"]
     local_points = output["local_points"]
-    extras = {"local_points": local_points, "points": output["points"], "depth_z": local_points[..., 2]}
+    extras = {
+        "local_points": local_points,
+        "points": output["points"],
+        "depth_z": local_points[..., 2],
+    }
     for key in ("rays", "metric"):
         if key in output:
             extras[key] = output[key]
@@ -397,7 +421,9 @@ def load_weights(model: nn.Module, state: dict, source: str) -> nn.Module:
 def _builder(name: str):
     def build(path=None) -> nn.Module:
         if path is None:
-            raise WeightsError(f"{name} needs a local weight file (.safetensors or .pt); raytun3r never downloads")
+            raise WeightsError(
+                f"{name} needs a local weight file (.safetensors or .pt); raytun3r never downloads"
+            )
         state = read_state_dict(path)  # before the (slow) build: a bad path fails at once
         return load_weights(build_network(name), state, str(path))
 

@@ -48,7 +48,9 @@ from raytun3r_plugin.weights import load_into, read_state_dict
 FAMILY = "vggt"
 UPSTREAM_MODULE = "vggt"
 UPSTREAM_COMMIT = "44b3afbd1869d8bde4894dd8ea1e293112dd5eba"
-UPSTREAM = UpstreamVersion(source="facebookresearch/vggt", version=UPSTREAM_COMMIT, module=UPSTREAM_MODULE)
+UPSTREAM = UpstreamVersion(
+    source="facebookresearch/vggt", version=UPSTREAM_COMMIT, module=UPSTREAM_MODULE
+)
 #: One ``RotaryPositionEmbedding2D`` serves every frame and global block.
 ROPE_CLASSES = ("RotaryPositionEmbedding2D",)
 #: ``RotaryPositionEmbedding2D.__init__(frequency)`` stores the base as ``base_frequency``.
@@ -87,7 +89,11 @@ def describe(root: nn.Module) -> BackboneInfo:
     aggregator = root.aggregator
     depth = len(aggregator.frame_blocks)
     heads = [getattr(root, name, None) for name in ("depth_head", "point_head")]
-    name = getattr(root, "raytun3r_name", None) or _KNOWN.get((vit.embed_dim, depth)) or f"vggt-custom-e{vit.embed_dim}-d{depth}"
+    name = (
+        getattr(root, "raytun3r_name", None)
+        or _KNOWN.get((vit.embed_dim, depth))
+        or f"vggt-custom-e{vit.embed_dim}-d{depth}"
+    )
     return BackboneInfo(
         name=name,
         embed_dim=vit.embed_dim,
@@ -150,7 +156,9 @@ def _pose_decoder():
     try:
         from vggt.utils.pose_enc import pose_encoding_to_extri_intri
     except ImportError as error:
-        raise MissingDependencyError(f"vggt.utils.pose_enc is not importable ({error}); {_INSTALL_HINT}") from error
+        raise MissingDependencyError(
+            f"vggt.utils.pose_enc is not importable ({error}); {_INSTALL_HINT}"
+        ) from error
     return pose_encoding_to_extri_intri
 
 
@@ -187,7 +195,9 @@ def build_network() -> nn.Module:
     try:
         from vggt.models.vggt import VGGT
     except ImportError as error:
-        raise MissingDependencyError(f"VGGT is not importable ({error}); {_INSTALL_HINT}") from error
+        raise MissingDependencyError(
+            f"VGGT is not importable ({error}); {_INSTALL_HINT}"
+        ) from error
     return VGGT()
 
 
@@ -198,7 +208,9 @@ def load_weights(model: nn.Module, path) -> nn.Module:
 
 def _build_vggt_1b(path=None) -> nn.Module:
     if path is None:
-        raise WeightsError("vggt-1b needs a local weight file (.safetensors or .pt); raytun3r never downloads")
+        raise WeightsError(
+            "vggt-1b needs a local weight file (.safetensors or .pt); raytun3r never downloads"
+        )
     state = read_state_dict(path)  # before the (slow, 5 GB) build: a bad path fails at once
     return load_into(build_network(), state, str(path))
 

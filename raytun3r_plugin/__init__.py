@@ -33,9 +33,22 @@ from raytun3r_plugin.weights import available_backbones, load_backbone  # noqa: 
 # cv2, the upstream backbones or the adaptation code, and ``import raytun3r_plugin`` stays cheap.
 _LAZY_SUBMODULES = frozenset(
     {
-        "adaptation", "apps", "cameras", "datasets",
-        "geometry", "hooks", "images", "metrics", "patches", "patching", "prediction", "preprocess",
-        "registry", "rope", "synthetic", "weights",
+        "adaptation",
+        "apps",
+        "cameras",
+        "datasets",
+        "geometry",
+        "hooks",
+        "images",
+        "metrics",
+        "patches",
+        "patching",
+        "prediction",
+        "preprocess",
+        "registry",
+        "rope",
+        "synthetic",
+        "weights",
     }
 )
 

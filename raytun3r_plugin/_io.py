@@ -68,7 +68,11 @@ def atomic_write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8
     return atomic_write_bytes(path, text.encode(encoding))
 
 
-def atomic_save_safetensors(path: str | os.PathLike, tensors: Mapping[str, torch.Tensor], metadata: Mapping[str, str] | None = None) -> Path:
+def atomic_save_safetensors(
+    path: str | os.PathLike,
+    tensors: Mapping[str, torch.Tensor],
+    metadata: Mapping[str, str] | None = None,
+) -> Path:
     """Write a safetensors file atomically (see :func:`atomic_path`); returns ``Path(path)``.
 
     ``tensors`` must be contiguous and must not share storage (``save_file``'s rules);
@@ -77,5 +81,7 @@ def atomic_save_safetensors(path: str | os.PathLike, tensors: Mapping[str, torch
     from safetensors.torch import save_file
 
     with atomic_path(path) as temporary:
-        save_file(dict(tensors), str(temporary), metadata=None if metadata is None else dict(metadata))
+        save_file(
+            dict(tensors), str(temporary), metadata=None if metadata is None else dict(metadata)
+        )
     return Path(path)

@@ -56,7 +56,9 @@ def pe_fingerprint(pos_embed: torch.Tensor) -> str:
     return hashlib.sha256(data).hexdigest()[:16]
 
 
-def normalise_components(components: Mapping[str, bool] | list[str] | tuple[str, ...] | set[str] | None) -> dict[str, bool]:
+def normalise_components(
+    components: Mapping[str, bool] | list[str] | tuple[str, ...] | set[str] | None,
+) -> dict[str, bool]:
     """Turn a component list or mapping into ``{name: enabled}`` over :data:`COMPONENTS`."""
     if components is None:
         return dict.fromkeys(COMPONENTS, True)
@@ -96,7 +98,13 @@ class Adapter(nn.Module):
         training: Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__()
-        for name, value, low in (("embed_dim", embed_dim, 1), ("patch_size", patch_size, 1), ("n_r", n_r, 2), ("n_theta", n_theta, 1), ("n_r_rope", n_r_rope, 0)):
+        for name, value, low in (
+            ("embed_dim", embed_dim, 1),
+            ("patch_size", patch_size, 1),
+            ("n_r", n_r, 2),
+            ("n_theta", n_theta, 1),
+            ("n_r_rope", n_r_rope, 0),
+        ):
             if not isinstance(value, int) or value < low:
                 raise AdapterError(f"{name} must be an integer >= {low}, got {value!r}")
         self.backbone = backbone
@@ -112,7 +120,9 @@ class Adapter(nn.Module):
                 "angular": nn.Parameter(torch.zeros(n_theta, embed_dim)),
             }
         )
-        self.rope = nn.ParameterDict({"radial": nn.Parameter(torch.zeros(n_r_rope))}) if n_r_rope else None
+        self.rope = (
+            nn.ParameterDict({"radial": nn.Parameter(torch.zeros(n_r_rope))}) if n_r_rope else None
+        )
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -133,7 +143,16 @@ class Adapter(nn.Module):
         return {"pe": pe, "rope": self.n_r_rope, "total": pe + self.n_r_rope}
 
     @classmethod
-    def for_model(cls, model: nn.Module, camera: Camera | None = None, *, n_r: int = DEFAULT_N_R, n_theta: int = DEFAULT_N_THETA, n_r_rope: int = DEFAULT_N_R_ROPE, components=None) -> Adapter:
+    def for_model(
+        cls,
+        model: nn.Module,
+        camera: Camera | None = None,
+        *,
+        n_r: int = DEFAULT_N_R,
+        n_theta: int = DEFAULT_N_THETA,
+        n_r_rope: int = DEFAULT_N_R_ROPE,
+        components=None,
+    ) -> Adapter:
         """A zero (identity) adapter sized for ``model``'s backbone."""
         from raytun3r_plugin.registry import spec_for
 
@@ -173,7 +192,10 @@ class Adapter(nn.Module):
 
     def tensors(self) -> dict[str, torch.Tensor]:
         """The file's tensors: detached, contiguous float32 CPU copies."""
-        return {name: value.detach().to("cpu", torch.float32).contiguous().clone() for name, value in self.state_dict().items()}
+        return {
+            name: value.detach().to("cpu", torch.float32).contiguous().clone()
+            for name, value in self.state_dict().items()
+        }
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write the adapter atomically (:func:`raytun3r_plugin._io.atomic_save_safetensors`)."""
@@ -198,7 +220,9 @@ class Adapter(nn.Module):
         return cls._from_parts(path, metadata, tensors)
 
     @classmethod
-    def _from_parts(cls, path: Path, metadata: dict[str, str], tensors: dict[str, torch.Tensor]) -> Adapter:
+    def _from_parts(
+        cls, path: Path, metadata: dict[str, str], tensors: dict[str, torch.Tensor]
+    ) -> Adapter:
         def fail(message: str) -> AdapterError:
             return AdapterError(f"{path}: {message}")
 
@@ -208,7 +232,9 @@ class Adapter(nn.Module):
         if metadata["format"] != FORMAT:
             raise fail(f"metadata 'format' is {metadata['format']!r}, expected {FORMAT!r}")
         if metadata["format_version"] != FORMAT_VERSION:
-            raise fail(f"format_version {metadata['format_version']!r} is not supported (this raytun3r reads version {FORMAT_VERSION})")
+            raise fail(
+                f"format_version {metadata['format_version']!r} is not supported (this raytun3r reads version {FORMAT_VERSION})"
+            )
         sizes = {}
         for key in ("embed_dim", "patch_size", "n_r", "n_theta", "n_r_rope"):
             try:
@@ -233,7 +259,9 @@ class Adapter(nn.Module):
             if tensor.dtype != torch.float32:
                 raise fail(f"tensor {name!r} has dtype {tensor.dtype}, expected torch.float32")
             if tuple(tensor.shape) != shape:
-                raise fail(f"tensor {name!r} has shape {tuple(tensor.shape)}, expected {shape} from the metadata")
+                raise fail(
+                    f"tensor {name!r} has shape {tuple(tensor.shape)}, expected {shape} from the metadata"
+                )
             if not bool(torch.isfinite(tensor).all()):
                 raise fail(f"tensor {name!r} has non-finite values")
         camera = None
@@ -261,7 +289,12 @@ class Adapter(nn.Module):
         return adapter
 
     # ------------------------------------------------------------------ corrections
-    def pe_correction(self, geometry: Any, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    def pe_correction(
+        self,
+        geometry: Any,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> torch.Tensor:
         """The PE update ``t_r(rho) + rho d_theta(theta)`` of every patch token, (h w, C).
 
         The one place the tables meet the geometry: the patched PE hook adds it to the
@@ -279,7 +312,9 @@ class Adapter(nn.Module):
         """
         device = self.pe["radial"].device if device is None else device
         radial, angular = geometry.pe_weights(self.n_r, self.n_theta, device, dtype)
-        return radial @ self.pe["radial"].to(device, dtype) + angular @ self.pe["angular"].to(device, dtype)
+        return radial @ self.pe["radial"].to(device, dtype) + angular @ self.pe["angular"].to(
+            device, dtype
+        )
 
     # ------------------------------------------------------------------ comparisons
     def same_as(self, other: Adapter) -> bool:
@@ -307,7 +342,11 @@ def describe_record(path: str | os.PathLike) -> dict[str, Any]:
     """
     adapter = Adapter.load(path)
     metadata = adapter.metadata()
-    record: dict[str, Any] = {key: value for key, value in metadata.items() if key not in ("camera", "components", "training")}
+    record: dict[str, Any] = {
+        key: value
+        for key, value in metadata.items()
+        if key not in ("camera", "components", "training")
+    }
     for key in ("embed_dim", "patch_size", "n_r", "n_theta", "n_r_rope"):
         record[key] = int(metadata[key])
     record["camera"] = json.loads(metadata["camera"]) if metadata["camera"] else None
@@ -333,7 +372,11 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
         return ["training:        none (not fitted: made by Adapter.for_model or by hand)"]
     indent = " " * 17
     steps = training.get("steps")
-    head = f"{steps} of {training['requested_steps']} steps" if "requested_steps" in training else f"{steps} steps"
+    head = (
+        f"{steps} of {training['requested_steps']} steps"
+        if "requested_steps" in training
+        else f"{steps} steps"
+    )
     if training.get("resumed_from"):
         head += f", resumed at step {training['resumed_from']}"
     if training.get("interrupted"):
@@ -349,7 +392,11 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
         lines.extend(f"{indent}  {part}" for part in _wrap(text, 100 - len(indent)))
     segment = training.get("segment") or {}
     if segment:
-        parts = [f"{key} {_short(value)}" for key, value in segment.items() if key not in ("windows",) and value is not None]
+        parts = [
+            f"{key} {_short(value)}"
+            for key, value in segment.items()
+            if key not in ("windows",) and value is not None
+        ]
         if "windows" in segment:
             parts.insert(0, f"{len(segment['windows'])} windows")
         lines.append(f"{indent}segment:")
@@ -357,12 +404,37 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
     layout = training.get("input") or {}
     if layout:
         crop = layout.get("crop")
-        rule = f" (long side {layout['long_side']}, input rule v{layout.get('rule_version')})" if layout.get("long_side") else ""
-        lines.append(f"{indent}input: {layout.get('width')}x{layout.get('height')} px, " + (f"crop {crop}" if crop else "no crop") + rule)
-    extra = [key for key in training if key not in ("method", "steps", "requested_steps", "resumed_from", "interrupted", "wall_time_s",
-                                                     "final_losses", "final_losses_over_steps", "segment", "input")]
+        rule = (
+            f" (long side {layout['long_side']}, input rule v{layout.get('rule_version')})"
+            if layout.get("long_side")
+            else ""
+        )
+        lines.append(
+            f"{indent}input: {layout.get('width')}x{layout.get('height')} px, "
+            + (f"crop {crop}" if crop else "no crop")
+            + rule
+        )
+    extra = [
+        key
+        for key in training
+        if key
+        not in (
+            "method",
+            "steps",
+            "requested_steps",
+            "resumed_from",
+            "interrupted",
+            "wall_time_s",
+            "final_losses",
+            "final_losses_over_steps",
+            "segment",
+            "input",
+        )
+    ]
     if extra:
-        lines.append(f"{indent}also recorded: {', '.join(extra)} (raytun3r inspect --json shows everything)")
+        lines.append(
+            f"{indent}also recorded: {', '.join(extra)} (raytun3r inspect --json shows everything)"
+        )
     else:
         lines.append(f"{indent}(raytun3r inspect --json shows the full record)")
     return lines
@@ -387,13 +459,18 @@ def describe_file(path: str | os.PathLike) -> str:
         + (f", rope.radial {adapter.n_r_rope}" if adapter.n_r_rope else ""),
         f"parameters:      {counts['total']:,} ({counts['pe']:,} PE + {counts['rope']:,} RoPE)",
         f"camera:          {adapter.camera!r}",
-        f"field of view:   {adapter.camera.fov_deg:.1f} deg" if adapter.camera is not None else "field of view:   -",
+        f"field of view:   {adapter.camera.fov_deg:.1f} deg"
+        if adapter.camera is not None
+        else "field of view:   -",
         f"components:      {', '.join(k for k, v in adapter.components.items() if v) or 'none'}",
         f"pe_fingerprint:  {adapter.pe_fingerprint or '-'}",
         *_training_lines(adapter.training_info),
     ]
     magnitude = max(float(p.detach().abs().max()) for p in adapter.parameters())
-    lines.append(f"max |table|:     {magnitude:.3g}" + (" (identity adapter)" if magnitude == 0 or math.isclose(magnitude, 0.0) else ""))
+    lines.append(
+        f"max |table|:     {magnitude:.3g}"
+        + (" (identity adapter)" if magnitude == 0 or math.isclose(magnitude, 0.0) else "")
+    )
     return "\n".join(lines)
 
 
@@ -415,15 +492,25 @@ def write_pe_picture(adapter: Adapter, path: str | os.PathLike, long_side: int =
     from raytun3r_plugin.preprocess import fitted_source_camera, input_layout
 
     if adapter.camera is None:
-        raise AdapterError("the adapter carries no camera, so the PE correction has no image to be drawn on")
+        raise AdapterError(
+            "the adapter carries no camera, so the PE correction has no image to be drawn on"
+        )
     trained = (adapter.training_info or {}).get("input") or {}
     if trained.get("long_side"):
         # The fit's own layout: the rule applied again to the uncropped camera and long side.
-        layout = input_layout(fitted_source_camera(adapter), int(trained["long_side"]), adapter.patch_size)
+        layout = input_layout(
+            fitted_source_camera(adapter), int(trained["long_side"]), adapter.patch_size
+        )
     else:
         # Files from before the rule was recorded: the input's long side on the adapter's camera.
-        layout = input_layout(adapter.camera, int(max(trained.get("width", 0), trained.get("height", 0)) or long_side), adapter.patch_size)
-    geometry = GeometryCache(layout.native_camera, adapter.patch_size).at(layout.height, layout.width)
+        layout = input_layout(
+            adapter.camera,
+            int(max(trained.get("width", 0), trained.get("height", 0)) or long_side),
+            adapter.patch_size,
+        )
+    geometry = GeometryCache(layout.native_camera, adapter.patch_size).at(
+        layout.height, layout.width
+    )
     with torch.no_grad():
         size = pe_correction_grid(adapter, geometry).norm(dim=-1).cpu().numpy()
     pixels = np.kron(size, np.ones((adapter.patch_size, adapter.patch_size)))

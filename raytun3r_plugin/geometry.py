@@ -59,10 +59,14 @@ def _g(angle: torch.Tensor, knee: float) -> torch.Tensor:
     """Radial pinhole mapping tan(a), continued linearly (C1) beyond ``knee`` radians."""
     tan_k = math.tan(knee)
     slope = 1.0 / math.cos(knee) ** 2
-    return torch.where(angle <= knee, torch.tan(torch.clamp(angle, max=knee)), tan_k + (angle - knee) * slope)
+    return torch.where(
+        angle <= knee, torch.tan(torch.clamp(angle, max=knee)), tan_k + (angle - knee) * slope
+    )
 
 
-def fisheye_to_pinhole(camera: Camera, uv: torch.Tensor, knee_deg: float = DEFAULT_KNEE_DEG) -> torch.Tensor:
+def fisheye_to_pinhole(
+    camera: Camera, uv: torch.Tensor, knee_deg: float = DEFAULT_KNEE_DEG
+) -> torch.Tensor:
     """Apply the map ``M`` to pixels ``uv`` (..., 2) of ``camera``; returns pinhole pixels (..., 2).
 
     Pixels whose ray is invalid are returned unchanged.
@@ -75,10 +79,17 @@ def fisheye_to_pinhole(camera: Camera, uv: torch.Tensor, knee_deg: float = DEFAU
     safe = radius.clamp_min(torch.finfo(dtype).tiny)
     direction = xy / safe.unsqueeze(-1)
     g = _g(angle, math.radians(knee_deg))
-    fx, fy, cx, cy = (torch.as_tensor(v, dtype=dtype, device=uv.device) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
+    fx, fy, cx, cy = (
+        torch.as_tensor(v, dtype=dtype, device=uv.device)
+        for v in (camera.fx, camera.fy, camera.cx, camera.cy)
+    )
     mapped = torch.stack((cx + fx * g * direction[..., 0], cy + fy * g * direction[..., 1]), dim=-1)
     # On the axis the direction is undefined but M is the principal point itself.
-    mapped = torch.where((radius > 0).unsqueeze(-1), mapped, torch.stack((cx.expand_as(uv[..., 0]), cy.expand_as(uv[..., 1])), -1))
+    mapped = torch.where(
+        (radius > 0).unsqueeze(-1),
+        mapped,
+        torch.stack((cx.expand_as(uv[..., 0]), cy.expand_as(uv[..., 1])), -1),
+    )
     return torch.where(valid.unsqueeze(-1), mapped, uv)
 
 
@@ -106,13 +117,16 @@ class TokenPolar:
 def token_polar(camera: Camera, height: int, width: int, patch: int) -> TokenPolar:
     centres = token_centres(height, width, patch)
     offset = torch.stack(
-        ((centres[:, 0] - float(camera.cx)) / patch, (centres[:, 1] - float(camera.cy)) / patch), dim=-1
+        ((centres[:, 0] - float(camera.cx)) / patch, (centres[:, 1] - float(camera.cy)) / patch),
+        dim=-1,
     )
     radius = offset.norm(dim=-1)
     rho = radius / radius.max().clamp_min(1e-12)
     theta = torch.remainder(torch.atan2(offset[:, 1], offset[:, 0]), 2 * math.pi)
     direction = torch.where(
-        (radius > 1e-9).unsqueeze(-1), offset / radius.clamp_min(1e-12).unsqueeze(-1), torch.zeros_like(offset)
+        (radius > 1e-9).unsqueeze(-1),
+        offset / radius.clamp_min(1e-12).unsqueeze(-1),
+        torch.zeros_like(offset),
     )
     return TokenPolar(rho=rho, theta=theta, direction_yx=direction.flip(-1))
 
@@ -140,7 +154,9 @@ def angular_weights(theta: torch.Tensor, n_bins: int) -> torch.Tensor:
     return weights
 
 
-def _jacobian_of_map(camera: Camera, points: torch.Tensor, knee_deg: float, step: float = 0.25) -> torch.Tensor:
+def _jacobian_of_map(
+    camera: Camera, points: torch.Tensor, knee_deg: float, step: float = 0.25
+) -> torch.Tensor:
     """Central-difference Jacobian dM/dx at ``points`` (n, 2) -> (n, 2, 2) (rows: output x, y)."""
     columns = []
     for axis in range(2):
@@ -153,7 +169,12 @@ def _jacobian_of_map(camera: Camera, points: torch.Tensor, knee_deg: float, step
 
 
 def patch_resample_grid(
-    camera: Camera, height: int, width: int, patch: int, knee_deg: float = DEFAULT_KNEE_DEG, max_stretch: float = DEFAULT_MAX_STRETCH
+    camera: Camera,
+    height: int,
+    width: int,
+    patch: int,
+    knee_deg: float = DEFAULT_KNEE_DEG,
+    max_stretch: float = DEFAULT_MAX_STRETCH,
 ) -> torch.Tensor | None:
     """Normalised ``grid_sample`` grid (1, H, W, 2) that locally undistorts every patch.
 
@@ -176,7 +197,9 @@ def patch_resample_grid(
     sample = centres[:, None, :] + displaced
     h, w = height // patch, width // patch
     sample = sample.reshape(h, w, patch, patch, 2).permute(0, 2, 1, 3, 4).reshape(height, width, 2)
-    normalised = torch.stack(((2 * sample[..., 0] + 1) / width - 1, (2 * sample[..., 1] + 1) / height - 1), dim=-1)
+    normalised = torch.stack(
+        ((2 * sample[..., 0] + 1) / width - 1, (2 * sample[..., 1] + 1) / height - 1), dim=-1
+    )
     return normalised[None]
 
 
@@ -196,7 +219,14 @@ def token_validity(valid_pixels: torch.Tensor, patch: int) -> torch.Tensor:
     return (fraction >= 0.5).reshape(-1)
 
 
-def head_uv_grid(camera: Camera, height: int, width: int, cells_h: int, cells_w: int, knee_deg: float = DEFAULT_KNEE_DEG) -> torch.Tensor:
+def head_uv_grid(
+    camera: Camera,
+    height: int,
+    width: int,
+    cells_h: int,
+    cells_w: int,
+    knee_deg: float = DEFAULT_KNEE_DEG,
+) -> torch.Tensor:
     """Camera-aware version of the DPT heads' normalised uv grid, (cells_h, cells_w, 2) as (u, v).
 
     Cell centres of a cells_h x cells_w grid over the image go through ``M``; the affine
@@ -219,7 +249,9 @@ def map_is_identity(camera: Camera, knee_deg: float = DEFAULT_KNEE_DEG) -> bool:
     ys = torch.linspace(0, camera.height - 1, 17, dtype=torch.float64)
     xs = torch.linspace(0, camera.width - 1, 17, dtype=torch.float64)
     grid = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), dim=-1)
-    return bool((fisheye_to_pinhole(camera, grid, knee_deg) - grid).abs().max() < IDENTITY_TOLERANCE_PX)
+    return bool(
+        (fisheye_to_pinhole(camera, grid, knee_deg) - grid).abs().max() < IDENTITY_TOLERANCE_PX
+    )
 
 
 class SizeGeometry:
@@ -229,9 +261,20 @@ class SizeGeometry:
     cached too, so a forward pass only pays a table add and one ``grid_sample``.
     """
 
-    def __init__(self, camera: Camera, height: int, width: int, patch: int, mask: torch.Tensor | None, knee_deg: float, max_stretch: float):
+    def __init__(
+        self,
+        camera: Camera,
+        height: int,
+        width: int,
+        patch: int,
+        mask: torch.Tensor | None,
+        knee_deg: float,
+        max_stretch: float,
+    ):
         if height % patch or width % patch:
-            raise InputError(f"input of {width}x{height} px is not a multiple of the patch size {patch}")
+            raise InputError(
+                f"input of {width}x{height} px is not a multiple of the patch size {patch}"
+            )
         self.camera = camera_for_input(camera, height, width)
         self.height, self.width, self.patch = height, width, patch
         self.knee_deg, self.max_stretch = knee_deg, max_stretch
@@ -259,9 +302,13 @@ class SizeGeometry:
 
     @property
     def polar(self) -> TokenPolar:
-        return self._get("polar", lambda: token_polar(self.camera, self.height, self.width, self.patch))
+        return self._get(
+            "polar", lambda: token_polar(self.camera, self.height, self.width, self.patch)
+        )
 
-    def pe_weights(self, n_r: int, n_theta: int, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    def pe_weights(
+        self, n_r: int, n_theta: int, device, dtype
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """(hw, n_r) radial and (hw, n_theta) rho-scaled angular interpolation matrices."""
 
         def build():
@@ -288,7 +335,9 @@ class SizeGeometry:
         def build():
             if self.identity:
                 return None
-            grid = patch_resample_grid(self.camera, self.height, self.width, self.patch, self.knee_deg, self.max_stretch)
+            grid = patch_resample_grid(
+                self.camera, self.height, self.width, self.patch, self.knee_deg, self.max_stretch
+            )
             return None if grid is None else grid.to(device=device, dtype=dtype)
 
         return self._get(("resample", device, dtype), build)
@@ -321,7 +370,9 @@ class SizeGeometry:
         def build():
             if self.identity:
                 return None
-            grid = head_uv_grid(self.camera, self.height, self.width, cells_h, cells_w, self.knee_deg)
+            grid = head_uv_grid(
+                self.camera, self.height, self.width, cells_h, cells_w, self.knee_deg
+            )
             return grid.to(device=device, dtype=dtype)
 
         return self._get(("uv", cells_h, cells_w, device, dtype), build)
@@ -330,7 +381,14 @@ class SizeGeometry:
 class GeometryCache:
     """Per-handle cache of :class:`SizeGeometry` keyed by (input height, width)."""
 
-    def __init__(self, camera: Camera, patch: int, mask: torch.Tensor | None = None, knee_deg: float = DEFAULT_KNEE_DEG, max_stretch: float = DEFAULT_MAX_STRETCH):
+    def __init__(
+        self,
+        camera: Camera,
+        patch: int,
+        mask: torch.Tensor | None = None,
+        knee_deg: float = DEFAULT_KNEE_DEG,
+        max_stretch: float = DEFAULT_MAX_STRETCH,
+    ):
         self.camera = camera
         self.patch = patch
         self.mask = mask
@@ -345,6 +403,14 @@ class GeometryCache:
             with self._lock:
                 geometry = self._sizes.get((height, width))
                 if geometry is None:
-                    geometry = SizeGeometry(self.camera, height, width, self.patch, self.mask, self.knee_deg, self.max_stretch)
+                    geometry = SizeGeometry(
+                        self.camera,
+                        height,
+                        width,
+                        self.patch,
+                        self.mask,
+                        self.knee_deg,
+                        self.max_stretch,
+                    )
                     self._sizes[(height, width)] = geometry
         return geometry

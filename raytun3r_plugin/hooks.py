@@ -55,13 +55,21 @@ def patch_embedding(owner, state):
         if resample:
             grid = geometry.resample_grid(x.device, x.dtype)
             if grid is not None:
-                x = F.grid_sample(x, grid.expand(x.shape[0], -1, -1, -1), mode="bilinear", padding_mode="zeros", align_corners=False).contiguous()
+                x = F.grid_sample(
+                    x,
+                    grid.expand(x.shape[0], -1, -1, -1),
+                    mode="bilinear",
+                    padding_mode="zeros",
+                    align_corners=False,
+                ).contiguous()
         tokens = original(x)
         if border:
             valid = geometry.token_valid(tokens.device)
             if valid is not None:
                 weights = valid.to(tokens.dtype)[None, :, None]
-                mean = (tokens * weights).sum(dim=1, keepdim=True) / weights.sum(dim=1, keepdim=True)
+                mean = (tokens * weights).sum(dim=1, keepdim=True) / weights.sum(
+                    dim=1, keepdim=True
+                )
                 tokens = torch.where(valid[None, :, None], tokens, mean)
         return tokens
 
@@ -85,7 +93,9 @@ def continuous_rope(owner, state):
     return forward
 
 
-def displaced_rope_positions(positions: torch.Tensor, patch_start: int, state, height: int, width: int) -> torch.Tensor:
+def displaced_rope_positions(
+    positions: torch.Tensor, patch_start: int, state, height: int, width: int
+) -> torch.Tensor:
     """Apply the adapter's radial RoPE displacement to patch positions (..., patch_start + hw, 2)."""
     geometry = state.geometry(height, width)
     displacement = state.rope_displacement(geometry, positions.device, torch.float32)
@@ -116,9 +126,13 @@ def uv_grid_embedding(owner, state):
             if grid is None:
                 return None
             # The embedding depends only on camera and sizes, so it is computed once.
-            return (to_embed(grid, channels) * ratio).permute(2, 0, 1)[None].to(x.dtype).contiguous()
+            return (
+                (to_embed(grid, channels) * ratio).permute(2, 0, 1)[None].to(x.dtype).contiguous()
+            )
 
-        embed = geometry.memo(("grid_embed", cells_h, cells_w, channels, ratio, x.device, x.dtype), build)
+        embed = geometry.memo(
+            ("grid_embed", cells_h, cells_w, channels, ratio, x.device, x.dtype), build
+        )
         if embed is None:
             return original(x, W, H, ratio)
         return x + embed
@@ -139,7 +153,9 @@ def displace_grid_positions(positions: torch.Tensor, state, patch_size: int) -> 
     if rows < 1 or cols < 1:
         return positions
     geometry = state.geometry(rows * patch_size, cols * patch_size)
-    displacement = state.rope_displacement(geometry, positions.device, torch.float32)  # (h*w, 2), (y, x)
+    displacement = state.rope_displacement(
+        geometry, positions.device, torch.float32
+    )  # (h*w, 2), (y, x)
     is_patch = (positions[..., 0] > 0) & (positions[..., 1] > 0)
     index = ((positions[..., 0] - 1) * cols + (positions[..., 1] - 1)).clamp(min=0)
     offset = torch.where(is_patch[..., None], displacement[index], displacement.new_zeros(()))

@@ -17,7 +17,9 @@ IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 VIDEO_SUFFIXES = {".mp4", ".mov", ".avi", ".mkv", ".webm"}
 
 
-def read_frames(source: str | os.PathLike, stride: int = 1, limit: int | None = None) -> tuple[np.ndarray, list[str]]:
+def read_frames(
+    source: str | os.PathLike, stride: int = 1, limit: int | None = None
+) -> tuple[np.ndarray, list[str]]:
     """Frames from an image folder (sorted by name) or a video file.
 
     Returns (N, H, W, 3) float32 RGB in [0, 1] and a name per frame.
@@ -64,7 +66,9 @@ def read_frames(source: str | os.PathLike, stride: int = 1, limit: int | None = 
 DEPTH_SUFFIXES = (".npy", ".png", ".tif", ".tiff", ".exr")
 
 
-def read_depth_maps(folder: str | os.PathLike, names: list[str], width: int, height: int, png_scale: float = 1000.0) -> np.ndarray:
+def read_depth_maps(
+    folder: str | os.PathLike, names: list[str], width: int, height: int, png_scale: float = 1000.0
+) -> np.ndarray:
     """Ground-truth depth for the frames ``names`` from a folder with one file per frame.
 
     The file of a frame has the frame's name (its stem) and one of :data:`DEPTH_SUFFIXES`:
@@ -83,21 +87,31 @@ def read_depth_maps(folder: str | os.PathLike, names: list[str], width: int, hei
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"{folder}: not a folder of depth maps")
-    files = {path.stem: path for path in sorted(folder.iterdir()) if path.suffix.lower() in DEPTH_SUFFIXES}
+    files = {
+        path.stem: path
+        for path in sorted(folder.iterdir())
+        if path.suffix.lower() in DEPTH_SUFFIXES
+    }
     maps = []
     for name in names:
         path = files.get(name)
         if path is None:
-            raise InputError(f"{folder}: no depth file for frame {name!r} (expected {name}.npy or {name}.png)")
+            raise InputError(
+                f"{folder}: no depth file for frame {name!r} (expected {name}.npy or {name}.png)"
+            )
         if path.suffix.lower() == ".npy":
             depth = np.load(path, allow_pickle=False).astype(np.float32)
         else:
             raw = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
             if raw is None:
                 raise InputError(f"{path}: not a readable depth image")
-            depth = raw.astype(np.float32) / (png_scale if raw.dtype in (np.uint16, np.uint8) else 1.0)
+            depth = raw.astype(np.float32) / (
+                png_scale if raw.dtype in (np.uint16, np.uint8) else 1.0
+            )
         if depth.shape != (height, width):
-            raise InputError(f"{path}: depth map is {depth.shape[1] if depth.ndim > 1 else '?'}x{depth.shape[0]} px, the frames are {width}x{height}")
+            raise InputError(
+                f"{path}: depth map is {depth.shape[1] if depth.ndim > 1 else '?'}x{depth.shape[0]} px, the frames are {width}x{height}"
+            )
         maps.append(depth)
     return np.stack(maps)
 
@@ -117,5 +131,7 @@ def read_mask(path: str | os.PathLike, width: int, height: int) -> np.ndarray:
     if image.ndim == 3:
         image = image[..., 0]
     if image.shape != (height, width):
-        raise InputError(f"{path}: mask is {image.shape[1]}x{image.shape[0]} px, the frames are {width}x{height}")
+        raise InputError(
+            f"{path}: mask is {image.shape[1]}x{image.shape[0]} px, the frames are {width}x{height}"
+        )
     return image > 127

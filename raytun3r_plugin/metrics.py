@@ -62,7 +62,9 @@ def rotation_error_deg(R_pred: Any, R_gt: Any) -> Any:
     return torch.rad2deg(angle) if isinstance(angle, torch.Tensor) else np.degrees(angle)
 
 
-def translation_direction_error_deg(t_pred: Any, t_gt: Any, folded: bool = False, eps: float = 1e-12) -> Any:
+def translation_direction_error_deg(
+    t_pred: Any, t_gt: Any, folded: bool = False, eps: float = 1e-12
+) -> Any:
     """Angle (degrees) between translation directions ``t_pred`` and ``t_gt`` (..., 3).
 
     Signed version (default): 0..180 (a reversed direction scores 180). ``folded=True``:
@@ -72,7 +74,9 @@ def translation_direction_error_deg(t_pred: Any, t_gt: Any, folded: bool = False
     if isinstance(t_pred, torch.Tensor) or isinstance(t_gt, torch.Tensor):
         a, b = _as_torch_pair(t_pred, t_gt)
         e = torch.rad2deg(translation_angle(a, b))
-        short = (torch.linalg.vector_norm(a, dim=-1) < eps) | (torch.linalg.vector_norm(b, dim=-1) < eps)
+        short = (torch.linalg.vector_norm(a, dim=-1) < eps) | (
+            torch.linalg.vector_norm(b, dim=-1) < eps
+        )
         e = torch.where(short, torch.full_like(e, math.nan), e)
         return torch.minimum(e, 180.0 - e) if folded else e
     a = np.asarray(t_pred, dtype=np.float64)
@@ -106,15 +110,31 @@ def relative_pose_errors(
         ``translation_deg`` (P',), ``skipped_pairs`` (S, 2), ``n_pairs`` P', ``n_skipped`` S,
         ``gt_translation`` (P',) ground-truth baseline lengths, ``min_translation``, ``folded``.
     """
-    pred = np.asarray(cam_from_world_pred.detach().cpu() if isinstance(cam_from_world_pred, torch.Tensor) else cam_from_world_pred, dtype=np.float64)
-    gt = np.asarray(cam_from_world_gt.detach().cpu() if isinstance(cam_from_world_gt, torch.Tensor) else cam_from_world_gt, dtype=np.float64)
+    pred = np.asarray(
+        cam_from_world_pred.detach().cpu()
+        if isinstance(cam_from_world_pred, torch.Tensor)
+        else cam_from_world_pred,
+        dtype=np.float64,
+    )
+    gt = np.asarray(
+        cam_from_world_gt.detach().cpu()
+        if isinstance(cam_from_world_gt, torch.Tensor)
+        else cam_from_world_gt,
+        dtype=np.float64,
+    )
     if pred.shape != gt.shape or pred.ndim != 3 or pred.shape[1:] != (4, 4):
         raise InputError(f"pose arrays must both be (N, 4, 4), got {pred.shape} and {gt.shape}")
     n = gt.shape[0]
     if pairs is None:
-        p = np.stack([np.arange(n - 1), np.arange(1, n)], -1) if n > 1 else np.zeros((0, 2), np.int64)
+        p = (
+            np.stack([np.arange(n - 1), np.arange(1, n)], -1)
+            if n > 1
+            else np.zeros((0, 2), np.int64)
+        )
     else:
-        p = np.asarray(list(pairs) if not isinstance(pairs, np.ndarray) else pairs, dtype=np.int64).reshape(-1, 2)
+        p = np.asarray(
+            list(pairs) if not isinstance(pairs, np.ndarray) else pairs, dtype=np.int64
+        ).reshape(-1, 2)
     if p.size and (p.min() < 0 or p.max() >= n):
         raise InputError(f"pair indices must be in [0, {n})")
     rel_gt = relative_poses(gt, p)
@@ -122,7 +142,9 @@ def relative_pose_errors(
     base = np.linalg.norm(rel_gt[:, :3, 3], axis=1)
     keep = np.isfinite(base) & (base >= min_translation)
     rot = rotation_error_deg(rel_pred[keep, :3, :3], rel_gt[keep, :3, :3])
-    trans = translation_direction_error_deg(rel_pred[keep, :3, 3], rel_gt[keep, :3, 3], folded=folded)
+    trans = translation_direction_error_deg(
+        rel_pred[keep, :3, 3], rel_gt[keep, :3, 3], folded=folded
+    )
     return {
         "pairs": p[keep],
         "rotation_deg": np.asarray(rot, dtype=np.float64),
@@ -164,13 +186,20 @@ def _sample_depth(depth: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.nda
     d = np.where(good, depth, 0.0)
     out = np.zeros(uv.shape[0])
     ok = inside.copy()
-    for wt, vv, uu in (((1 - fu) * (1 - fv), v0, u0), (fu * (1 - fv), v0, u1), ((1 - fu) * fv, v1, u0), (fu * fv, v1, u1)):
+    for wt, vv, uu in (
+        ((1 - fu) * (1 - fv), v0, u0),
+        (fu * (1 - fv), v0, u1),
+        ((1 - fu) * fv, v1, u0),
+        (fu * fv, v1, u1),
+    ):
         out += wt * d[vv, uu]
         ok &= (wt <= 1e-12) | good[vv, uu]
     return out, ok
 
 
-def _points(depth: np.ndarray, camera: Camera, uv: np.ndarray, depth_kind: str) -> tuple[np.ndarray, np.ndarray]:
+def _points(
+    depth: np.ndarray, camera: Camera, uv: np.ndarray, depth_kind: str
+) -> tuple[np.ndarray, np.ndarray]:
     """Back-projected points (M, 3) at uv with bilinear depth, and their validity (M,)."""
     d, ok = _sample_depth(depth, uv)
     rays, okr = camera.unproject(torch.from_numpy(np.where(np.isfinite(uv), uv, 0.0)))
@@ -292,12 +321,16 @@ def d_reproj(
     for _ in range(max(0, int(iterations))):
         q = s * RX + t
         err, okp = _project_error(camera, q, uj[idx])
-        hub = np.where(okp, np.minimum(1.0, huber_px / np.maximum(np.nan_to_num(err, nan=np.inf), 1e-12)), 0.0)
+        hub = np.where(
+            okp, np.minimum(1.0, huber_px / np.maximum(np.nan_to_num(err, nan=np.inf), 1e-12)), 0.0
+        )
         if depth_j is not None:
             norm2 = np.maximum(s * s * np.sum(Xj[idx] ** 2, axis=1), 1e-24)
         else:
             norm2 = np.maximum(np.sum(q * q, axis=1), 1e-24)
-            hub = np.where(np.sum(q * b, axis=1) > 0, hub, 0.0)  # a point behind the ray is an outlier
+            hub = np.where(
+                np.sum(q * b, axis=1) > 0, hub, 0.0
+            )  # a point behind the ray is an outlier
         w = wc * hub / norm2
         den = float(np.sum(w * aa))
         if den <= 0:
@@ -363,7 +396,9 @@ def _per_image(fn, pred: Any, gt: Any, valid: Any, align: str) -> float | np.nda
     if p.ndim != 3:
         raise InputError(f"depth must be (H, W) or (N, H, W), got shape {p.shape}")
     v = None if valid is None else np.broadcast_to(_np(valid, bool), p.shape)
-    return np.array([_per_image(fn, p[k], g[k], None if v is None else v[k], align) for k in range(p.shape[0])])
+    return np.array(
+        [_per_image(fn, p[k], g[k], None if v is None else v[k], align) for k in range(p.shape[0])]
+    )
 
 
 def abs_rel(pred: Any, gt: Any, valid: Any = None, align: str = "median") -> float | np.ndarray:
@@ -451,7 +486,9 @@ def summarize(
         out["folded"] = bool(pose_errors.get("folded", False))
         for th in thresholds:
             out[f"auc@{th:g}"] = auc(worst, th)
-            out[f"acc@{th:g}"] = float(np.mean(np.nan_to_num(worst, nan=np.inf) < th)) if worst.size else math.nan
+            out[f"acc@{th:g}"] = (
+                float(np.mean(np.nan_to_num(worst, nan=np.inf) < th)) if worst.size else math.nan
+            )
     if d_reproj is not None:
         out["d_reproj"] = _stats(d_reproj)
     if abs_rel is not None:

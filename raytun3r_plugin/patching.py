@@ -63,7 +63,9 @@ HANDLE_ATTRIBUTE = "_raytun3r_handle"
 ADDED_ATTRIBUTES = (HANDLE_ATTRIBUTE,)
 
 # Handles disabled in the current thread / context (see RaytunHandle.disabled).
-_DISABLED: contextvars.ContextVar[frozenset[int]] = contextvars.ContextVar("raytun3r_disabled", default=frozenset())
+_DISABLED: contextvars.ContextVar[frozenset[int]] = contextvars.ContextVar(
+    "raytun3r_disabled", default=frozenset()
+)
 
 # apply / remove of any model, one at a time (the check-then-install of apply must not interleave).
 _LOCK = threading.Lock()
@@ -121,7 +123,9 @@ class PatchState:
         twin.knee_deg, twin.max_stretch = self.knee_deg, self.max_stretch
         twin.spec = self.spec  # immutable registry data
         # Fresh: the cache's locks cannot be copied, and its tensors may sit on the source's device.
-        twin.geometry_cache = GeometryCache(twin.camera, twin.info.patch_size, twin.mask, twin.knee_deg, twin.max_stretch)
+        twin.geometry_cache = GeometryCache(
+            twin.camera, twin.info.patch_size, twin.mask, twin.knee_deg, twin.max_stretch
+        )
         twin._model = weakref.ref(memo[id(model)])
         return twin
 
@@ -177,7 +181,15 @@ class _Wrapper:
 
     __raytun3r_wrapper__ = True
 
-    def __init__(self, owner: Any, target: PatchTarget, state: PatchState, previous: Any = _NOTSET, *, build: bool = True):
+    def __init__(
+        self,
+        owner: Any,
+        target: PatchTarget,
+        state: PatchState,
+        previous: Any = _NOTSET,
+        *,
+        build: bool = True,
+    ):
         self._owner = weakref.ref(owner)
         self._target = target
         self._state = state
@@ -193,7 +205,9 @@ class _Wrapper:
     def _original(self) -> Callable:
         owner = self._owner()
         if owner is None:
-            raise NotAppliedError(f"the module owning {self._target.attribute} was garbage-collected")
+            raise NotAppliedError(
+                f"the module owning {self._target.attribute} was garbage-collected"
+            )
         if self._previous is not _NOTSET:
             return self._previous
         return getattr(type(owner), self._target.attribute).__get__(owner, type(owner))
@@ -221,12 +235,16 @@ class _Wrapper:
         owner = copy.deepcopy(self._owner(), memo)  # already in memo: the copy being built
         # The copied owner is still empty here (deepcopy is filling its __dict__), so the
         # behaviour, which may read it, is built on the copy's first call.
-        twin = _Wrapper(owner, self._target, state, copy.deepcopy(self._previous, memo), build=False)
+        twin = _Wrapper(
+            owner, self._target, state, copy.deepcopy(self._previous, memo), build=False
+        )
         memo[id(self)] = twin
         return twin
 
     def __reduce_ex__(self, protocol):
-        raise PatchedCopyError("a patched model cannot be pickled: call handle.remove() first (apply() again after loading)")
+        raise PatchedCopyError(
+            "a patched model cannot be pickled: call handle.remove() first (apply() again after loading)"
+        )
 
     def __repr__(self) -> str:
         owner = self._owner()
@@ -249,7 +267,14 @@ class RaytunHandle:
     model is garbage-collected the handle is inactive and ``remove()`` does nothing.
     """
 
-    def __init__(self, model: nn.Module, root: nn.Module, spec: BackboneSpec, state: PatchState, installed: list[_Installed]):
+    def __init__(
+        self,
+        model: nn.Module,
+        root: nn.Module,
+        spec: BackboneSpec,
+        state: PatchState,
+        installed: list[_Installed],
+    ):
         self._model = weakref.ref(model)
         self._root = weakref.ref(root)
         self.spec = spec
@@ -335,7 +360,9 @@ class RaytunHandle:
         """The handle of a deep copy of the patched model (reached through the model's marker)."""
         model = self._model()
         if model is None or id(model) not in memo:
-            raise PatchedCopyError("deepcopy the patched model, not its handle: the copy then gets a handle of its own")
+            raise PatchedCopyError(
+                "deepcopy the patched model, not its handle: the copy then gets a handle of its own"
+            )
         twin = RaytunHandle.__new__(RaytunHandle)
         memo[id(self)] = twin
         twin._model = weakref.ref(memo[id(model)])
@@ -343,7 +370,12 @@ class RaytunHandle:
         twin.spec = self.spec
         twin._state = copy.deepcopy(self._state, memo)
         twin._installed = [
-            _Installed(weakref.ref(copy.deepcopy(owner, memo)), item.attribute, item.had_own, copy.deepcopy(item.previous, memo))
+            _Installed(
+                weakref.ref(copy.deepcopy(owner, memo)),
+                item.attribute,
+                item.had_own,
+                copy.deepcopy(item.previous, memo),
+            )
             for item in self._installed
             if (owner := item.owner()) is not None
         ]
@@ -351,7 +383,9 @@ class RaytunHandle:
         return twin
 
     def __reduce_ex__(self, protocol):
-        raise PatchedCopyError("a raytun3r handle cannot be pickled: remove() the patch before saving the model")
+        raise PatchedCopyError(
+            "a raytun3r handle cannot be pickled: remove() the patch before saving the model"
+        )
 
     def __repr__(self) -> str:
         status = "active" if self.is_active else "removed"
@@ -377,16 +411,24 @@ def _same_camera(a, b) -> bool:
         a = a.resized(b.width, b.height)
     if a.model != b.model:
         return False
-    return bool(torch.allclose(a.params.detach().double(), b.params.detach().double(), rtol=1e-6, atol=1e-6))
+    return bool(
+        torch.allclose(a.params.detach().double(), b.params.detach().double(), rtol=1e-6, atol=1e-6)
+    )
 
 
 def _check_adapter(adapter: Adapter, info: BackboneInfo, camera: Camera, strict: bool) -> None:
     if adapter.backbone != info.name:
-        raise AdapterError(f"adapter was made for backbone {adapter.backbone!r}, this model is {info.name!r}")
+        raise AdapterError(
+            f"adapter was made for backbone {adapter.backbone!r}, this model is {info.name!r}"
+        )
     if adapter.embed_dim != info.embed_dim:
-        raise AdapterError(f"adapter has embed_dim {adapter.embed_dim}, this model has {info.embed_dim}")
+        raise AdapterError(
+            f"adapter has embed_dim {adapter.embed_dim}, this model has {info.embed_dim}"
+        )
     if adapter.patch_size != info.patch_size:
-        raise AdapterError(f"adapter has patch_size {adapter.patch_size}, this model has {info.patch_size}")
+        raise AdapterError(
+            f"adapter has patch_size {adapter.patch_size}, this model has {info.patch_size}"
+        )
     if bool(adapter.n_r_rope) and not info.has_rope:
         raise AdapterError(f"adapter has a RoPE table but {info.name!r} has no RoPE")
     if strict:
@@ -396,8 +438,14 @@ def _check_adapter(adapter: Adapter, info: BackboneInfo, camera: Camera, strict:
                 f"adapter was fitted on other weights of {info.name!r} (pe_fingerprint {adapter.pe_fingerprint}, "
                 f"this model has {found}); pass strict=False to apply it anyway"
             )
-        if adapter.camera is not None and camera is not None and not _same_camera(adapter.camera, camera):
-            raise AdapterError(f"adapter was fitted on {adapter.camera!r}, not on {camera!r}; pass strict=False to apply it anyway")
+        if (
+            adapter.camera is not None
+            and camera is not None
+            and not _same_camera(adapter.camera, camera)
+        ):
+            raise AdapterError(
+                f"adapter was fitted on {adapter.camera!r}, not on {camera!r}; pass strict=False to apply it anyway"
+            )
 
 
 def _components_for(components, adapter: Adapter | None) -> dict[str, bool]:
@@ -418,7 +466,9 @@ def _checked_mask(mask: Any, camera: Camera) -> torch.Tensor:
         raise CameraError(f"mask must be (H, W), got shape {tuple(mask.shape)}")
     height, width = mask.shape
     if abs(height * camera.width - width * camera.height) > 0.01 * width * camera.height:
-        raise CameraError(f"mask is {width}x{height} px but the camera is {camera.width}x{camera.height}: the aspect ratios differ")
+        raise CameraError(
+            f"mask is {width}x{height} px but the camera is {camera.width}x{camera.height}: the aspect ratios differ"
+        )
     valid = camera.valid_mask().cpu()
     if not bool((resize_mask(mask, valid.shape) & valid).any()):
         raise CameraError("mask leaves no pixel inside the camera's valid region")
@@ -458,13 +508,17 @@ def apply(
     if isinstance(adapter, str) or hasattr(adapter, "__fspath__"):
         adapter = Adapter.load(adapter)
     if adapter is not None and not isinstance(adapter, Adapter):
-        raise AdapterError(f"adapter must be an Adapter, a path or None, got {type(adapter).__name__}")
+        raise AdapterError(
+            f"adapter must be an Adapter, a path or None, got {type(adapter).__name__}"
+        )
     if camera is None and adapter is not None:
         camera = adapter.camera
     if camera is None:
         raise CameraError("apply needs a camera (or an adapter that carries one)")
     if not isinstance(camera, Camera):
-        raise CameraError(f"camera must be a raytun3r_plugin.cameras.Camera, got {type(camera).__name__}")
+        raise CameraError(
+            f"camera must be a raytun3r_plugin.cameras.Camera, got {type(camera).__name__}"
+        )
     if mask is not None:
         mask = _checked_mask(mask, camera)
 
@@ -477,23 +531,39 @@ def apply(
     with _LOCK:
         existing = handle_of(model)
         if existing is not None:
-            same = _same_camera(existing.camera, camera) and (
-                (existing.adapter is None and adapter is None)
-                or (existing.adapter is not None and adapter is not None and existing.adapter.same_as(adapter))
-            ) and existing.components == wanted
+            same = (
+                _same_camera(existing.camera, camera)
+                and (
+                    (existing.adapter is None and adapter is None)
+                    or (
+                        existing.adapter is not None
+                        and adapter is not None
+                        and existing.adapter.same_as(adapter)
+                    )
+                )
+                and existing.components == wanted
+            )
             if same:
                 return existing
-            raise AlreadyAppliedError(f"{type(model).__name__} is already patched ({existing!r}); call remove() first")
+            raise AlreadyAppliedError(
+                f"{type(model).__name__} is already patched ({existing!r}); call remove() first"
+            )
 
         if spec.check is not None:
             spec.check(root)
-        hooks = {hook for hook, served in HOOK_COMPONENTS.items() if any(wanted.get(c) for c in served)}
+        hooks = {
+            hook for hook, served in HOOK_COMPONENTS.items() if any(wanted.get(c) for c in served)
+        }
         resolved = resolve_targets(spec, root, hooks)
-        state = PatchState(camera, adapter, wanted, info, mask, knee_deg, max_stretch, model=model, spec=spec)
+        state = PatchState(
+            camera, adapter, wanted, info, mask, knee_deg, max_stretch, model=model, spec=spec
+        )
         for target, path, owner in resolved:
             current = owner.__dict__.get(target.attribute)
             if getattr(current, WRAPPER_MARK, False):
-                raise AlreadyAppliedError(f"{path}.{target.attribute} is already wrapped by raytun3r")
+                raise AlreadyAppliedError(
+                    f"{path}.{target.attribute} is already wrapped by raytun3r"
+                )
         # Build every replacement before installing any, so a build error changes nothing.
         planned = []
         for target, _path, owner in resolved:

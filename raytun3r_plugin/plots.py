@@ -14,10 +14,24 @@ import numpy as np
 
 __all__ = ["heatmap", "line_chart"]
 
-_COLOURS = [(180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148), (75, 86, 140), (194, 119, 227)]
+_COLOURS = [
+    (180, 119, 31),
+    (14, 127, 255),
+    (44, 160, 44),
+    (40, 39, 214),
+    (189, 103, 148),
+    (75, 86, 140),
+    (194, 119, 227),
+]
 
 
-def line_chart(series: Mapping[str, Sequence[float]], title: str, *, log_y: bool = True, size: tuple[int, int] = (720, 420)) -> np.ndarray:
+def line_chart(
+    series: Mapping[str, Sequence[float]],
+    title: str,
+    *,
+    log_y: bool = True,
+    size: tuple[int, int] = (720, 420),
+) -> np.ndarray:
     """Curves of ``series`` (name -> values per step) on one chart, legend at the top right.
 
     Non-finite values (and non-positive ones with ``log_y``) are left out of each curve.
@@ -38,7 +52,16 @@ def line_chart(series: Mapping[str, Sequence[float]], title: str, *, log_y: bool
             curves[name] = (x[keep], np.log10(y[keep]) if log_y else y[keep])
     cv2.rectangle(image, (left, top), (width - right, height - bottom), (0, 0, 0), 1)
     if not curves:
-        cv2.putText(image, "no finite values", (left + 10, height // 2), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(
+            image,
+            "no finite values",
+            (left + 10, height // 2),
+            font,
+            0.5,
+            (0, 0, 0),
+            1,
+            cv2.LINE_AA,
+        )
         return image
     x_max = max(float(x.max()) for x, _ in curves.values()) or 1.0
     y_lo = min(float(y.min()) for _, y in curves.values())
@@ -55,13 +78,22 @@ def line_chart(series: Mapping[str, Sequence[float]], title: str, *, log_y: bool
         value = y_lo + (y_hi - y_lo) * k / 4
         v = int(round(height - bottom - k / 4 * (height - top - bottom)))
         cv2.line(image, (left - 4, v), (left, v), (0, 0, 0), 1)
-        label = f"{10 ** value:.3g}" if log_y else f"{value:.3g}"
+        label = f"{10**value:.3g}" if log_y else f"{value:.3g}"
         cv2.putText(image, label, (4, v + 4), font, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
     for k in range(5):
         step = x_max * k / 4
         u = int(round(left + k / 4 * (width - left - right)))
         cv2.line(image, (u, height - bottom), (u, height - bottom + 4), (0, 0, 0), 1)
-        cv2.putText(image, f"{step:.0f}", (u - 10, height - bottom + 18), font, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(
+            image,
+            f"{step:.0f}",
+            (u - 10, height - bottom + 18),
+            font,
+            0.38,
+            (0, 0, 0),
+            1,
+            cv2.LINE_AA,
+        )
     cv2.putText(image, "step", (width // 2 - 14, height - 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
     for index, (name, (x, y)) in enumerate(curves.items()):
         colour = _COLOURS[index % len(_COLOURS)]
@@ -72,7 +104,14 @@ def line_chart(series: Mapping[str, Sequence[float]], title: str, *, log_y: bool
     return image
 
 
-def heatmap(values: np.ndarray, title: str, unit: str, *, valid: np.ndarray | None = None, min_size: int = 320) -> np.ndarray:
+def heatmap(
+    values: np.ndarray,
+    title: str,
+    unit: str,
+    *,
+    valid: np.ndarray | None = None,
+    min_size: int = 320,
+) -> np.ndarray:
     """A scalar field (H, W) coloured with the turbo map (0 = the smallest value, black outside
     ``valid``), enlarged to at least ``min_size`` px, with a colour bar labelled in ``unit``."""
     import cv2
@@ -86,19 +125,32 @@ def heatmap(values: np.ndarray, title: str, unit: str, *, valid: np.ndarray | No
     image = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
     image[~valid] = 0
     scale = max(1, math.ceil(min_size / max(values.shape)))
-    image = cv2.resize(image, (values.shape[1] * scale, values.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
+    image = cv2.resize(
+        image, (values.shape[1] * scale, values.shape[0] * scale), interpolation=cv2.INTER_NEAREST
+    )
     height = image.shape[0]
     top, bottom, bar_w, text_w = 34, 10, 18, 96
     bar = np.full((height, bar_w + text_w, 3), 255, np.uint8)
     strip = np.linspace(1.0, 0.0, height - top - bottom, dtype=np.float32)[:, None]
-    bar[top : height - bottom, 4:bar_w] = cv2.applyColorMap((strip * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    bar[top : height - bottom, 4:bar_w] = cv2.applyColorMap(
+        (strip * 255).astype(np.uint8), cv2.COLORMAP_TURBO
+    )
     font = cv2.FONT_HERSHEY_SIMPLEX
     cv2.putText(bar, unit, (4, 24), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
     for k in range(5):
         fraction = k / 4
         v = int(round(top + (1 - fraction) * (height - top - bottom - 1)))
         cv2.line(bar, (bar_w, v), (bar_w + 4, v), (0, 0, 0), 1)
-        cv2.putText(bar, f"{low + fraction * (high - low):.3g}", (bar_w + 7, v + 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(
+            bar,
+            f"{low + fraction * (high - low):.3g}",
+            (bar_w + 7, v + 4),
+            font,
+            0.4,
+            (0, 0, 0),
+            1,
+            cv2.LINE_AA,
+        )
     out = np.concatenate([image, bar], axis=1)
     banner = np.full((26, out.shape[1], 3), 255, np.uint8)
     cv2.putText(banner, title, (6, 18), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)

@@ -122,7 +122,10 @@ def rotation_angle(rotation_a: Any, rotation_b: Any, eps: float = 0.0) -> Any:
         a, b = _as_torch_pair(rotation_a, rotation_b)
         m = a.transpose(-1, -2) @ b
         cos = (m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2] - 1) / 2
-        axis = torch.stack((m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]), dim=-1)
+        axis = torch.stack(
+            (m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]),
+            dim=-1,
+        )
         sin = torch.sqrt(axis.pow(2).sum(dim=-1) + eps**2) / 2
         return torch.atan2(sin, cos)
     # numpy branch: own names, so each variable has one type (the torch branch above uses a, b, m).
@@ -130,8 +133,19 @@ def rotation_angle(rotation_a: Any, rotation_b: Any, eps: float = 0.0) -> Any:
     b_np = np.asarray(rotation_b, dtype=np.float64)
     m_np = np.swapaxes(a_np, -1, -2) @ b_np
     cos_np = (np.trace(m_np, axis1=-2, axis2=-1) - 1.0) / 2.0
-    axis_np = np.stack([m_np[..., 2, 1] - m_np[..., 1, 2], m_np[..., 0, 2] - m_np[..., 2, 0], m_np[..., 1, 0] - m_np[..., 0, 1]], -1)
-    sin_np = (np.linalg.norm(axis_np, axis=-1) if eps == 0 else np.sqrt(np.sum(axis_np * axis_np, axis=-1) + eps**2)) / 2.0
+    axis_np = np.stack(
+        [
+            m_np[..., 2, 1] - m_np[..., 1, 2],
+            m_np[..., 0, 2] - m_np[..., 2, 0],
+            m_np[..., 1, 0] - m_np[..., 0, 1],
+        ],
+        -1,
+    )
+    sin_np = (
+        np.linalg.norm(axis_np, axis=-1)
+        if eps == 0
+        else np.sqrt(np.sum(axis_np * axis_np, axis=-1) + eps**2)
+    ) / 2.0
     return np.arctan2(sin_np, cos_np)
 
 
@@ -150,7 +164,11 @@ def translation_angle(t_a: Any, t_b: Any, eps: float = 0.0) -> Any:
     a_np = np.asarray(t_a, dtype=np.float64)  # own names again, as in rotation_angle
     b_np = np.asarray(t_b, dtype=np.float64)
     cross_np = np.cross(a_np, b_np)
-    sin_np = np.linalg.norm(cross_np, axis=-1) if eps == 0 else np.sqrt(np.sum(cross_np * cross_np, axis=-1) + eps**2)
+    sin_np = (
+        np.linalg.norm(cross_np, axis=-1)
+        if eps == 0
+        else np.sqrt(np.sum(cross_np * cross_np, axis=-1) + eps**2)
+    )
     return np.arctan2(sin_np, np.sum(a_np * b_np, axis=-1))
 
 
@@ -162,7 +180,9 @@ def translation_angle(t_a: Any, t_b: Any, eps: float = 0.0) -> Any:
 MIN_RAY_Z = 1e-6
 
 
-def backproject(depth: torch.Tensor, rays: torch.Tensor, depth_convention: str = "range") -> torch.Tensor:
+def backproject(
+    depth: torch.Tensor, rays: torch.Tensor, depth_convention: str = "range"
+) -> torch.Tensor:
     """3-D points in the camera frame from depth values and unit rays.
 
     Args:
@@ -226,7 +246,14 @@ def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
         trace = r[0, 0] + r[1, 1] + r[2, 2]
         if trace > 0:
             s = 2.0 * math.sqrt(trace + 1.0)
-            q = np.array([0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s])
+            q = np.array(
+                [
+                    0.25 * s,
+                    (r[2, 1] - r[1, 2]) / s,
+                    (r[0, 2] - r[2, 0]) / s,
+                    (r[1, 0] - r[0, 1]) / s,
+                ]
+            )
         else:
             i = int(np.argmax([r[0, 0], r[1, 1], r[2, 2]]))
             j, m = (i + 1) % 3, (i + 2) % 3

@@ -42,12 +42,16 @@ def as_batched_images(images: torch.Tensor, patch_size: int | None = 14) -> torc
     if images.ndim == 4:
         images = images[None]
     if images.ndim != 5 or images.shape[2] != 3:
-        raise InputError(f"images must be (S, 3, H, W) or (B, S, 3, H, W), got shape {tuple(images.shape)}")
+        raise InputError(
+            f"images must be (S, 3, H, W) or (B, S, 3, H, W), got shape {tuple(images.shape)}"
+        )
     if not images.is_floating_point():
         raise InputError(f"images must be floating point in [0, 1], got dtype {images.dtype}")
     height, width = images.shape[-2:]
     if patch_size and (height % patch_size or width % patch_size):
-        raise InputError(f"image size {width}x{height} px is not a multiple of the patch size {patch_size}; resize first")
+        raise InputError(
+            f"image size {width}x{height} px is not a multiple of the patch size {patch_size}; resize first"
+        )
     return images
 
 

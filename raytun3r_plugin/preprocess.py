@@ -52,7 +52,16 @@ from raytun3r_plugin.cameras.base import Camera
 from raytun3r_plugin.errors import AdapterError, InputError
 from raytun3r_plugin.geometry import ASPECT_TOLERANCE, camera_for_input, resize_mask
 
-__all__ = ["DEFAULT_LONG_SIDE", "RULE", "RULE_VERSION", "InputLayout", "fitted_source_camera", "input_layout", "layout_for_inference", "to_input_pixels"]
+__all__ = [
+    "DEFAULT_LONG_SIDE",
+    "RULE",
+    "RULE_VERSION",
+    "InputLayout",
+    "fitted_source_camera",
+    "input_layout",
+    "layout_for_inference",
+    "to_input_pixels",
+]
 
 #: Name of the rule in the module docstring, recorded in ``adapter.training_info["input"]["rule"]``.
 RULE = "patch-rounded-sides, centre-crop beyond 1% aspect change"
@@ -63,7 +72,10 @@ DEFAULT_LONG_SIDE = 504
 
 
 def to_input_pixels(
-    uv: torch.Tensor, native_size: tuple[int, int], input_size: tuple[int, int], offset: tuple[float, float] = (0.0, 0.0)
+    uv: torch.Tensor,
+    native_size: tuple[int, int],
+    input_size: tuple[int, int],
+    offset: tuple[float, float] = (0.0, 0.0),
 ) -> torch.Tensor:
     """Map native-image pixels to network-input pixels (pure resize, after an optional crop).
 
@@ -141,7 +153,9 @@ class InputLayout:
                 crop_w, crop_h = width, round(width / input_aspect)
             crop = ((width - crop_w) // 2, (height - crop_h) // 2, crop_w, crop_h)
             native = camera.cropped(*crop)
-        return cls(in_w, in_h, crop, native, native.resized(in_w, in_h), long_side, patch, (width, height))
+        return cls(
+            in_w, in_h, crop, native, native.resized(in_w, in_h), long_side, patch, (width, height)
+        )
 
     # ------------------------------------------------------------------ geometry
     @property
@@ -187,13 +201,25 @@ class InputLayout:
         Raises:
             InputError: not (N, H, W, 3), or frames of another size than the camera.
         """
-        array = images.detach().cpu() if isinstance(images, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(images))
+        array = (
+            images.detach().cpu()
+            if isinstance(images, torch.Tensor)
+            else torch.from_numpy(np.ascontiguousarray(images))
+        )
         if array.ndim != 4 or array.shape[-1] != 3:
-            raise InputError(f"frames must be (N, H, W, 3) RGB in [0, 1], got shape {tuple(array.shape)}")
+            raise InputError(
+                f"frames must be (N, H, W, 3) RGB in [0, 1], got shape {tuple(array.shape)}"
+            )
         self._check_frame_size("frames are", int(array.shape[1]), int(array.shape[2]))
         tensor = self._crop(array.permute(0, 3, 1, 2).float())
         if tuple(tensor.shape[-2:]) != (self.height, self.width):
-            tensor = F.interpolate(tensor, size=(self.height, self.width), mode="bilinear", align_corners=False, antialias=True)
+            tensor = F.interpolate(
+                tensor,
+                size=(self.height, self.width),
+                mode="bilinear",
+                align_corners=False,
+                antialias=True,
+            )
         return tensor.clamp(0.0, 1.0).contiguous()
 
     def native_mask(self, mask: np.ndarray | torch.Tensor) -> torch.Tensor:
@@ -203,7 +229,11 @@ class InputLayout:
         Raises:
             InputError: not (H, W) at the camera's size.
         """
-        tensor = mask.detach().cpu() if isinstance(mask, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(mask))
+        tensor = (
+            mask.detach().cpu()
+            if isinstance(mask, torch.Tensor)
+            else torch.from_numpy(np.ascontiguousarray(mask))
+        )
         if tensor.ndim != 2:
             raise InputError(f"mask must be (H, W), got shape {tuple(tensor.shape)}")
         self._check_frame_size("mask is", int(tensor.shape[0]), int(tensor.shape[1]))
@@ -217,9 +247,17 @@ class InputLayout:
         Raises:
             InputError: neither (H, W) nor (N, H, W) at the camera's size.
         """
-        tensor = mask.detach().cpu() if isinstance(mask, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(mask))
+        tensor = (
+            mask.detach().cpu()
+            if isinstance(mask, torch.Tensor)
+            else torch.from_numpy(np.ascontiguousarray(mask))
+        )
         if tensor.ndim == 3:
-            return torch.stack([self.mask(m) for m in tensor]) if len(tensor) else torch.zeros((0, self.height, self.width), dtype=torch.bool)
+            return (
+                torch.stack([self.mask(m) for m in tensor])
+                if len(tensor)
+                else torch.zeros((0, self.height, self.width), dtype=torch.bool)
+            )
         return resize_mask(self.native_mask(tensor), (self.height, self.width))
 
     def depth(self, maps: np.ndarray | torch.Tensor) -> torch.Tensor:
@@ -230,13 +268,19 @@ class InputLayout:
         Raises:
             InputError: not (N, H, W) at the camera's size.
         """
-        tensor = maps.detach().cpu() if isinstance(maps, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(maps))
+        tensor = (
+            maps.detach().cpu()
+            if isinstance(maps, torch.Tensor)
+            else torch.from_numpy(np.ascontiguousarray(maps))
+        )
         if tensor.ndim != 3:
             raise InputError(f"depth maps must be (N, H, W), got shape {tuple(tensor.shape)}")
         self._check_frame_size("depth maps are", int(tensor.shape[1]), int(tensor.shape[2]))
         tensor = self._crop(tensor.float())
         if tuple(tensor.shape[-2:]) != (self.height, self.width):
-            tensor = F.interpolate(tensor[:, None], size=(self.height, self.width), mode="nearest")[:, 0]
+            tensor = F.interpolate(tensor[:, None], size=(self.height, self.width), mode="nearest")[
+                :, 0
+            ]
         return tensor.contiguous()
 
     # ------------------------------------------------------------------ record
@@ -274,13 +318,21 @@ def fitted_source_camera(adapter: Any) -> Camera | None:
         return None
     recorded = (getattr(adapter, "training_info", None) or {}).get("input") or {}
     crop, source = recorded.get("crop"), recorded.get("source")
-    if not crop or not source or (int(crop[2]), int(crop[3])) != (int(camera.width), int(camera.height)):
+    if (
+        not crop
+        or not source
+        or (int(crop[2]), int(crop[3])) != (int(camera.width), int(camera.height))
+    ):
         return camera
     return camera.cropped(-int(crop[0]), -int(crop[1]), int(source[0]), int(source[1]))
 
 
 def layout_for_inference(
-    camera: Camera | None, frame_size: tuple[int, int], adapter: Any = None, long_side: int | None = None, patch: int | None = None,
+    camera: Camera | None,
+    frame_size: tuple[int, int],
+    adapter: Any = None,
+    long_side: int | None = None,
+    patch: int | None = None,
     strict: bool = True,
 ) -> InputLayout:
     """The layout that prepares frames at use time as ``adapter`` was fitted (``raytun3r infer``).
@@ -305,8 +357,16 @@ def layout_for_inference(
             resize.
         AdapterError: (strict) the adapter's input was prepared by another rule.
     """
-    recorded: Mapping[str, Any] = ((getattr(adapter, "training_info", None) or {}).get("input") or {}) if adapter is not None else {}
-    if strict and "rule" in recorded and (recorded.get("rule"), recorded.get("rule_version")) != (RULE, RULE_VERSION):
+    recorded: Mapping[str, Any] = (
+        ((getattr(adapter, "training_info", None) or {}).get("input") or {})
+        if adapter is not None
+        else {}
+    )
+    if (
+        strict
+        and "rule" in recorded
+        and (recorded.get("rule"), recorded.get("rule_version")) != (RULE, RULE_VERSION)
+    ):
         raise AdapterError(
             f"adapter's input was prepared by rule {recorded.get('rule')!r} version {recorded.get('rule_version')}, "
             f"this version prepares frames by {RULE!r} version {RULE_VERSION}; pass strict=False (--no-strict) to use it anyway"
@@ -318,12 +378,17 @@ def layout_for_inference(
     if camera is None:
         camera = fitted_source_camera(adapter)
     if not isinstance(camera, Camera):
-        raise InputError(f"camera must be a raytun3r_plugin.cameras.Camera (or an adapter that carries one), got {type(camera).__name__}")
+        raise InputError(
+            f"camera must be a raytun3r_plugin.cameras.Camera (or an adapter that carries one), got {type(camera).__name__}"
+        )
     width, height = (int(v) for v in frame_size)
     layout = InputLayout.for_camera(camera_for_input(camera, height, width), long_side, patch)
     # Same rule, same native size and long side: the input must be what the fit saw; a
     # difference means the record and this code disagree, which no camera check would notice.
-    same_question = recorded.get("source") == list(layout.source_size) and recorded.get("long_side") == layout.long_side
+    same_question = (
+        recorded.get("source") == list(layout.source_size)
+        and recorded.get("long_side") == layout.long_side
+    )
     if strict and "rule" in recorded and same_question:
         found = layout.record()
         if any(recorded.get(key) != found[key] for key in ("width", "height", "crop")):

@@ -166,23 +166,33 @@ def _validate(spec: BackboneSpec) -> None:
     """Refuse a spec whose parts contradict each other (PEFT's ``register_peft_method`` checks)."""
     where = f"backbone spec {spec.family!r}"
     if not isinstance(spec.family, str) or not spec.family:
-        raise BackboneRegistrationError(f"a backbone spec needs a non-empty family name, got {spec.family!r}")
+        raise BackboneRegistrationError(
+            f"a backbone spec needs a non-empty family name, got {spec.family!r}"
+        )
     if not isinstance(spec.upstream, UpstreamVersion):
-        raise BackboneRegistrationError(f"{where}: upstream must be an UpstreamVersion, got {type(spec.upstream).__name__}")
+        raise BackboneRegistrationError(
+            f"{where}: upstream must be an UpstreamVersion, got {type(spec.upstream).__name__}"
+        )
     if not spec.targets:
         raise BackboneRegistrationError(f"{where}: declares no patch targets")
     seen: set[tuple[str, str]] = set()
     for target in spec.targets:
         if target.hook not in HOOK_KINDS:
-            raise BackboneRegistrationError(f"{where}: target {target.name!r} has hook {target.hook!r}; expected one of {', '.join(HOOK_KINDS)}")
+            raise BackboneRegistrationError(
+                f"{where}: target {target.name!r} has hook {target.hook!r}; expected one of {', '.join(HOOK_KINDS)}"
+            )
         for path in target.owners:
             if (path, target.attribute) in seen:
-                raise BackboneRegistrationError(f"{where}: {path}.{target.attribute} is the target of two PatchTargets")
+                raise BackboneRegistrationError(
+                    f"{where}: {path}.{target.attribute} is the target of two PatchTargets"
+                )
             seen.add((path, target.attribute))
     rope_targets = [target for target in spec.targets if target.hook == "rope"]
     if rope_targets:
         if not spec.rope_classes or not spec.rope_base_attribute:
-            raise BackboneRegistrationError(f"{where}: has rope targets, so it must declare rope_classes and rope_base_attribute")
+            raise BackboneRegistrationError(
+                f"{where}: has rope targets, so it must declare rope_classes and rope_base_attribute"
+            )
         if not any(set(target.owner_classes) & set(spec.rope_classes) for target in rope_targets):
             raise BackboneRegistrationError(
                 f"{where}: no rope target patches one of the rope_classes ({', '.join(spec.rope_classes)}), "
@@ -210,9 +220,13 @@ def register(spec: BackboneSpec, *, overwrite: bool = False) -> BackboneSpec:
             "pass overwrite=True to replace it"
         )
     for other in _SPECS.values():
-        clash = sorted(set(other.builders) & set(spec.builders)) if other.family != spec.family else []
+        clash = (
+            sorted(set(other.builders) & set(spec.builders)) if other.family != spec.family else []
+        )
         if clash:
-            raise DuplicateBackboneError(f"backbone spec {spec.family!r}: load_backbone name(s) {clash} are already provided by {other.family!r}")
+            raise DuplicateBackboneError(
+                f"backbone spec {spec.family!r}: load_backbone name(s) {clash} are already provided by {other.family!r}"
+            )
     _SPECS[spec.family] = spec
     return spec
 
@@ -248,7 +262,9 @@ def spec_for(model: nn.Module) -> tuple[BackboneSpec, nn.Module]:
         if root is not None:
             return spec, root
     known = ", ".join(f"{s.family} ({s.upstream})" for s in _SPECS.values())
-    raise UnsupportedUpstreamError(f"no raytun3r patch recognises a {type(model).__module__}.{type(model).__qualname__}; supported: {known}")
+    raise UnsupportedUpstreamError(
+        f"no raytun3r patch recognises a {type(model).__module__}.{type(model).__qualname__}; supported: {known}"
+    )
 
 
 def resolve_path(root: nn.Module, path: str) -> Any:
@@ -304,11 +320,18 @@ def rope_base(spec: BackboneSpec, owner: Any) -> float:
     if name is None:
         found = "no rope_base_attribute declared on the spec"
     elif not hasattr(owner, name):
-        numbers = {key: item for key, item in vars(owner).items() if isinstance(item, (int, float)) and not isinstance(item, bool)}
+        numbers = {
+            key: item
+            for key, item in vars(owner).items()
+            if isinstance(item, (int, float)) and not isinstance(item, bool)
+        }
         found = f"no attribute {name!r} (its numeric attributes: {', '.join(f'{k}={v!r}' for k, v in numbers.items()) or 'none'})"
     else:
         found = f"{name}={value!r}"
-    raise _refuse(spec, f"{spec.family}: expected the RoPE frequency base as a positive number in {type(owner).__qualname__}.{name}, found {found}")
+    raise _refuse(
+        spec,
+        f"{spec.family}: expected the RoPE frequency base as a positive number in {type(owner).__qualname__}.{name}, found {found}",
+    )
 
 
 def _is_rope(spec: BackboneSpec, module: Any) -> bool:
@@ -319,7 +342,9 @@ def check_rope_coverage(spec: BackboneSpec, root: nn.Module) -> None:
     """Refuse a model holding a RoPE instance (``spec.rope_classes``) that no ``rope`` target reaches."""
     if not spec.rope_classes:
         return
-    owner_paths = [path for target in spec.targets if target.hook == "rope" for path in target.owners]
+    owner_paths = [
+        path for target in spec.targets if target.hook == "rope" for path in target.owners
+    ]
     covered = {id(resolve_path(root, path)) for path in owner_paths}
     for name, module in root.named_modules():
         if _is_rope(spec, module) and id(module) not in covered:
@@ -330,7 +355,9 @@ def check_rope_coverage(spec: BackboneSpec, root: nn.Module) -> None:
             )
 
 
-def resolve_targets(spec: BackboneSpec, root: nn.Module, wanted_hooks: set[str]) -> list[tuple[PatchTarget, str, Any]]:
+def resolve_targets(
+    spec: BackboneSpec, root: nn.Module, wanted_hooks: set[str]
+) -> list[tuple[PatchTarget, str, Any]]:
     """Check every target against the live model, without changing anything.
 
     Returns ``(target, owner_path, owner)`` for every owner to patch. Raises
@@ -346,15 +373,27 @@ def resolve_targets(spec: BackboneSpec, root: nn.Module, wanted_hooks: set[str])
             if owner is None:
                 if target.optional:
                     continue
-                raise _refuse(spec, f"{where}: expected a {' or '.join(target.owner_classes)} at '{path}', found nothing")
+                raise _refuse(
+                    spec,
+                    f"{where}: expected a {' or '.join(target.owner_classes)} at '{path}', found nothing",
+                )
             names = _class_names(owner)
             if not set(names) & set(target.owner_classes):
-                raise _refuse(spec, f"{where}: expected a {' or '.join(target.owner_classes)} at '{path}', found {type(owner).__module__}.{type(owner).__qualname__}")
+                raise _refuse(
+                    spec,
+                    f"{where}: expected a {' or '.join(target.owner_classes)} at '{path}', found {type(owner).__module__}.{type(owner).__qualname__}",
+                )
             signature = upstream_signature(owner, target.attribute)
             if signature is None:
-                raise _refuse(spec, f"{where}: expected method {target.attribute}{target.signature}, found no such method on {type(owner).__qualname__}")
+                raise _refuse(
+                    spec,
+                    f"{where}: expected method {target.attribute}{target.signature}, found no such method on {type(owner).__qualname__}",
+                )
             if signature != target.signature:
-                raise _refuse(spec, f"{where}: expected signature {target.attribute}({', '.join(target.signature)}), found {target.attribute}({', '.join(signature)})")
+                raise _refuse(
+                    spec,
+                    f"{where}: expected signature {target.attribute}({', '.join(target.signature)}), found {target.attribute}({', '.join(signature)})",
+                )
             if target.hook == "rope" and _is_rope(spec, owner):
                 rope_base(spec, owner)  # refused here, before anything is built
             found.append((target, path, owner))

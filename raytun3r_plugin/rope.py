@@ -24,7 +24,9 @@ def rotate_half(x: torch.Tensor) -> torch.Tensor:
     return torch.cat((-x[..., half:], x[..., :half]), dim=-1)
 
 
-def apply_rope_1d(tokens: torch.Tensor, positions: torch.Tensor, inv_freq: torch.Tensor) -> torch.Tensor:
+def apply_rope_1d(
+    tokens: torch.Tensor, positions: torch.Tensor, inv_freq: torch.Tensor
+) -> torch.Tensor:
     """Rotate ``tokens`` (B, heads, N, d) by angles ``positions`` (B, N) x ``inv_freq`` (d/2,)."""
     angles = (positions.to(inv_freq.dtype)[..., None] * inv_freq).to(tokens.dtype)
     angles = torch.cat((angles, angles), dim=-1)[:, None]
@@ -40,12 +42,17 @@ def apply_rope_2d(tokens: torch.Tensor, positions: torch.Tensor, base: float) ->
     inv_freq = inverse_frequencies(half_dim, base, tokens.device)
     vertical, horizontal = tokens.chunk(2, dim=-1)
     return torch.cat(
-        (apply_rope_1d(vertical, positions[..., 0], inv_freq), apply_rope_1d(horizontal, positions[..., 1], inv_freq)),
+        (
+            apply_rope_1d(vertical, positions[..., 0], inv_freq),
+            apply_rope_1d(horizontal, positions[..., 1], inv_freq),
+        ),
         dim=-1,
     )
 
 
-def displaced_positions(positions: torch.Tensor, patch_start: int, displacement: torch.Tensor) -> torch.Tensor:
+def displaced_positions(
+    positions: torch.Tensor, patch_start: int, displacement: torch.Tensor
+) -> torch.Tensor:
     """Add a per-patch displacement (hw, 2) to the patch rows of ``positions`` (..., patch_start + hw, 2).
 
     Special tokens (the first ``patch_start`` rows) keep their positions. Returns float positions.

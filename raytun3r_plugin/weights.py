@@ -28,7 +28,9 @@ def read_state_dict(path: str | os.PathLike) -> dict[str, torch.Tensor]:
     try:
         state = torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for a corrupt or unsafe pickle
-        raise WeightsError(f"{path}: cannot be read with torch.load(weights_only=True) ({error})") from error
+        raise WeightsError(
+            f"{path}: cannot be read with torch.load(weights_only=True) ({error})"
+        ) from error
     if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
         state = state["state_dict"]
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
@@ -40,7 +42,9 @@ def strip_prefix(state: dict[str, torch.Tensor], prefix: str) -> dict[str, torch
     """Remove ``prefix`` from keys that have it (checkpoints of wrapper classes add one)."""
     if not any(key.startswith(prefix) for key in state):
         return state
-    return {key[len(prefix):] if key.startswith(prefix) else key: value for key, value in state.items()}
+    return {
+        key[len(prefix) :] if key.startswith(prefix) else key: value for key, value in state.items()
+    }
 
 
 def alias_keys(model: nn.Module) -> dict[str, str]:
@@ -51,7 +55,9 @@ def alias_keys(model: nn.Module) -> dict[str, str]:
     """
     groups: dict[tuple, list[str]] = defaultdict(list)
     for key, tensor in model.state_dict(keep_vars=True).items():
-        groups[(tensor.data_ptr(), tuple(tensor.shape), tuple(tensor.stride()), tensor.dtype)].append(key)
+        groups[
+            (tensor.data_ptr(), tuple(tensor.shape), tuple(tensor.stride()), tensor.dtype)
+        ].append(key)
     return {alias: keys[0] for keys in groups.values() for alias in keys[1:]}
 
 

@@ -70,7 +70,9 @@ def render(name: str, seed: int, size: int, n_frames: int) -> dict:
     cam = camera_for(name, size, seed)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        seq = render_sequence(spec["kind"], cam, n_frames=n_frames, seed=seed, flow_px=spec["flow_px"], supersample=2)
+        seq = render_sequence(
+            spec["kind"], cam, n_frames=n_frames, seed=seed, flow_px=spec["flow_px"], supersample=2
+        )
     gt = seq.meta["per_frame"]["z_depth"] if name == "pinhole" else seq.depth
     valid = seq.mask & ~seq.meta["per_frame"]["sky"] & (gt > 0)
     return {
@@ -103,7 +105,9 @@ def load_or_render(cache: Path | None, seeds: list[int], size: int, n_frames: in
     return out
 
 
-def evaluate_camera(model, images: np.ndarray, depth: np.ndarray, poses: np.ndarray, ray_pose: bool = False) -> dict:
+def evaluate_camera(
+    model, images: np.ndarray, depth: np.ndarray, poses: np.ndarray, ray_pose: bool = False
+) -> dict:
     """Metrics over sequences (N, F, ...) using the pairs (k, k + GAP)."""
     from raytun3r_plugin import predict
     from raytun3r_plugin.metrics import abs_rel, delta_125, relative_pose_errors
@@ -136,7 +140,12 @@ def evaluate_camera(model, images: np.ndarray, depth: np.ndarray, poses: np.ndar
                 # upstream, ~3 s per pair on CPU, so only the first pair of each sequence)
                 torch.manual_seed(0)
                 with torch.no_grad():
-                    T_ray = predict(model, x, use_ray_pose=True).cam_from_world[0].numpy().astype(np.float64)
+                    T_ray = (
+                        predict(model, x, use_ray_pose=True)
+                        .cam_from_world[0]
+                        .numpy()
+                        .astype(np.float64)
+                    )
                 rot_ray += list(relative_pose_errors(T_ray, T_gt, pairs=[(0, 1)])["rotation_deg"])
                 rot_ray_0 += list(e0["rotation_deg"])
     res = {
@@ -160,7 +169,9 @@ def evaluate_camera(model, images: np.ndarray, depth: np.ndarray, poses: np.ndar
             "rotation_ratio": float(np.nanmean(rot_ray) / np.nanmean(rot_ray_0)),
             "n_pairs": len(rot_ray),
         }
-        res["ray_pose"] = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in res["ray_pose"].items()}
+        res["ray_pose"] = {
+            k: (round(v, 4) if isinstance(v, float) else v) for k, v in res["ray_pose"].items()
+        }
     return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in res.items()}
 
 
@@ -169,7 +180,11 @@ def card_block(metrics: dict) -> str:
         "| views | AbsRel | AbsRel constant | ratio | delta<1.25 | delta<1.25 constant | rot. err (deg) | no-rotation (deg) | ratio | transl. dir. err (deg) | images / pairs |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    labels = {"pinhole": "pinhole 50-90 deg (z-depth)", "kb4_120": "KB4 equidistant 120 deg (range)", "kb4_190": "KB4 equidistant 190 deg (range)"}
+    labels = {
+        "pinhole": "pinhole 50-90 deg (z-depth)",
+        "kb4_120": "KB4 equidistant 120 deg (range)",
+        "kb4_190": "KB4 equidistant 190 deg (range)",
+    }
     for name in CAMERAS:
         m = metrics["results"][name]
         rows.append(
@@ -201,7 +216,9 @@ def main(argv=None) -> int:
     ap.add_argument("--n-frames", type=int, default=5)
     ap.add_argument("--size", type=int, default=112)
     ap.add_argument("--cache", default=None, help="npz cache of the rendered held-out set")
-    ap.add_argument("--out", default=str(ROOT / "raytun3r_plugin" / "data" / "raytun3r-da3-tiny.metrics.json"))
+    ap.add_argument(
+        "--out", default=str(ROOT / "raytun3r_plugin" / "data" / "raytun3r-da3-tiny.metrics.json")
+    )
     ap.add_argument("--card", default=None, help="model card whose metrics block to rewrite")
     ap.add_argument("--render-only", action="store_true")
     ap.add_argument("--threads", type=int, default=1)
@@ -210,7 +227,9 @@ def main(argv=None) -> int:
     warnings.filterwarnings("ignore")
     seeds = list(range(args.seed_base, args.seed_base + args.n_seq))
     if max(seeds) >= TRAIN_SEED_BASE:
-        raise SystemExit(f"held-out seeds must be below {TRAIN_SEED_BASE} (training seeds start there)")
+        raise SystemExit(
+            f"held-out seeds must be below {TRAIN_SEED_BASE} (training seeds start there)"
+        )
     data = load_or_render(Path(args.cache) if args.cache else None, seeds, args.size, args.n_frames)
     if args.render_only:
         return 0
@@ -220,7 +239,11 @@ def main(argv=None) -> int:
     results = {}
     for name in CAMERAS:
         results[name] = evaluate_camera(
-            model, data[f"{name}/images"], data[f"{name}/depth"], data[f"{name}/poses"], ray_pose=name == "pinhole"
+            model,
+            data[f"{name}/images"],
+            data[f"{name}/depth"],
+            data[f"{name}/poses"],
+            ray_pose=name == "pinhole",
         )
         log(f"{name}: {results[name]}")
     p = results["pinhole"]

@@ -57,7 +57,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-TRAIN_SEED_BASE = 10_000  # training scenes use seeds TRAIN_SEED_BASE + k; held-out ones are below 10_000
+TRAIN_SEED_BASE = (
+    10_000  # training scenes use seeds TRAIN_SEED_BASE + k; held-out ones are below 10_000
+)
 MODEL_KWARGS = dict(
     embed_dim=128,
     depth=6,
@@ -70,8 +72,15 @@ MODEL_KWARGS = dict(
     seed=0,
 )
 TINY_KWARGS = dict(
-    embed_dim=32, depth=4, num_heads=2, alt_start=2, out_layers=[0, 1, 2, 3],
-    head_features=8, head_channels=[8, 8, 16, 16], camera_encoder=False, seed=0,
+    embed_dim=32,
+    depth=4,
+    num_heads=2,
+    alt_start=2,
+    out_layers=[0, 1, 2, 3],
+    head_features=8,
+    head_channels=[8, 8, 16, 16],
+    camera_encoder=False,
+    seed=0,
 )
 
 
@@ -111,7 +120,9 @@ def render_one(seed: int, size: int, n_frames: int) -> dict:
     cam = pinhole_camera(size, spec["fov"])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        seq = render_sequence(spec["kind"], cam, n_frames=n_frames, seed=seed, flow_px=spec["flow_px"], supersample=2)
+        seq = render_sequence(
+            spec["kind"], cam, n_frames=n_frames, seed=seed, flow_px=spec["flow_px"], supersample=2
+        )
     z = seq.meta["per_frame"]["z_depth"].astype(np.float32)
     valid = seq.mask & ~seq.meta["per_frame"]["sky"] & (z > 0)
     return {
@@ -124,7 +135,13 @@ def render_one(seed: int, size: int, n_frames: int) -> dict:
 
 def build_dataset(path: Path, n_seq: int, size: int, n_frames: int, seed_base: int) -> dict:
     """Render ``n_seq`` sequences (or read the cached file when it matches)."""
-    meta = {"n_seq": n_seq, "size": size, "n_frames": n_frames, "seed_base": seed_base, "version": 1}
+    meta = {
+        "n_seq": n_seq,
+        "size": size,
+        "n_frames": n_frames,
+        "seed_base": seed_base,
+        "version": 1,
+    }
     if path.is_file():
         with np.load(path, allow_pickle=False) as data:
             if json.loads(str(data["meta"])) == meta:
@@ -145,7 +162,14 @@ def build_dataset(path: Path, n_seq: int, size: int, n_frames: int, seed_base: i
 
     # A file handle, not a name: np.savez appends ".npz" to a name that lacks it.
     with atomic_path(path) as tmp, open(tmp, "wb") as handle:
-        np.savez(handle, images=images, depth=depth, poses=poses, fov=fov, meta=np.array(json.dumps(meta)))
+        np.savez(
+            handle,
+            images=images,
+            depth=depth,
+            poses=poses,
+            fov=fov,
+            meta=np.array(json.dumps(meta)),
+        )
     log(f"training set rendered in {time.time() - t0:.0f} s -> {path}")
     return {"images": images, "depth": depth, "poses": poses, "fov": fov}
 
@@ -211,7 +235,10 @@ def targets(batch: dict) -> dict:
     B, S, H, W = depth.shape
     valid = depth > 0
     scale = torch.stack(
-        [depth[b, 0][valid[b, 0]].median() if valid[b, 0].any() else depth.new_tensor(1.0) for b in range(B)]
+        [
+            depth[b, 0][valid[b, 0]].median() if valid[b, 0].any() else depth.new_tensor(1.0)
+            for b in range(B)
+        ]
     ).clamp(min=1e-3)
     c2w = relative_c2w(batch["cam_from_world"])  # float64
     c2w[..., :3, 3] /= scale.double()[:, None, None]
@@ -260,13 +287,27 @@ def losses(out: dict, pose_enc: torch.Tensor, tg: dict, weights: dict) -> dict:
     pred, gt, valid = out["depth"], tg["depth"], tg["valid"]
     H, W = pred.shape[-2:]
     n = valid.sum(dim=(-1, -2)).clamp(min=1)
-    diff = torch.where(valid, torch.log(pred.clamp(min=1e-6)) - torch.log(gt.clamp(min=1e-6)), torch.zeros_like(pred))
+    diff = torch.where(
+        valid,
+        torch.log(pred.clamp(min=1e-6)) - torch.log(gt.clamp(min=1e-6)),
+        torch.zeros_like(pred),
+    )
     mean = diff.sum(dim=(-1, -2)) / n
-    l_si = (torch.where(valid, (diff - mean[..., None, None]).abs(), torch.zeros_like(diff)).sum(dim=(-1, -2)) / n).mean()
+    l_si = (
+        torch.where(valid, (diff - mean[..., None, None]).abs(), torch.zeros_like(diff)).sum(
+            dim=(-1, -2)
+        )
+        / n
+    ).mean()
     l_abs = (diff.abs().sum(dim=(-1, -2)) / n).mean()
     conf = out["depth_conf"]
     err = diff.abs().detach()
-    l_conf = (torch.where(valid, conf * err - 0.05 * torch.log(conf), torch.zeros_like(conf)).sum(dim=(-1, -2)) / n).mean()
+    l_conf = (
+        torch.where(valid, conf * err - 0.05 * torch.log(conf), torch.zeros_like(conf)).sum(
+            dim=(-1, -2)
+        )
+        / n
+    ).mean()
 
     ray = out["ray"]  # B,S,h,w,6
     ray_gt = ray_targets(tg, ray.shape[2], ray.shape[3], H, W)
@@ -294,10 +335,21 @@ def losses(out: dict, pose_enc: torch.Tensor, tg: dict, weights: dict) -> dict:
         from raytun3r_plugin.metrics import rotation_error_deg
 
         rot_deg = rotation_error_deg(R_p[:, 1:].double(), R_g[:, 1:].double()).mean()
-        rot_gt_deg = rotation_error_deg(torch.eye(3, dtype=torch.float64).expand_as(R_g[:, 1:]), R_g[:, 1:].double()).mean()
+        rot_gt_deg = rotation_error_deg(
+            torch.eye(3, dtype=torch.float64).expand_as(R_g[:, 1:]), R_g[:, 1:].double()
+        ).mean()
     return {
-        "loss": total, "depth_si": l_si, "depth_abs": l_abs, "conf": l_conf, "ray": l_ray,
-        "rot": l_rot, "trans": l_trans, "fov": l_fov, "quat": l_quat, "rot_deg": rot_deg, "rot_gt_deg": rot_gt_deg,
+        "loss": total,
+        "depth_si": l_si,
+        "depth_abs": l_abs,
+        "conf": l_conf,
+        "ray": l_ray,
+        "rot": l_rot,
+        "trans": l_trans,
+        "fov": l_fov,
+        "quat": l_quat,
+        "rot_deg": rot_deg,
+        "rot_gt_deg": rot_gt_deg,
     }
 
 
@@ -331,7 +383,10 @@ def save_checkpoint(out: Path, model, opt, step: int, args: dict) -> None:
                 tensors[f"{names[id(p)]}::{key}"] = value.detach().clone().contiguous()
     atomic_save_safetensors(out / "optimizer.safetensors", tensors)
     hyper = [{k: v for k, v in g.items() if k != "params"} for g in opt.param_groups]
-    atomic_write_text(out / "checkpoint.json", json.dumps({"step": step, "args": args, "param_groups": hyper}, indent=1, default=list))
+    atomic_write_text(
+        out / "checkpoint.json",
+        json.dumps({"step": step, "args": args, "param_groups": hyper}, indent=1, default=list),
+    )
 
 
 def load_checkpoint(out: Path, model, opt) -> int:
@@ -384,7 +439,9 @@ def lr_at(step: int, total: int, base: float, warmup: int) -> float:
 
 def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", required=True, help="run directory (checkpoints, log.csv, cached data)")
+    ap.add_argument(
+        "--out", required=True, help="run directory (checkpoints, log.csv, cached data)"
+    )
     ap.add_argument("--steps", type=int, default=900)
     ap.add_argument("--batch", type=int, default=4, help="samples (sequences) per step")
     ap.add_argument("--views", type=int, default=2, help="views per sample")
@@ -399,17 +456,44 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--w-conf", type=float, default=0.1)
     ap.add_argument("--w-ray", type=float, default=1.0)
     ap.add_argument("--w-pose", type=float, default=1.0)
-    ap.add_argument("--w-quat", type=float, default=0.0, help="weight of the L1 loss on the raw quaternion of the pose encoding")
-    ap.add_argument("--pe-std", type=float, default=0.0, help="start the PE table as a low-frequency 2D sin-cos map of this std (0 = trunc-normal 0.02)")
-    ap.add_argument("--init", default=None, help="start from these weights (a stage-2 run); the optimizer starts fresh")
-    ap.add_argument("--fixed-batch", action="store_true", help="train on the batch of step 0 at every step: a memorisation check of the losses and targets")
+    ap.add_argument(
+        "--w-quat",
+        type=float,
+        default=0.0,
+        help="weight of the L1 loss on the raw quaternion of the pose encoding",
+    )
+    ap.add_argument(
+        "--pe-std",
+        type=float,
+        default=0.0,
+        help="start the PE table as a low-frequency 2D sin-cos map of this std (0 = trunc-normal 0.02)",
+    )
+    ap.add_argument(
+        "--init",
+        default=None,
+        help="start from these weights (a stage-2 run); the optimizer starts fresh",
+    )
+    ap.add_argument(
+        "--fixed-batch",
+        action="store_true",
+        help="train on the batch of step 0 at every step: a memorisation check of the losses and targets",
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--ckpt-every", type=int, default=50)
     ap.add_argument("--log-every", type=int, default=5)
-    ap.add_argument("--stop-after", type=int, default=None, help="stop (after checkpointing) at this step; the schedule still targets --steps")
+    ap.add_argument(
+        "--stop-after",
+        type=int,
+        default=None,
+        help="stop (after checkpointing) at this step; the schedule still targets --steps",
+    )
     ap.add_argument("--tiny", action="store_true", help="a very small network (smoke tests)")
-    ap.add_argument("--export", default=None, help="after training, write weights + kwargs JSON to this .safetensors path")
+    ap.add_argument(
+        "--export",
+        default=None,
+        help="after training, write weights + kwargs JSON to this .safetensors path",
+    )
     return ap.parse_args(argv)
 
 
@@ -423,24 +507,44 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     kwargs = dict(TINY_KWARGS if args.tiny else MODEL_KWARGS)
     kwargs["seed"] = args.seed
-    record = {k: v for k, v in vars(args).items() if k not in ("out", "stop_after", "export", "threads")}
+    record = {
+        k: v for k, v in vars(args).items() if k not in ("out", "stop_after", "export", "threads")
+    }
     if (out / "checkpoint.json").is_file():
         saved = json.loads((out / "checkpoint.json").read_text())["args"]
         if saved != record:
             raise SystemExit(f"{out} holds a run with other arguments: {saved} != {record}")
-    data = build_dataset(out / "train_data.npz", args.n_seq, args.size, args.n_frames, TRAIN_SEED_BASE)
-    model = build_tiny_network(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in kwargs.items()}).train()
+    data = build_dataset(
+        out / "train_data.npz", args.n_seq, args.size, args.n_frames, TRAIN_SEED_BASE
+    )
+    model = build_tiny_network(
+        **{k: (tuple(v) if isinstance(v, list) else v) for k, v in kwargs.items()}
+    ).train()
     if args.pe_std > 0:
         with torch.no_grad():
             table = model.backbone.pretrained.pos_embed
-            table[0, 1:] = sincos_table(int(round(math.sqrt(table.shape[1] - 1))), table.shape[2], args.pe_std)
+            table[0, 1:] = sincos_table(
+                int(round(math.sqrt(table.shape[1] - 1))), table.shape[2], args.pe_std
+            )
             table[0, :1] = 0.0
     n_params = sum(p.numel() for p in model.parameters())
-    decay = [p for n, p in model.named_parameters() if p.ndim >= 2 and "pos_embed" not in n and "token" not in n]
-    no_decay = [p for n, p in model.named_parameters() if not (p.ndim >= 2 and "pos_embed" not in n and "token" not in n)]
+    decay = [
+        p
+        for n, p in model.named_parameters()
+        if p.ndim >= 2 and "pos_embed" not in n and "token" not in n
+    ]
+    no_decay = [
+        p
+        for n, p in model.named_parameters()
+        if not (p.ndim >= 2 and "pos_embed" not in n and "token" not in n)
+    ]
     opt = torch.optim.AdamW(
-        [{"params": decay, "weight_decay": args.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
-        lr=args.lr, betas=(0.9, 0.99),
+        [
+            {"params": decay, "weight_decay": args.weight_decay},
+            {"params": no_decay, "weight_decay": 0.0},
+        ],
+        lr=args.lr,
+        betas=(0.9, 0.99),
     )
     step = 0
     if args.init and not (out / "checkpoint.json").is_file():
@@ -452,9 +556,30 @@ def main(argv=None) -> int:
         step = load_checkpoint(out, model, opt)
         log(f"resumed from step {step}")
     log(f"network: {n_params / 1e6:.3f} M parameters, kwargs {kwargs}")
-    weights = {"depth": args.w_depth, "conf": args.w_conf, "ray": args.w_ray, "pose": args.w_pose, "quat": args.w_quat}
+    weights = {
+        "depth": args.w_depth,
+        "conf": args.w_conf,
+        "ray": args.w_ray,
+        "pose": args.w_pose,
+        "quat": args.w_quat,
+    }
     log_path = out / "log.csv"
-    fields = ["step", "time_s", "lr", "loss", "depth_si", "depth_abs", "conf", "ray", "rot", "trans", "fov", "quat", "rot_deg", "rot_gt_deg"]
+    fields = [
+        "step",
+        "time_s",
+        "lr",
+        "loss",
+        "depth_si",
+        "depth_abs",
+        "conf",
+        "ray",
+        "rot",
+        "trans",
+        "fov",
+        "quat",
+        "rot_deg",
+        "rot_gt_deg",
+    ]
     if not log_path.is_file():
         with log_path.open("w", newline="") as fh:
             csv.writer(fh).writerow(fields)
@@ -468,12 +593,16 @@ def main(argv=None) -> int:
             g["lr"] = lr
         # A fixed batch must be fitted by any network that can represent its targets: if it is
         # not, the targets or the losses are wrong rather than the data too hard.
-        batch = make_batch(data, args.seed, 0 if args.fixed_batch else step, args.batch, args.views, args.max_gap)
+        batch = make_batch(
+            data, args.seed, 0 if args.fixed_batch else step, args.batch, args.views, args.max_gap
+        )
         tg = targets(batch)
         out_d, pose_enc = forward_train(model, batch["images"])
         ls = losses(out_d, pose_enc, tg, weights)
         if not torch.isfinite(ls["loss"]):
-            raise SystemExit(f"non-finite loss at step {step}: { {k: float(v) for k, v in ls.items()} }")
+            raise SystemExit(
+                f"non-finite loss at step {step}: { {k: float(v) for k, v in ls.items()} }"
+            )
         opt.zero_grad(set_to_none=True)
         ls["loss"].backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -486,7 +615,8 @@ def main(argv=None) -> int:
             row = {k: acc[k] / n_acc for k in acc}
             with log_path.open("a", newline="") as fh:
                 csv.writer(fh).writerow(
-                    [step, f"{time.time() - t0:.1f}", f"{lr:.3g}"] + [f"{row[k]:.5f}" for k in fields[3:]]
+                    [step, f"{time.time() - t0:.1f}", f"{lr:.3g}"]
+                    + [f"{row[k]:.5f}" for k in fields[3:]]
                 )
             log(
                 f"step {step}/{args.steps} loss {row['loss']:.4f} si {row['depth_si']:.4f} ray {row['ray']:.4f} "
@@ -514,9 +644,17 @@ def export(model, kwargs: dict, path: Path, training: dict) -> None:
     from raytun3r_plugin.weights import alias_keys
 
     aliases = alias_keys(model)  # tensors shared with an earlier key are stored once
-    state = {name: tensor.detach().to(torch.float16).contiguous() for name, tensor in model.eval().state_dict().items() if name not in aliases}
+    state = {
+        name: tensor.detach().to(torch.float16).contiguous()
+        for name, tensor in model.eval().state_dict().items()
+        if name not in aliases
+    }
     with atomic_path(path) as tmp:
-        save_file(state, str(tmp), metadata={"format": "raytun3r-da3-tiny", "build_kwargs": json.dumps(kwargs)})
+        save_file(
+            state,
+            str(tmp),
+            metadata={"format": "raytun3r-da3-tiny", "build_kwargs": json.dumps(kwargs)},
+        )
         os.chmod(tmp, 0o644)  # a package data file: world-readable
     side = path.with_suffix(".json")
     side.write_text(json.dumps({"build_kwargs": kwargs, "training": training}, indent=1) + "\n")

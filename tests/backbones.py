@@ -79,7 +79,9 @@ def tiny_real(kind: str, seed: int = 0) -> nn.Module:
     """A small network made of the real upstream classes, wired as upstream's ``__init__`` does."""
     state = _seeded(seed)
     try:
-        return {"vggt": _tiny_real_vggt, "pi3": _tiny_real_pi3, "pi3x": _tiny_real_pi3x}[kind]().eval()
+        return {"vggt": _tiny_real_vggt, "pi3": _tiny_real_pi3, "pi3x": _tiny_real_pi3x}[
+            kind
+        ]().eval()
     finally:
         torch.random.set_rng_state(state)
 
@@ -92,9 +94,18 @@ def _tiny_real_vggt():
 
     model = VGGT.__new__(VGGT)
     nn.Module.__init__(model)
-    model.aggregator = Aggregator(img_size=70, patch_size=14, embed_dim=384, depth=2, num_heads=6, patch_embed="dinov2_vits14_reg")
+    model.aggregator = Aggregator(
+        img_size=70,
+        patch_size=14,
+        embed_dim=384,
+        depth=2,
+        num_heads=6,
+        patch_embed="dinov2_vits14_reg",
+    )
     model.camera_head = CameraHead(dim_in=768, trunk_depth=1, num_heads=6)
-    dpt = dict(dim_in=768, features=32, out_channels=[16, 32, 64, 64], intermediate_layer_idx=[0, 1, 0, 1])
+    dpt = dict(
+        dim_in=768, features=32, out_channels=[16, 32, 64, 64], intermediate_layer_idx=[0, 1, 0, 1]
+    )
     model.point_head = DPTHead(output_dim=4, activation="inv_log", conf_activation="expp1", **dpt)
     model.depth_head = DPTHead(output_dim=2, activation="exp", conf_activation="expp1", **dpt)
     model.track_head = None
@@ -113,12 +124,28 @@ def _pi3_trunk(model, module):
     del model.encoder.mask_token
     model.patch_size = 14
     dim = model.encoder.embed_dim
-    model.rope = module.RoPE2D(freq=100.0)  # the name the upstream module imported (cuRoPE2D or RoPE2D)
+    model.rope = module.RoPE2D(
+        freq=100.0
+    )  # the name the upstream module imported (cuRoPE2D or RoPE2D)
     model.position_getter = PositionGetter()
     norm = partial(nn.LayerNorm, eps=1e-6)
     model.decoder = nn.ModuleList(
-        BlockRope(dim=dim, num_heads=6, mlp_ratio=4, qkv_bias=True, proj_bias=True, ffn_bias=True, drop_path=0.0, norm_layer=norm,
-                  act_layer=nn.GELU, ffn_layer=Mlp, init_values=0.01, qk_norm=True, attn_class=FlashAttentionRope, rope=model.rope)
+        BlockRope(
+            dim=dim,
+            num_heads=6,
+            mlp_ratio=4,
+            qkv_bias=True,
+            proj_bias=True,
+            ffn_bias=True,
+            drop_path=0.0,
+            norm_layer=norm,
+            act_layer=nn.GELU,
+            ffn_layer=Mlp,
+            init_values=0.01,
+            qk_norm=True,
+            attn_class=FlashAttentionRope,
+            rope=model.rope,
+        )
         for _ in range(2)
     )
     model.dec_embed_dim = dim
@@ -161,20 +188,40 @@ def _tiny_real_pi3x():
     dim = _pi3_trunk(model, module)
     model.depth_encoder = copy.deepcopy(model.encoder)
     del model.depth_encoder.patch_embed
-    model.depth_encoder.patch_embed = PatchEmbed(img_size=224, patch_size=14, in_chans=2, embed_dim=dim)
+    model.depth_encoder.patch_embed = PatchEmbed(
+        img_size=224, patch_size=14, in_chans=2, embed_dim=dim
+    )
     model.depth_emb = nn.Parameter(torch.zeros(1, 1, dim))
     model.ray_embed = PatchEmbed(img_size=224, patch_size=14, in_chans=2, embed_dim=dim)
-    nn.init.normal_(model.ray_embed.proj.weight, std=0.02)  # upstream zero-initialises; nonzero so it matters
-    model.pose_inject_blk = nn.ModuleList()  # pose conditioning is not exercised on the tiny real model
+    nn.init.normal_(
+        model.ray_embed.proj.weight, std=0.02
+    )  # upstream zero-initialises; nonzero so it matters
+    model.pose_inject_blk = (
+        nn.ModuleList()
+    )  # pose conditioning is not exercised on the tiny real model
     head = dict(in_dim=2 * dim, dec_embed_dim=64, dec_num_heads=4, depth=1, rope=model.rope)
-    conv = dict(num_features=4, dim_in=dim, projects=nn.Identity(), dim_proj=64, dim_upsample=[32, 32, 16], dim_times_res_block_hidden=2,
-                num_res_blocks=1, res_block_norm="group_norm", last_res_blocks=0, last_conv_channels=8, last_conv_size=1, using_uv=True)
+    conv = dict(
+        num_features=4,
+        dim_in=dim,
+        projects=nn.Identity(),
+        dim_proj=64,
+        dim_upsample=[32, 32, 16],
+        dim_times_res_block_hidden=2,
+        num_res_blocks=1,
+        res_block_norm="group_norm",
+        last_res_blocks=0,
+        last_conv_channels=8,
+        last_conv_size=1,
+        using_uv=True,
+    )
     model.point_decoder = TransformerDecoder(out_dim=64, **head)
     model.point_head = ConvHead(dim_out=[2, 1], **conv)
     model.camera_decoder = TransformerDecoder(out_dim=32, **head)
     model.camera_head = CameraHead(dim=32)
     model.metric_token = nn.Parameter(torch.randn(1, 1, 2 * dim) * 1e-6)
-    model.metric_decoder = ContextOnlyTransformerDecoder(in_dim=2 * dim, out_dim=32, dec_embed_dim=32, depth=1, dec_num_heads=2, rope=model.rope)
+    model.metric_decoder = ContextOnlyTransformerDecoder(
+        in_dim=2 * dim, out_dim=32, dec_embed_dim=32, depth=1, dec_num_heads=2, rope=model.rope
+    )
     model.metric_head = nn.Linear(32, 1)
     model.conf_decoder = TransformerDecoder(out_dim=64, **head)  # shares model.rope, as upstream
     model.conf_head = ConvHead(dim_out=[1], **conv)
@@ -207,7 +254,9 @@ def build(kind: str, seed: int = 0) -> nn.Module:
 CASES: tuple[BackboneCase, ...] = (
     BackboneCase("da3", "depth_anything_3", _build_da3, (70, 84)),
     BackboneCase("vggt", "vggt", partial(build, "vggt"), (H, W)),
-    BackboneCase("pi3", "pi3", partial(build, "pi3"), (H, W), inert=frozenset({"grid"})),  # LinearPts3d heads: no grid
+    BackboneCase(
+        "pi3", "pi3", partial(build, "pi3"), (H, W), inert=frozenset({"grid"})
+    ),  # LinearPts3d heads: no grid
     BackboneCase("pi3x", "pi3", partial(build, "pi3x"), (H, W)),
 )
 CASE = {case.family: case for case in CASES}

@@ -8,7 +8,9 @@ import torch
 def pinhole(width: int = 84, height: int = 70, focal: float = 60.0):
     from raytun3r_plugin.cameras import Pinhole
 
-    return Pinhole(width, height, {"fx": focal, "fy": focal, "cx": (width - 1) / 2, "cy": (height - 1) / 2})
+    return Pinhole(
+        width, height, {"fx": focal, "fy": focal, "cx": (width - 1) / 2, "cy": (height - 1) / 2}
+    )
 
 
 def fisheye(width: int = 84, height: int = 70, fov_deg: float = 190.0, k1: float = 0.01):
@@ -23,7 +25,11 @@ def outputs(model, images):
 
     with torch.no_grad():
         prediction = predict(model, images)
-    return {"depth": prediction.depth, "conf": prediction.confidence, "pose": prediction.cam_from_world}
+    return {
+        "depth": prediction.depth,
+        "conf": prediction.confidence,
+        "pose": prediction.cam_from_world,
+    }
 
 
 def max_relative_difference(a: dict, b: dict) -> float:

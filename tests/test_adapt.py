@@ -63,7 +63,16 @@ def _quiet_da3():
 
 def config(cache_dir, **changes) -> AdaptConfig:
     # The collapse guard adds forwards of its own; the tests of it switch it on.
-    base = dict(steps=3, input_size=84, n_windows=3, checkpoint_every=2, cache_dir=str(cache_dir), matcher_options={"border_px": 2}, seed=0, guard=False)
+    base = dict(
+        steps=3,
+        input_size=84,
+        n_windows=3,
+        checkpoint_every=2,
+        cache_dir=str(cache_dir),
+        matcher_options={"border_px": 2},
+        seed=0,
+        guard=False,
+    )
     base.update(changes)
     return AdaptConfig(**base)
 
@@ -92,21 +101,46 @@ def test_input_layout_resizes_or_crops_consistently():
     # A scene point lands on the same input pixel through the native camera + to_input_pixels.
     from raytun3r_plugin.adaptation.losses import to_input_pixels
 
-    points = torch.tensor([[0.3, -0.2, 1.0], [-1.0, 0.4, 0.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    points = torch.tensor(
+        [[0.3, -0.2, 1.0], [-1.0, 0.4, 0.5], [0.0, 0.0, 1.0]], dtype=torch.float64
+    )
     native_uv, _ = wide.project(points)
     input_uv, _ = layout.camera.project(points)
-    mapped = to_input_pixels(native_uv, layout.native_size, (layout.width, layout.height), layout.offset)
+    mapped = to_input_pixels(
+        native_uv, layout.native_size, (layout.width, layout.height), layout.offset
+    )
     torch.testing.assert_close(mapped, input_uv, atol=1e-6, rtol=0)
 
 
 def test_config_validates_and_round_trips():
     cfg = AdaptConfig()
-    assert (cfg.steps, cfg.lr, cfg.clip, cfg.input_size, cfg.n_windows, cfg.pose_source) == (300, 3e-3, 1.0, 504, 30, "model")
+    assert (cfg.steps, cfg.lr, cfg.clip, cfg.input_size, cfg.n_windows, cfg.pose_source) == (
+        300,
+        3e-3,
+        1.0,
+        504,
+        30,
+        "model",
+    )
     assert cfg.weights.as_dict() == SELF_SUPERVISED_WEIGHTS
-    assert (cfg.scale, cfg.robust_px, cfg.pe_regulariser, cfg.guard) == ("pixel", 1.0, "relative", True)
+    assert (cfg.scale, cfg.robust_px, cfg.pe_regulariser, cfg.guard) == (
+        "pixel",
+        1.0,
+        "relative",
+        True,
+    )
     supervised = AdaptConfig.supervised(steps=5)
-    assert supervised.steps == 5 and supervised.lr == 3e-2 and supervised.weights.as_dict() == SUPERVISED_WEIGHTS
-    for field, value in (("scale", "median"), ("robust_px", 0.0), ("pe_regulariser", "none"), ("guard_every", 0)):
+    assert (
+        supervised.steps == 5
+        and supervised.lr == 3e-2
+        and supervised.weights.as_dict() == SUPERVISED_WEIGHTS
+    )
+    for field, value in (
+        ("scale", "median"),
+        ("robust_px", 0.0),
+        ("pe_regulariser", "none"),
+        ("guard_every", 0),
+    ):
         with pytest.raises(InputError, match=field):
             AdaptConfig(**{field: value})
     again = AdaptConfig(**json.loads(json.dumps(cfg.to_dict())))
@@ -132,11 +166,24 @@ def test_adapt_trains_only_the_adapter_and_restores_the_model(camera, frames, ca
     seen = []
 
     def spy(module, args):
-        seen.append((any(p.requires_grad for p in module.parameters()), any(m.training for m in module.modules()), handle_of(module) is not None))
+        seen.append(
+            (
+                any(p.requires_grad for p in module.parameters()),
+                any(m.training for m in module.modules()),
+                handle_of(module) is not None,
+            )
+        )
 
     hook = model.register_forward_pre_hook(spy)
     try:
-        adapter = adapt(model, camera, frames, config(cache_dir), out_path=tmp_path / "room.safetensors", progress=False)
+        adapter = adapt(
+            model,
+            camera,
+            frames,
+            config(cache_dir),
+            out_path=tmp_path / "room.safetensors",
+            progress=False,
+        )
     finally:
         hook.remove()
 
@@ -151,7 +198,20 @@ def test_adapt_trains_only_the_adapter_and_restores_the_model(camera, frames, ca
     # The adapter moved, and every table received gradient.
     assert all(float(t.abs().max()) > 0 for t in tables(adapter).values())
     info = adapter.training_info
-    assert info["steps"] == 3 and not info["interrupted"] and info["input"] == {"width": 84, "height": 70, "crop": None, **RECORDED_RULE, "long_side": 84, "patch": 14, "source": [84, 70]}
+    assert (
+        info["steps"] == 3
+        and not info["interrupted"]
+        and info["input"]
+        == {
+            "width": 84,
+            "height": 70,
+            "crop": None,
+            **RECORDED_RULE,
+            "long_side": 84,
+            "patch": 14,
+            "source": [84, 70],
+        }
+    )
     assert set(info["final_losses"]) == {"loss", *TERMS}
     assert info["config"]["steps"] == 3 and len(info["segment"]["windows"]) == 3
 
@@ -190,7 +250,9 @@ def test_adapt_is_deterministic_and_resumes_exactly(camera, frames, cache_dir, t
     from raytun3r_plugin.errors import AdapterError
 
     with pytest.raises(AdapterError, match="another run"):
-        adapt(model, camera, frames, config(cache_dir, steps=5, lr=2e-3), out_path=out, progress=False)
+        adapt(
+            model, camera, frames, config(cache_dir, steps=5, lr=2e-3), out_path=out, progress=False
+        )
 
 
 def test_ctrl_c_saves_and_returns(camera, frames, cache_dir, tmp_path):
@@ -205,7 +267,9 @@ def test_ctrl_c_saves_and_returns(camera, frames, cache_dir, tmp_path):
     hook = model.register_forward_pre_hook(interrupt)
     out = tmp_path / "stopped.safetensors"
     try:
-        adapter = adapt(model, camera, frames, config(cache_dir, steps=3), out_path=out, progress=False)
+        adapter = adapt(
+            model, camera, frames, config(cache_dir, steps=3), out_path=out, progress=False
+        )
     finally:
         hook.remove()
     assert adapter.training_info["interrupted"] and adapter.training_info["steps"] == 1
@@ -214,13 +278,17 @@ def test_ctrl_c_saves_and_returns(camera, frames, cache_dir, tmp_path):
     assert load_checkpoint(artifact_paths(out)["checkpoint"])[1]["step"] == "1"
     assert len(read_loss_log(out)) == 1
     # Running again continues from the saved step.
-    finished = adapt(model, camera, frames, config(cache_dir, steps=2), out_path=out, progress=False)
+    finished = adapt(
+        model, camera, frames, config(cache_dir, steps=2), out_path=out, progress=False
+    )
     assert finished.training_info["resumed_from"] == 1 and not finished.training_info["interrupted"]
 
 
 def test_pose_from_targets_mode(camera, frames, cache_dir):
     model = build_tiny_network()
-    adapter = adapt(model, camera, frames, config(cache_dir, steps=2, pose_source="targets"), progress=False)
+    adapter = adapt(
+        model, camera, frames, config(cache_dir, steps=2, pose_source="targets"), progress=False
+    )
     final = adapter.training_info["final_losses"]
     assert "pose" not in final and math.isfinite(final["reproj"]) and final["reproj"] > 0
     assert all(float(t.abs().max()) > 0 for t in tables(adapter).values())
@@ -274,7 +342,9 @@ def _gauge_free(adapter: Adapter) -> torch.Tensor:
     """
     radial, angular = adapter.pe["radial"].detach(), adapter.pe["angular"].detach()
     rho = torch.linspace(0, 1, radial.shape[0])[:, None]
-    null = torch.cat((-rho.expand_as(radial), torch.ones_like(angular)), dim=0)  # (n_r + n_theta, C)
+    null = torch.cat(
+        (-rho.expand_as(radial), torch.ones_like(angular)), dim=0
+    )  # (n_r + n_theta, C)
     stacked = torch.cat((radial, angular), dim=0)
     coefficient = (stacked * null).sum(0) / (null * null).sum(0)
     return (stacked - coefficient * null).flatten()
@@ -316,15 +386,21 @@ def test_gradients_reach_every_table_through_the_patched_hooks(camera):
     with apply(model, camera, student):
         for _ in range(120):
             features = _block_features(model, images, blocks)
-            loss = sum(((f - t) ** 2).mean() / s for f, t, s in zip(features, targets, scales, strict=True))
+            loss = sum(
+                ((f - t) ** 2).mean() / s for f, t, s in zip(features, targets, scales, strict=True)
+            )
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
     assert all(p.grad is None for p in model.parameters())
     pe_corr = _pearson(_gauge_free(student), _gauge_free(teacher))
     rope_corr = _pearson(student.rope["radial"].detach(), teacher.rope["radial"].detach())
-    assert pe_corr >= 0.9, f"PE tables: Pearson {pe_corr:.3f} (final loss {float(loss.detach()):.3g})"
-    assert rope_corr >= 0.9, f"RoPE table: Pearson {rope_corr:.3f} (final loss {float(loss.detach()):.3g})"
+    assert pe_corr >= 0.9, (
+        f"PE tables: Pearson {pe_corr:.3f} (final loss {float(loss.detach()):.3g})"
+    )
+    assert rope_corr >= 0.9, (
+        f"RoPE table: Pearson {rope_corr:.3f} (final loss {float(loss.detach()):.3g})"
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -345,15 +421,25 @@ def test_mask_keeps_matches_and_losses_off_the_excluded_pixels(camera, frames, c
     mask = body_mask(camera)
     plain = prepare_problem(camera, frames, config(cache_dir))
     masked = prepare_problem(camera, frames, config(cache_dir), mask=mask)
-    cut = 0.7 * camera.height * masked.layout.height / camera.height - 0.5  # first excluded row, input px
-    plain_rows = torch.cat([torch.cat((p.uv_i[:, 1], p.uv_j[:, 1])) for _, pairs in plain.windows for p in pairs])
-    masked_rows = torch.cat([torch.cat((p.uv_i[:, 1], p.uv_j[:, 1])) for _, pairs in masked.windows for p in pairs])
+    cut = (
+        0.7 * camera.height * masked.layout.height / camera.height - 0.5
+    )  # first excluded row, input px
+    plain_rows = torch.cat(
+        [torch.cat((p.uv_i[:, 1], p.uv_j[:, 1])) for _, pairs in plain.windows for p in pairs]
+    )
+    masked_rows = torch.cat(
+        [torch.cat((p.uv_i[:, 1], p.uv_j[:, 1])) for _, pairs in masked.windows for p in pairs]
+    )
     # Without the mask the body region is matched; with it, no match lands there.
     assert bool((plain_rows > cut + 1).any()) and not bool((masked_rows > cut + 1).any())
     assert masked.adaptation.cache_key != plain.adaptation.cache_key
     assert not bool(masked.valid[-1].any()) and bool(plain.valid[plain.valid.shape[0] // 2].any())
     assert torch.equal(masked.valid, masked.valid & plain.valid)
-    assert masked.mask is not None and tuple(masked.mask.shape) == (camera.height, camera.width) and plain.mask is None
+    assert (
+        masked.mask is not None
+        and tuple(masked.mask.shape) == (camera.height, camera.width)
+        and plain.mask is None
+    )
 
 
 def test_adapt_patches_with_the_mask_and_records_it(camera, frames, cache_dir, monkeypatch):
@@ -367,25 +453,50 @@ def test_adapt_patches_with_the_mask_and_records_it(camera, frames, cache_dir, m
 
     monkeypatch.setattr(train, "apply", recording_apply)
     mask = body_mask(camera)
-    adapter = adapt(build_tiny_network(), camera, frames, config(cache_dir, steps=2), mask=mask.numpy(), progress=False)
+    adapter = adapt(
+        build_tiny_network(),
+        camera,
+        frames,
+        config(cache_dir, steps=2),
+        mask=mask.numpy(),
+        progress=False,
+    )
     assert len(seen) == 1 and torch.equal(seen[0], mask & camera.valid_mask().bool())
     recorded = adapter.training_info["segment"]["mask"]
-    assert recorded["valid_fraction"] == pytest.approx(float((mask & camera.valid_mask().bool()).float().mean()), abs=1e-4)
+    assert recorded["valid_fraction"] == pytest.approx(
+        float((mask & camera.valid_mask().bool()).float().mean()), abs=1e-4
+    )
     assert len(recorded["sha256"]) == 64
 
 
 @pytest.mark.parametrize(
     ("make_mask", "message"),
     [
-        (lambda camera: torch.ones(camera.height + 1, camera.width, dtype=torch.bool), "like the frames, got shape"),
-        (lambda camera: torch.zeros(camera.height, camera.width, dtype=torch.bool), "no pixel inside"),
+        (
+            lambda camera: torch.ones(camera.height + 1, camera.width, dtype=torch.bool),
+            "like the frames, got shape",
+        ),
+        (
+            lambda camera: torch.zeros(camera.height, camera.width, dtype=torch.bool),
+            "no pixel inside",
+        ),
     ],
 )
-def test_bad_mask_is_refused_before_anything_is_written(camera, frames, cache_dir, tmp_path, make_mask, message):
+def test_bad_mask_is_refused_before_anything_is_written(
+    camera, frames, cache_dir, tmp_path, make_mask, message
+):
     model = build_tiny_network()
     before = {name: value.clone() for name, value in model.state_dict().items()}
     out = tmp_path / "run" / "adapter.safetensors"
     with pytest.raises(InputError, match=message):
-        adapt(model, camera, frames, config(cache_dir), out_path=out, mask=make_mask(camera), progress=False)
+        adapt(
+            model,
+            camera,
+            frames,
+            config(cache_dir),
+            out_path=out,
+            mask=make_mask(camera),
+            progress=False,
+        )
     assert not out.parent.exists() and handle_of(model) is None
     assert all(torch.equal(before[name], value) for name, value in model.state_dict().items())

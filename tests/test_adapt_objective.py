@@ -53,7 +53,16 @@ def sequence(fisheye):
 
 
 def small(cache_dir, **changes) -> AdaptConfig:
-    base = dict(steps=4, input_size=84, n_windows=3, checkpoint_every=0, cache_dir=str(cache_dir), matcher_options={"border_px": 2}, seed=0, pose_source="targets")
+    base = dict(
+        steps=4,
+        input_size=84,
+        n_windows=3,
+        checkpoint_every=0,
+        cache_dir=str(cache_dir),
+        matcher_options={"border_px": 2},
+        seed=0,
+        pose_source="targets",
+    )
     return AdaptConfig(**{**base, **changes})
 
 
@@ -64,14 +73,30 @@ def small(cache_dir, **changes) -> AdaptConfig:
 
 def _pair(scale: float, outlier: bool):
     """Points near and far seen by a 190-degree fisheye, moved by a known pose."""
-    camera = KannalaBrandt4(112, 112, [33.0, 33.0, 55.5, 55.5, 0.0, 0.0, 0.0, 0.0], max_fov_deg=190.0)
+    camera = KannalaBrandt4(
+        112, 112, [33.0, 33.0, 55.5, 55.5, 0.0, 0.0, 0.0, 0.0], max_fov_deg=190.0
+    )
     generator = torch.Generator().manual_seed(0)
-    rays = torch.nn.functional.normalize(torch.randn(400, 3, generator=generator, dtype=torch.float64) * torch.tensor([1.0, 1.0, 0.5], dtype=torch.float64) + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), dim=-1)
-    depth = torch.where(torch.arange(400) % 4 == 0, torch.full((400,), 40.0, dtype=torch.float64), 1.0 + 3.0 * torch.rand(400, generator=generator, dtype=torch.float64))
+    rays = torch.nn.functional.normalize(
+        torch.randn(400, 3, generator=generator, dtype=torch.float64)
+        * torch.tensor([1.0, 1.0, 0.5], dtype=torch.float64)
+        + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64),
+        dim=-1,
+    )
+    depth = torch.where(
+        torch.arange(400) % 4 == 0,
+        torch.full((400,), 40.0, dtype=torch.float64),
+        1.0 + 3.0 * torch.rand(400, generator=generator, dtype=torch.float64),
+    )
     points = rays * depth[:, None]
     angle = math.radians(3.0)
-    rotation = torch.tensor([[math.cos(angle), 0, math.sin(angle)], [0, 1, 0], [-math.sin(angle), 0, math.cos(angle)]], dtype=torch.float64)
-    direction = torch.nn.functional.normalize(torch.tensor([0.3, 0.1, 1.0], dtype=torch.float64), dim=0)
+    rotation = torch.tensor(
+        [[math.cos(angle), 0, math.sin(angle)], [0, 1, 0], [-math.sin(angle), 0, math.cos(angle)]],
+        dtype=torch.float64,
+    )
+    direction = torch.nn.functional.normalize(
+        torch.tensor([0.3, 0.1, 1.0], dtype=torch.float64), dim=0
+    )
     uv_j, _ = camera.project(points @ rotation.T + scale * direction)
     if outlier:  # far points matched with zero flow, as DIS does past its reach
         uv_i, _ = camera.project(points)
@@ -82,7 +107,9 @@ def _pair(scale: float, outlier: bool):
 
 def test_pixel_optimal_scale_recovers_the_translation():
     camera, points, uv_j, rotation, direction = _pair(0.5, outlier=False)
-    assert float(pixel_optimal_scale(points, uv_j, rotation, direction, camera)) == pytest.approx(0.5, rel=0.02)
+    assert float(pixel_optimal_scale(points, uv_j, rotation, direction, camera)) == pytest.approx(
+        0.5, rel=0.02
+    )
 
 
 def test_pixel_optimal_scale_resists_wrong_far_matches_that_move_the_least_squares_scale():
@@ -109,10 +136,14 @@ def test_robust_error_is_l1_for_small_errors_and_logarithmic_for_large():
 
 def test_silog_ignores_a_global_scale_and_missing_samples():
     target = torch.tensor([1.0, 2.0, 4.0, 0.0, float("nan")])
-    assert float(silog_loss(3.0 * torch.tensor([1.0, 2.0, 4.0, 5.0, 5.0]), target)) == pytest.approx(0.0, abs=1e-12)
+    assert float(
+        silog_loss(3.0 * torch.tensor([1.0, 2.0, 4.0, 5.0, 5.0]), target)
+    ) == pytest.approx(0.0, abs=1e-12)
     worse = torch.tensor([1.0, 4.0, 2.0, 5.0, 5.0])
     assert float(silog_loss(worse, target)) > 0.05
-    assert float(silog_loss(2.0 * worse, target)) == pytest.approx(float(silog_loss(worse, target)), rel=1e-5)
+    assert float(silog_loss(2.0 * worse, target)) == pytest.approx(
+        float(silog_loss(worse, target)), rel=1e-5
+    )
 
 
 def test_pe_energy_leaves_out_the_class_token_and_falls_back_to_one():
@@ -139,8 +170,23 @@ def test_depth_health_separates_a_rescaled_depth_from_a_scrambled_one():
 def test_supervised_fit_lowers_the_depth_loss_and_records_its_supervision(sequence, tmp_path):
     model = build_tiny_network()
     depth = sequence.depth.copy()
-    config = AdaptConfig.supervised(steps=8, input_size=84, n_windows=3, checkpoint_every=0, cache_dir=str(tmp_path), matcher_options={"border_px": 2})
-    adapter = adapt(model, sequence.camera, sequence.images, config, depth=depth, out_path=tmp_path / "sup.safetensors", progress=False)
+    config = AdaptConfig.supervised(
+        steps=8,
+        input_size=84,
+        n_windows=3,
+        checkpoint_every=0,
+        cache_dir=str(tmp_path),
+        matcher_options={"border_px": 2},
+    )
+    adapter = adapt(
+        model,
+        sequence.camera,
+        sequence.images,
+        config,
+        depth=depth,
+        out_path=tmp_path / "sup.safetensors",
+        progress=False,
+    )
     info = Adapter.load(tmp_path / "sup.safetensors").training_info
     assert info["supervision"]["kind"] == "depth" and info["supervision"]["dense"]
     assert info["supervision"]["coverage"] > 0.9
@@ -156,20 +202,44 @@ def test_sparse_depth_is_used_where_it_exists(sequence, tmp_path):
     model = build_tiny_network()
     rng = np.random.default_rng(0)
     sparse = np.where(rng.random(sequence.depth.shape) < 0.05, sequence.depth, 0.0)  # LiDAR-like
-    config = AdaptConfig.supervised(steps=2, input_size=84, n_windows=3, checkpoint_every=0, cache_dir=str(tmp_path), matcher_options={"border_px": 2})
+    config = AdaptConfig.supervised(
+        steps=2,
+        input_size=84,
+        n_windows=3,
+        checkpoint_every=0,
+        cache_dir=str(tmp_path),
+        matcher_options={"border_px": 2},
+    )
     adapter = adapt(model, sequence.camera, sequence.images, config, depth=sparse, progress=False)
     supervision = adapter.training_info["supervision"]
     assert 0.02 < supervision["coverage"] < 0.08 and not supervision["dense"]
     with pytest.raises(InputError, match="depth must be"):
         adapt(model, sequence.camera, sequence.images, config, depth=sparse[:, :10], progress=False)
     with pytest.raises(InputError, match="no positive"):
-        adapt(model, sequence.camera, sequence.images, config, depth=np.zeros_like(sparse), progress=False)
+        adapt(
+            model,
+            sequence.camera,
+            sequence.images,
+            config,
+            depth=np.zeros_like(sparse),
+            progress=False,
+        )
 
 
-def test_collapse_guard_restores_the_last_healthy_tables_and_says_so(sequence, tmp_path, monkeypatch):
+def test_collapse_guard_restores_the_last_healthy_tables_and_says_so(
+    sequence, tmp_path, monkeypatch
+):
     model = build_tiny_network()
-    monkeypatch.setattr(train, "GUARD_MIN_CORRELATION", 1.01)  # no fit can pass: the guard must trip
-    adapter = adapt(model, sequence.camera, sequence.images, small(tmp_path, steps=6, guard_every=3, lr=0.05), progress=False)
+    monkeypatch.setattr(
+        train, "GUARD_MIN_CORRELATION", 1.01
+    )  # no fit can pass: the guard must trip
+    adapter = adapt(
+        model,
+        sequence.camera,
+        sequence.images,
+        small(tmp_path, steps=6, guard_every=3, lr=0.05),
+        progress=False,
+    )
     guard = adapter.training_info["guard"]
     assert guard["tripped"]["step"] == 3 and guard["tripped"]["restored_step"] == 0
     assert adapter.training_info["steps"] == 3
@@ -180,7 +250,14 @@ def test_collapse_guard_restores_the_last_healthy_tables_and_says_so(sequence, t
 def test_healthy_fit_passes_the_guard_and_writes_csv_and_curve(sequence, tmp_path):
     model = build_tiny_network()
     out = tmp_path / "fit.safetensors"
-    adapter = adapt(model, sequence.camera, sequence.images, small(tmp_path, steps=4, guard_every=2, lr=0.01), out_path=out, progress=False)
+    adapter = adapt(
+        model,
+        sequence.camera,
+        sequence.images,
+        small(tmp_path, steps=4, guard_every=2, lr=0.01),
+        out_path=out,
+        progress=False,
+    )
     assert adapter.training_info["guard"]["tripped"] is None
     assert [c["step"] for c in adapter.training_info["guard"]["checks"]] == [2, 4]
     assert adapter.training_info["verdict"]["status"] in ("ok", "did nothing")
@@ -195,7 +272,9 @@ def test_healthy_fit_passes_the_guard_and_writes_csv_and_curve(sequence, tmp_pat
 
 def test_a_fit_that_moves_nothing_is_called_so(sequence, tmp_path):
     model = build_tiny_network()
-    adapter = adapt(model, sequence.camera, sequence.images, small(tmp_path, steps=1, lr=1e-9), progress=False)
+    adapter = adapt(
+        model, sequence.camera, sequence.images, small(tmp_path, steps=1, lr=1e-9), progress=False
+    )
     assert adapter.training_info["verdict"]["status"] == "did nothing"
     assert "DID NOTHING" in adapter.training_info["verdict"]["summary"]
 
@@ -218,14 +297,30 @@ def test_objective_scores_the_supervised_solution_below_the_zero_adapter(tmp_pat
     camera = make_camera(CAMERAS[1], 112)
     seq = synthetic.render_sequence("indoor", camera, n_frames=24, seed=80_010)
     depth = np.where(seq.meta["per_frame"]["sky"], 0.0, seq.depth)
-    supervised = adapt(model, camera, seq.images, AdaptConfig.supervised(steps=60, input_size=112, checkpoint_every=0, pose_source="targets", cache_dir=str(tmp_path)), depth=depth, progress=False)
+    supervised = adapt(
+        model,
+        camera,
+        seq.images,
+        AdaptConfig.supervised(
+            steps=60,
+            input_size=112,
+            checkpoint_every=0,
+            pose_source="targets",
+            cache_dir=str(tmp_path),
+        ),
+        depth=depth,
+        progress=False,
+    )
     config = adapt_config(112, 300, cache_dir=str(tmp_path))
     problem = prepare_problem(camera, seq.images, config)
     problem.pe_scale = pe_energy(model.backbone.pretrained.pos_embed)
     zero = objective_value(model, Adapter.for_model(model), problem, config)
     fitted = objective_value(model, supervised, problem, config)
     # The data terms rank the supervised solution first.
-    assert fitted["reproj"] + config.weights.smooth * fitted["smooth"] < zero["reproj"] + config.weights.smooth * zero["smooth"]
+    assert (
+        fitted["reproj"] + config.weights.smooth * fitted["smooth"]
+        < zero["reproj"] + config.weights.smooth * zero["smooth"]
+    )
     # With the regularisers the objective still descends from zero towards it: a quarter of the
     # unregularised supervised correction (a sixteenth of its L2/TV price) scores below the zero
     # adapter. The full one is rough (its TV alone is 2 in relative units) and is priced higher.

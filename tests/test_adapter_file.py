@@ -47,8 +47,19 @@ def test_file_holds_exactly_the_documented_tensors_and_metadata(saved):
     assert names == {"pe.radial", "pe.angular", "rope.radial"}
     assert metadata["format"] == "raytun3r-adapter" and metadata["format_version"] == "1"
     assert set(metadata) == {
-        "format", "format_version", "backbone", "embed_dim", "patch_size", "n_r", "n_theta", "n_r_rope",
-        "camera", "components", "pe_fingerprint", "raytun3r_version", "training",
+        "format",
+        "format_version",
+        "backbone",
+        "embed_dim",
+        "patch_size",
+        "n_r",
+        "n_theta",
+        "n_r_rope",
+        "camera",
+        "components",
+        "pe_fingerprint",
+        "raytun3r_version",
+        "training",
     }
     assert json.loads(metadata["camera"])["model"] == "kb4"
     assert set(json.loads(metadata["components"])) == set(COMPONENTS)
@@ -119,7 +130,17 @@ def test_bad_metadata_is_refused_with_a_clear_message(saved, change, message):
         (lambda t: {k: v for k, v in t.items() if k != "rope.radial"}, "do not match the expected"),
         (lambda t: t | {"lora.A": torch.zeros(2)}, "do not match the expected"),
         (lambda t: t | {"pe.angular": t["pe.angular"].double()}, "dtype torch.float64"),
-        (lambda t: t | {"pe.radial": t["pe.radial"].masked_fill(torch.eye(20, 64, dtype=torch.bool), float("nan"))}, "non-finite"),
+        (
+            lambda t: (
+                t
+                | {
+                    "pe.radial": t["pe.radial"].masked_fill(
+                        torch.eye(20, 64, dtype=torch.bool), float("nan")
+                    )
+                }
+            ),
+            "non-finite",
+        ),
     ],
 )
 def test_bad_tensors_are_refused(saved, edit, message):

@@ -100,12 +100,20 @@ def _cameras(case):
 
 def _rope_instances(net) -> list[nn.Module]:
     spec, _ = spec_for(net)
-    return [module for module in net.modules() if set(registry._class_names(module)) & set(spec.rope_classes)]
+    return [
+        module
+        for module in net.modules()
+        if set(registry._class_names(module)) & set(spec.rope_classes)
+    ]
 
 
 def _deep_snapshot(net) -> dict:
     """Every instance attribute of every module, by identity (``helpers.snapshot`` has the names)."""
-    return {(name, key): value for name, module in net.named_modules() for key, value in vars(module).items()}
+    return {
+        (name, key): value
+        for name, module in net.named_modules()
+        for key, value in vars(module).items()
+    }
 
 
 def _assert_same_objects(net, before: dict) -> None:
@@ -145,27 +153,48 @@ def test_every_registered_backbone_has_a_case():
     registered = set(registry.specs())
     rows = [case.family for case in CASES]
     assert len(rows) == len(set(rows)), f"duplicate rows: {rows}"
-    assert not registered - set(rows), f"registered backbones without a row in tests/backbones.CASES: {sorted(registered - set(rows))}"
-    assert not set(rows) - registered, f"rows for backbones that are not registered: {sorted(set(rows) - registered)}"
+    assert not registered - set(rows), (
+        f"registered backbones without a row in tests/backbones.CASES: {sorted(registered - set(rows))}"
+    )
+    assert not set(rows) - registered, (
+        f"rows for backbones that are not registered: {sorted(set(rows) - registered)}"
+    )
 
 
 def test_register_refuses_duplicates_and_inconsistent_specs(monkeypatch):
     monkeypatch.setattr(registry, "_SPECS", dict(registry.specs()))  # register into a copy
     da3 = registry.specs()["da3"]
     assert registry.register(da3) is da3  # the same object again: a no-op
-    with pytest.raises(DuplicateBackboneError, match="family 'da3' is already registered.*overwrite=True") as error:
+    with pytest.raises(
+        DuplicateBackboneError, match="family 'da3' is already registered.*overwrite=True"
+    ) as error:
         registry.register(dataclasses.replace(da3))
     assert isinstance(error.value, Raytun3rError)
-    with pytest.raises(DuplicateBackboneError, match=r"load_backbone name\(s\) \['da3-small'\] are already provided by 'da3'"):
-        registry.register(dataclasses.replace(da3, family="da3-twin", builders={"da3-small": da3.builders["da3-small"]}))
+    with pytest.raises(
+        DuplicateBackboneError,
+        match=r"load_backbone name\(s\) \['da3-small'\] are already provided by 'da3'",
+    ):
+        registry.register(
+            dataclasses.replace(
+                da3, family="da3-twin", builders={"da3-small": da3.builders["da3-small"]}
+            )
+        )
     replacement = dataclasses.replace(da3, builders={})
-    assert registry.register(replacement, overwrite=True) is replacement and registry._SPECS["da3"] is replacement
+    assert (
+        registry.register(replacement, overwrite=True) is replacement
+        and registry._SPECS["da3"] is replacement
+    )
 
     twin = dataclasses.replace(da3, family="da3-twin", builders={})
     typo = dataclasses.replace(twin.targets[0], hook="positional")
-    with pytest.raises(BackboneRegistrationError, match="hook 'positional'; expected one of pe, rope, patch_embed, grid"):
+    with pytest.raises(
+        BackboneRegistrationError,
+        match="hook 'positional'; expected one of pe, rope, patch_embed, grid",
+    ):
         registry.register(dataclasses.replace(twin, targets=(typo, *twin.targets[1:])))
-    with pytest.raises(BackboneRegistrationError, match="must declare rope_classes and rope_base_attribute"):
+    with pytest.raises(
+        BackboneRegistrationError, match="must declare rope_classes and rope_base_attribute"
+    ):
         registry.register(dataclasses.replace(twin, rope_base_attribute=None))
     with pytest.raises(BackboneRegistrationError, match="two PatchTargets"):
         registry.register(dataclasses.replace(twin, targets=(*twin.targets, twin.targets[0])))
@@ -187,12 +216,19 @@ def test_recognised_and_every_declared_owner_resolves(case, net):
     """The tiny model carries every owner of every target, so every hook is exercised."""
     spec, root = spec_for(net)
     assert spec.family == case.family and root is net
-    resolved = {(target.name, path) for target, path, _ in resolve_targets(spec, root, set(HOOK_KINDS))}
+    resolved = {
+        (target.name, path) for target, path, _ in resolve_targets(spec, root, set(HOOK_KINDS))
+    }
     declared = {(target.name, path) for target in spec.targets for path in target.owners}
     assert resolved == declared
     info = spec.describe(root)
-    assert info.patch_size > 0 and case.size[0] % info.patch_size == 0 == case.size[1] % info.patch_size
-    assert info.has_rope == ("rope" not in case.inert) and info.has_grid == ("grid" not in case.inert)
+    assert (
+        info.patch_size > 0
+        and case.size[0] % info.patch_size == 0 == case.size[1] % info.patch_size
+    )
+    assert info.has_rope == ("rope" not in case.inert) and info.has_grid == (
+        "grid" not in case.inert
+    )
     assert _rope_instances(net)
 
 
@@ -236,7 +272,9 @@ def test_fisheye_and_adapter_change_outputs(case, net, images, reference):
 def test_each_component_has_an_effect(case, net, images, reference, component):
     _, camera = _cameras(case)
     adapter = randomise_(rt.Adapter.for_model(net, camera))
-    with rt.apply(net, camera, adapter, components={c: c == component for c in COMPONENTS}) as handle:
+    with rt.apply(
+        net, camera, adapter, components={c: c == component for c in COMPONENTS}
+    ) as handle:
         assert [c for c, on in handle.components.items() if on] == [component]
         one = outputs(net, images)
     difference = max_relative_difference(reference, one)
@@ -253,7 +291,11 @@ def test_gradients_reach_only_adapter_tables(case, net, images):
     with rt.apply(net, camera, adapter):
         prediction = rt.predict(net, images)
         (prediction.depth.mean() + prediction.cam_from_world[..., :3, 3].square().sum()).backward()
-    assert {name for name, _ in adapter.named_parameters()} == {"pe.radial", "pe.angular", "rope.radial"}
+    assert {name for name, _ in adapter.named_parameters()} == {
+        "pe.radial",
+        "pe.angular",
+        "rope.radial",
+    }
     for name, parameter in adapter.named_parameters():
         assert parameter.grad is not None and float(parameter.grad.abs().sum()) > 0, name
     assert all(p.grad is None for p in net.parameters())
@@ -298,7 +340,9 @@ def test_disabled_gives_upstream_behaviour(case, net, images, reference):
     assert max_relative_difference(patched, again) == 0.0
 
 
-def test_failure_at_the_last_install_rolls_back(case, net, images, reference, monkeypatch, _upstream_globals):
+def test_failure_at_the_last_install_rolls_back(
+    case, net, images, reference, monkeypatch, _upstream_globals
+):
     """Invariant 3: a failure while installing the last replacement leaves the model untouched."""
     spec, root = spec_for(net)
     count = len(resolve_targets(spec, root, set(HOOK_KINDS)))
@@ -328,14 +372,19 @@ def test_changed_upstream_signature_is_refused_before_any_change(case, net, monk
     spec, root = spec_for(net)
     snap = snapshot(net)
     for target in spec.targets:
-        owner = next(owner for path in target.owners if (owner := resolve_path(root, path)) is not None)
+        owner = next(
+            owner for path in target.owners if (owner := resolve_path(root, path)) is not None
+        )
         with monkeypatch.context() as patch:
             patch.setattr(type(owner), target.attribute, _renamed)
             with pytest.raises(UnsupportedUpstreamError) as error:
                 rt.apply(net, _cameras(case)[1])
         message = str(error.value)
         assert f"patch {target.name!r}" in message, message
-        assert f"expected signature {target.attribute}({', '.join(target.signature)}), found {target.attribute}(moved_arguments)" in message
+        assert (
+            f"expected signature {target.attribute}({', '.join(target.signature)}), found {target.attribute}(moved_arguments)"
+            in message
+        )
         assert f"checked against {spec.upstream}" in message
         assert_same_snapshot(net, snap)
         assert rt.handle_of(net) is None
@@ -348,7 +397,10 @@ def test_moved_upstream_submodule_is_refused_before_any_change(case, net, monkey
         parent, _, name = path.rpartition(".")
         with monkeypatch.context() as patch:
             patch.setattr(resolve_path(root, parent) if parent else root, name, nn.Identity())
-            with pytest.raises(UnsupportedUpstreamError, match=rf"expected .* at '{re.escape(path)}', found torch\.nn\.modules\.linear\.Identity"):
+            with pytest.raises(
+                UnsupportedUpstreamError,
+                match=rf"expected .* at '{re.escape(path)}', found torch\.nn\.modules\.linear\.Identity",
+            ):
                 rt.apply(net, _cameras(case)[1])
         assert_same_snapshot(net, snap)
         assert rt.handle_of(net) is None
@@ -361,7 +413,10 @@ def test_renamed_rope_frequency_attribute_is_refused(case, net, monkeypatch):
     monkeypatch.setattr(rope, "renamed_frequency", getattr(rope, name), raising=False)
     monkeypatch.delattr(rope, name)
     snap = snapshot(net)
-    with pytest.raises(UnsupportedUpstreamError, match=rf"expected the RoPE frequency base .* {type(rope).__qualname__}\.{name}, found no attribute '{name}' \(its numeric attributes: .*renamed_frequency="):
+    with pytest.raises(
+        UnsupportedUpstreamError,
+        match=rf"expected the RoPE frequency base .* {type(rope).__qualname__}\.{name}, found no attribute '{name}' \(its numeric attributes: .*renamed_frequency=",
+    ):
         rt.apply(net, _cameras(case)[1])
     assert_same_snapshot(net, snap)
 
@@ -370,7 +425,10 @@ def test_uncovered_rope_instance_is_refused(case, net, monkeypatch):
     """An upstream change that adds a RoPE copy must not leave part of the model unpatched."""
     monkeypatch.setattr(net, "extra_rope", copy.deepcopy(_rope_instances(net)[0]), raising=False)
     snap = snapshot(net)
-    with pytest.raises(UnsupportedUpstreamError, match="at 'extra_rope' that is not one of the patched RoPE instances"):
+    with pytest.raises(
+        UnsupportedUpstreamError,
+        match="at 'extra_rope' that is not one of the patched RoPE instances",
+    ):
         rt.apply(net, _cameras(case)[1])
     assert_same_snapshot(net, snap)
 
@@ -390,7 +448,10 @@ def test_idempotent_and_already_applied(case, net):
 def test_wrong_image_size_is_a_clear_error(case, net):
     height, width = case.size
     patch = spec_for(net)[0].describe(net).patch_size
-    with rt.apply(net, fisheye(width, height)), pytest.raises(InputError, match=f"multiple of the patch size {patch}"):
+    with (
+        rt.apply(net, fisheye(width, height)),
+        pytest.raises(InputError, match=f"multiple of the patch size {patch}"),
+    ):
         rt.predict(net, torch.rand(1, 2, 3, height + 3, width))
 
 
@@ -412,11 +473,16 @@ def test_two_models_different_cameras_side_by_side(case, images):
         alone_b = outputs(net_b, images)
     assert max_relative_difference(alone_a, alone_b) > 1e-4
     attributes = {target.attribute for target in spec_for(net_a)[0].targets}
-    with rt.apply(net_a, camera_a, adapter, strict=False), rt.apply(net_b, camera_b, adapter, strict=False):
+    with (
+        rt.apply(net_a, camera_a, adapter, strict=False),
+        rt.apply(net_b, camera_b, adapter, strict=False),
+    ):
         assert max_relative_difference(alone_a, outputs(net_a, images)) == 0.0
         assert max_relative_difference(alone_b, outputs(net_b, images)) == 0.0
         assert max_relative_difference(plain, outputs(bystander, images)) == 0.0
-        assert not any(attribute in vars(module) for module in bystander.modules() for attribute in attributes)
+        assert not any(
+            attribute in vars(module) for module in bystander.modules() for attribute in attributes
+        )
         results = outputs_from_threads({"a": net_a, "b": net_b}, images, repeats=1)
     assert max_relative_difference(alone_a, results["a"]) == 0.0
     assert max_relative_difference(alone_b, results["b"]) == 0.0
@@ -443,5 +509,8 @@ def test_camera_follows_input_size(case, net, images):
     with rt.apply(net, fisheye(width, height), adapter, strict=False):
         from_direct = outputs(net, images)
     assert max_relative_difference(from_native, from_direct) < 1e-4
-    with rt.apply(net, fisheye(width, 2 * height), adapter, strict=False), pytest.raises(InputError, match="aspect"):
+    with (
+        rt.apply(net, fisheye(width, 2 * height), adapter, strict=False),
+        pytest.raises(InputError, match="aspect"),
+    ):
         outputs(net, images)

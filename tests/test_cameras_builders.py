@@ -18,7 +18,21 @@ def _old_benchmark_kb4(size: int, fov_deg: float) -> KannalaBrandt4:
     centre = (size - 1) / 2
     k1 = 0.02
     focal = (size / 2) / (half * (1 + k1 * half**2))
-    return KannalaBrandt4(size, size, {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "k1": k1, "k2": 0.0, "k3": 0.0, "k4": 0.0}, max_fov_deg=fov_deg)
+    return KannalaBrandt4(
+        size,
+        size,
+        {
+            "fx": focal,
+            "fy": focal,
+            "cx": centre,
+            "cy": centre,
+            "k1": k1,
+            "k2": 0.0,
+            "k3": 0.0,
+            "k4": 0.0,
+        },
+        max_fov_deg=fov_deg,
+    )
 
 
 def _old_benchmark_ds(size: int, fov_deg: float) -> DoubleSphere:
@@ -29,21 +43,40 @@ def _old_benchmark_ds(size: int, fov_deg: float) -> DoubleSphere:
     k = xi * 1.0 + z
     d2 = math.sqrt(x * x + k * k)
     focal = (size / 2) / (x / (alpha * d2 + (1 - alpha) * k))
-    return DoubleSphere(size, size, {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "xi": xi, "alpha": alpha}, max_fov_deg=fov_deg)
+    return DoubleSphere(
+        size,
+        size,
+        {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "xi": xi, "alpha": alpha},
+        max_fov_deg=fov_deg,
+    )
 
 
 def _old_demo(size: int) -> KannalaBrandt4:
     half = math.radians(95.0)
     focal = (size / 2) / (half * (1 + 0.02 * half**2))
     centre = (size - 1) / 2
-    return KannalaBrandt4(size, size, {"fx": focal, "fy": focal, "cx": centre, "cy": centre, "k1": 0.02, "k2": 0.0, "k3": 0.0, "k4": 0.0}, max_fov_deg=190.0)
+    return KannalaBrandt4(
+        size,
+        size,
+        {
+            "fx": focal,
+            "fy": focal,
+            "cx": centre,
+            "cy": centre,
+            "k1": 0.02,
+            "k2": 0.0,
+            "k3": 0.0,
+            "k4": 0.0,
+        },
+        max_fov_deg=190.0,
+    )
 
 
 def _assert_identical(a, b) -> None:
     assert type(a) is type(b)
     assert (a.width, a.height, a.max_fov_deg) == (b.width, b.height, b.max_fov_deg)
     assert a.params.dtype == b.params.dtype == torch.float64
-    assert torch.equal(a.params, b.params), (a.params - b.params)
+    assert torch.equal(a.params, b.params), a.params - b.params
     assert a.to_json() == b.to_json()
 
 

@@ -420,10 +420,21 @@ def test_colmap_equidistant_family_is_kb4(tmp_path, line, expected):
     camera = load(write(tmp_path, "cameras.txt", line + "\n"))
     fx, fy, k1, k2 = expected
     assert isinstance(camera, KannalaBrandt4)
-    assert camera.values == {"fx": fx, "fy": fy, "cx": 319.5, "cy": 239.5, "k1": k1, "k2": k2, "k3": 0.0, "k4": 0.0}
+    assert camera.values == {
+        "fx": fx,
+        "fy": fy,
+        "cx": 319.5,
+        "cy": 239.5,
+        "k1": k1,
+        "k2": k2,
+        "k3": 0.0,
+        "k4": 0.0,
+    }
     # COLMAP's own formula (normalised plane, theta = atan(r), theta_d = theta (1 + k1 theta^2
     # + k2 theta^4)), pixel corner at 0: our pixels are 0.5 less.
-    points = torch.tensor([[0.3, -0.2, 1.0], [-0.9, 0.5, 1.0], [0.01, 0.02, 1.0]], dtype=torch.float64)
+    points = torch.tensor(
+        [[0.3, -0.2, 1.0], [-0.9, 0.5, 1.0], [0.01, 0.02, 1.0]], dtype=torch.float64
+    )
     a, b = points[:, 0], points[:, 1]
     r = torch.hypot(a, b)
     theta = torch.atan(r)
@@ -437,9 +448,15 @@ def test_colmap_equidistant_family_is_kb4(tmp_path, line, expected):
 
 def test_colmap_fov_and_fisheye624(tmp_path):
     camera = load(write(tmp_path, "cameras.txt", COLMAP_TXT), camera=8)
-    assert isinstance(camera, FOV) and camera.values["omega"] == 0.9217 and camera.values["cx"] == 320.0
+    assert (
+        isinstance(camera, FOV)
+        and camera.values["omega"] == 0.9217
+        and camera.values["cx"] == 320.0
+    )
     aria = load(write(tmp_path, "cameras.txt", COLMAP_TXT), camera=9)
-    assert isinstance(aria, Fisheye624) and aria.values["k5"] == -0.0013 and aria.values["s3"] == 5e-05
+    assert (
+        isinstance(aria, Fisheye624) and aria.values["k5"] == -0.0013 and aria.values["s3"] == 5e-05
+    )
     with pytest.raises(CameraError, match=r"param omega.*\(0, pi\)"):
         load(write(tmp_path, "bad.txt", "1 FOV 640 480 256.1 255.7 320.5 240.25 0.0\n"))
 

@@ -184,7 +184,9 @@ def test_project_matches_reference(name):
     # Reference formulas of the perspective-based models only exist in front of the camera.
     lim = min(
         cam.max_angle,
-        math.radians(89) if name in ("pinhole", "opencv", "thin_prism_fisheye", "fov", "fisheye624") else 10.0,
+        math.radians(89)
+        if name in ("pinhole", "opencv", "thin_prism_fisheye", "fov", "fisheye624")
+        else 10.0,
     )
     X = directions(500, 0.98 * lim, seed=1, min_angle=1e-3)
     uv, valid = cam.project(X)
@@ -403,7 +405,9 @@ def test_fov_image_circle_beyond_90_degrees_and_pinhole_limit():
     rho = torch.hypot(x, y)
     rd = torch.atan2(2 * math.tan(omega / 2) * rho, z) / (rho * omega)
     uv, valid = cam.project(points)
-    assert valid.all() and torch.allclose(uv, torch.stack([f * x * rd + 99.5, f * y * rd + 99.5], -1), atol=1e-9)
+    assert valid.all() and torch.allclose(
+        uv, torch.stack([f * x * rd + 99.5, f * y * rd + 99.5], -1), atol=1e-9
+    )
     # 90 degrees lands on the circle of radius f pi / (2 omega), 180 on f pi / omega: inside
     # that circle every pixel has a ray, the ones beyond 90 degrees point backwards.
     rays, valid = cam.ray_table(dtype=torch.float64)
@@ -411,7 +415,9 @@ def test_fov_image_circle_beyond_90_degrees_and_pinhole_limit():
     r = torch.hypot(u - 99.5, v - 99.5)
     edge = f * math.pi / omega
     assert valid[r < edge - 0.5].all() and not valid[r > edge + 0.5].any()
-    assert (rays[r < f * math.pi / (2 * omega) - 0.5][:, 2] > 0).all() and (rays[valid & (r > f * math.pi / (2 * omega) + 0.5)][:, 2] < 0).all()
+    assert (rays[r < f * math.pi / (2 * omega) - 0.5][:, 2] > 0).all() and (
+        rays[valid & (r > f * math.pi / (2 * omega) + 0.5)][:, 2] < 0
+    ).all()
     assert not cam.project(torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))[1]
     # A small omega is almost a pinhole: factor atan(c r) / (omega r) -> 1.
     near_pinhole = FOV(200, 200, [f, f, 99.5, 99.5, 1e-4])
@@ -423,14 +429,18 @@ def test_fov_image_circle_beyond_90_degrees_and_pinhole_limit():
 
 def test_fisheye624_without_prism_terms_is_kb4_in_front():
     ks = [0.02, -0.01, 0.003, -0.0004]
-    f624 = Fisheye624(200, 200, [60.0, 61.0, 99.5, 100.5, *ks, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    f624 = Fisheye624(
+        200, 200, [60.0, 61.0, 99.5, 100.5, *ks, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    )
     kb4 = KannalaBrandt4(200, 200, [60.0, 61.0, 99.5, 100.5, *ks])
     points = directions(200, math.radians(85), seed=4)
     uv, valid = f624.project(points)
     uv_kb, _ = kb4.project(points)
     assert valid.all() and torch.allclose(uv, uv_kb, atol=1e-9)
     # The prism / tangential stage moves pixels; unprojection undoes it.
-    tilted = Fisheye624(200, 200, [60.0, 61.0, 99.5, 100.5, *ks, 0.0, 0.0, 2e-3, -1e-3, 1e-3, 5e-4, -8e-4, 2e-4])
+    tilted = Fisheye624(
+        200, 200, [60.0, 61.0, 99.5, 100.5, *ks, 0.0, 0.0, 2e-3, -1e-3, 1e-3, 5e-4, -8e-4, 2e-4]
+    )
     uv_t, _ = tilted.project(points)
     assert (uv_t - uv).abs().max() > 0.05
     rays, ok = tilted.unproject(uv_t)

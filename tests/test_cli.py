@@ -47,27 +47,76 @@ def setup(tmp_path_factory):
             cv2.imwrite(str(depth / f"{k:04d}.png"), np.round(values * 1000).astype(np.uint16))
         else:
             np.save(depth / f"{k:04d}.npy", values)
-    return {"depth": depth, "folder": folder, "weights": weights, "camera": folder / "camera.json", "frames": frames, "sequence": folder / "sequence", "net": net}
+    return {
+        "depth": depth,
+        "folder": folder,
+        "weights": weights,
+        "camera": folder / "camera.json",
+        "frames": frames,
+        "sequence": folder / "sequence",
+        "net": net,
+    }
 
 
 def test_adapt_inspect_infer(setup, capsys):
     folder = setup["folder"]
     adapter = folder / "adapter.safetensors"
-    code = main(["adapt", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--camera", str(setup["camera"]),
-                 "--frames", str(setup["frames"]), "--size", str(SIZE), "--steps", "2", "--windows", "2", "--out", str(adapter)])
+    code = main(
+        [
+            "adapt",
+            "--backbone",
+            "da3-small",
+            "--weights",
+            str(setup["weights"]),
+            "--camera",
+            str(setup["camera"]),
+            "--frames",
+            str(setup["frames"]),
+            "--size",
+            str(SIZE),
+            "--steps",
+            "2",
+            "--windows",
+            "2",
+            "--out",
+            str(adapter),
+        ]
+    )
     assert code == 0 and adapter.is_file()
     assert main(["inspect", str(adapter)]) == 0
     text = capsys.readouterr().out
     assert "da3-small" in text and "10,772" in text and "KannalaBrandt4" in text
 
     out = folder / "infer"
-    code = main(["infer", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--adapter", str(adapter),
-                 "--frames", str(setup["frames"]), "--size", str(SIZE), "--out", str(out)])
+    code = main(
+        [
+            "infer",
+            "--backbone",
+            "da3-small",
+            "--weights",
+            str(setup["weights"]),
+            "--adapter",
+            str(adapter),
+            "--frames",
+            str(setup["frames"]),
+            "--size",
+            str(SIZE),
+            "--out",
+            str(out),
+        ]
+    )
     assert code == 0
-    assert len(list((out / "depth").glob("*.npy"))) == 6 and len(list((out / "depth").glob("*.png"))) == 6
+    assert (
+        len(list((out / "depth").glob("*.npy"))) == 6
+        and len(list((out / "depth").glob("*.png"))) == 6
+    )
     depth = np.load(out / "depth" / "0000.npy")
     assert depth.shape == (SIZE, SIZE) and np.isfinite(depth).all()
-    lines = [line for line in (out / "trajectory.txt").read_text().splitlines() if not line.startswith("#")]
+    lines = [
+        line
+        for line in (out / "trajectory.txt").read_text().splitlines()
+        if not line.startswith("#")
+    ]
     assert len(lines) == 6 and all(len(line.split()) == 8 for line in lines)
     points, colours = read_ply(out / "points.ply")
     assert len(points) > 1000 and np.isfinite(points).all() and colours.dtype == np.uint8
@@ -79,9 +128,29 @@ def test_supervised_adapt_from_a_depth_folder_and_the_pe_picture(setup, tmp_path
     from raytun3r_plugin import Adapter
 
     adapter = tmp_path / "supervised.safetensors"
-    code = main(["adapt", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--camera", str(setup["camera"]),
-                 "--frames", str(setup["frames"]), "--size", str(SIZE), "--steps", "3", "--windows", "2",
-                 "--depth", str(setup["depth"]), "--out", str(adapter)])
+    code = main(
+        [
+            "adapt",
+            "--backbone",
+            "da3-small",
+            "--weights",
+            str(setup["weights"]),
+            "--camera",
+            str(setup["camera"]),
+            "--frames",
+            str(setup["frames"]),
+            "--size",
+            str(SIZE),
+            "--steps",
+            "3",
+            "--windows",
+            "2",
+            "--depth",
+            str(setup["depth"]),
+            "--out",
+            str(adapter),
+        ]
+    )
     assert code == 0
     out = capsys.readouterr().out
     assert "supervised.losses.csv" in out and (tmp_path / "supervised.losses.png").is_file()
@@ -96,9 +165,30 @@ def test_supervised_adapt_from_a_depth_folder_and_the_pe_picture(setup, tmp_path
     (setup["depth"] / "0003.png").rename(tmp_path / "moved.png")
     try:
         capsys.readouterr()
-        assert main(["adapt", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--camera", str(setup["camera"]),
-                     "--frames", str(setup["frames"]), "--size", str(SIZE), "--steps", "1", "--depth", str(setup["depth"]),
-                     "--out", str(tmp_path / "none.safetensors")]) == 2
+        assert (
+            main(
+                [
+                    "adapt",
+                    "--backbone",
+                    "da3-small",
+                    "--weights",
+                    str(setup["weights"]),
+                    "--camera",
+                    str(setup["camera"]),
+                    "--frames",
+                    str(setup["frames"]),
+                    "--size",
+                    str(SIZE),
+                    "--steps",
+                    "1",
+                    "--depth",
+                    str(setup["depth"]),
+                    "--out",
+                    str(tmp_path / "none.safetensors"),
+                ]
+            )
+            == 2
+        )
         assert "no depth file for frame '0003'" in capsys.readouterr().err
         assert not (tmp_path / "none.safetensors").exists()
     finally:
@@ -113,9 +203,33 @@ def test_mask_reaches_adaptation_and_inference(setup, tmp_path, capsys):
     mask = np.full((SIZE, SIZE), 255, np.uint8)
     mask[int(0.7 * SIZE) :] = 0  # the vehicle's body
     cv2.imwrite(str(tmp_path / "mask.png"), mask)
-    common = ["--backbone", "da3-small", "--weights", str(setup["weights"]), "--frames", str(setup["frames"]), "--size", str(SIZE)]
+    common = [
+        "--backbone",
+        "da3-small",
+        "--weights",
+        str(setup["weights"]),
+        "--frames",
+        str(setup["frames"]),
+        "--size",
+        str(SIZE),
+    ]
     adapter = tmp_path / "adapter.safetensors"
-    code = main(["adapt", *common, "--camera", str(setup["camera"]), "--steps", "1", "--windows", "2", "--mask", str(tmp_path / "mask.png"), "--out", str(adapter)])
+    code = main(
+        [
+            "adapt",
+            *common,
+            "--camera",
+            str(setup["camera"]),
+            "--steps",
+            "1",
+            "--windows",
+            "2",
+            "--mask",
+            str(tmp_path / "mask.png"),
+            "--out",
+            str(adapter),
+        ]
+    )
     assert code == 0
     lens = fisheye(SIZE, SIZE, 190.0).valid_mask().numpy()
     recorded = Adapter.load(adapter).training_info["segment"]["mask"]["valid_fraction"]
@@ -123,21 +237,61 @@ def test_mask_reaches_adaptation_and_inference(setup, tmp_path, capsys):
 
     depths = {}
     for name, extra in (("plain", []), ("masked", ["--mask", str(tmp_path / "mask.png")])):
-        assert main(["infer", *common, "--camera", str(setup["camera"]), *extra, "--out", str(tmp_path / name)]) == 0
+        assert (
+            main(
+                [
+                    "infer",
+                    *common,
+                    "--camera",
+                    str(setup["camera"]),
+                    *extra,
+                    "--out",
+                    str(tmp_path / name),
+                ]
+            )
+            == 0
+        )
         depths[name] = np.load(tmp_path / name / "depth" / "0000.npy")
     # The masked patches become border tokens, so the prediction changes.
     assert not np.allclose(depths["plain"], depths["masked"])
 
     cv2.imwrite(str(tmp_path / "small.png"), mask[:-1])
     capsys.readouterr()
-    assert main(["infer", *common, "--camera", str(setup["camera"]), "--mask", str(tmp_path / "small.png"), "--out", str(tmp_path / "bad")]) == 2
+    assert (
+        main(
+            [
+                "infer",
+                *common,
+                "--camera",
+                str(setup["camera"]),
+                "--mask",
+                str(tmp_path / "small.png"),
+                "--out",
+                str(tmp_path / "bad"),
+            ]
+        )
+        == 2
+    )
     assert f"mask is {SIZE}x{SIZE - 1} px, the frames are {SIZE}x{SIZE}" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
 
 
 def test_eval_prints_a_table_for_each_method(setup, capsys):
-    code = main(["eval", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--dataset", str(setup["sequence"]),
-                 "--size", str(SIZE), "--method", "vanilla,center-ph,raytun3r"])
+    code = main(
+        [
+            "eval",
+            "--backbone",
+            "da3-small",
+            "--weights",
+            str(setup["weights"]),
+            "--dataset",
+            str(setup["sequence"]),
+            "--size",
+            str(SIZE),
+            "--method",
+            "vanilla,center-ph,raytun3r",
+        ]
+    )
     assert code == 0
     out = capsys.readouterr().out
     assert "| vanilla |" in out and "| center-ph |" in out and "| raytun3r |" in out
@@ -148,10 +302,29 @@ def test_errors_are_reported_not_raised(setup, tmp_path, capsys):
     bad.write_bytes(b"not a safetensors file")
     assert main(["inspect", str(bad)]) == 2
     assert "not a readable safetensors file" in capsys.readouterr().err
-    other = randomise_(__import__("raytun3r_plugin").Adapter.for_model(setup["net"], fisheye(SIZE, SIZE, 150.0)))
+    other = randomise_(
+        __import__("raytun3r_plugin").Adapter.for_model(setup["net"], fisheye(SIZE, SIZE, 150.0))
+    )
     other.save(tmp_path / "other.safetensors")
-    code = main(["infer", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--adapter", str(tmp_path / "other.safetensors"),
-                 "--camera", str(setup["camera"]), "--frames", str(setup["frames"]), "--size", str(SIZE), "--out", str(tmp_path / "o")])
+    code = main(
+        [
+            "infer",
+            "--backbone",
+            "da3-small",
+            "--weights",
+            str(setup["weights"]),
+            "--adapter",
+            str(tmp_path / "other.safetensors"),
+            "--camera",
+            str(setup["camera"]),
+            "--frames",
+            str(setup["frames"]),
+            "--size",
+            str(SIZE),
+            "--out",
+            str(tmp_path / "o"),
+        ]
+    )
     assert code == 2 and "pass strict=False" in capsys.readouterr().err
 
 
@@ -167,23 +340,43 @@ def test_bench_quick(tmp_path, capsys, monkeypatch):
     assert "[INFO" not in out and logger.level == 2
     for method in ("vanilla", "center-ph", "raytun3r, no adapter", "raytun3r"):
         assert f"| {method} |" in out
-    assert "lower_than_vanilla" in out and "Target (raytun3r's mean d_reproj and AbsRel below vanilla's): met in" in out
+    assert (
+        "lower_than_vanilla" in out
+        and "Target (raytun3r's mean d_reproj and AbsRel below vanilla's): met in" in out
+    )
     assert (tmp_path / "results.md").is_file()
     results = json.loads((tmp_path / "results.json").read_text())
-    assert {r["method"] for r in results["sequences"]} == {"vanilla", "center-ph", "raytun3r, no adapter", "raytun3r", "raytun3r, supervised"}
+    assert {r["method"] for r in results["sequences"]} == {
+        "vanilla",
+        "center-ph",
+        "raytun3r, no adapter",
+        "raytun3r",
+        "raytun3r, supervised",
+    }
     assert "gap_closed" in out and "Target (below 'raytun3r, no adapter' on both)" in out
     assert all(r["sequences"] == 1 for r in results["summary"])
 
 
 def test_demo_runs_on_the_built_in_default(tmp_path, capsys):
-    assert main(["demo", "--out", str(tmp_path), "--steps", "3", "--size", "84", "--sequences", "2"]) == 0
+    assert (
+        main(["demo", "--out", str(tmp_path), "--steps", "3", "--size", "84", "--sequences", "2"])
+        == 0
+    )
     out = capsys.readouterr().out
     assert "raytun3r-da3-tiny" in out and "trained by raytun3r on pinhole renders only" in out
-    for label in ("vanilla (unpatched)", "Center-PH", "raytun3r, no adapter", "raytun3r, adapted (3 steps", "raytun3r, supervised (3 steps"):
+    for label in (
+        "vanilla (unpatched)",
+        "Center-PH",
+        "raytun3r, no adapter",
+        "raytun3r, adapted (3 steps",
+        "raytun3r, supervised (3 steps",
+    ):
         assert label in out
     assert "Mean over 2 held-out sequences" in out and "/2" in out  # per-sequence win counts
     for k in (0, 1):
-        assert (tmp_path / f"seq{k}" / "adapter.safetensors").is_file() and (tmp_path / f"seq{k}" / "adapter.losses.png").is_file()
+        assert (tmp_path / f"seq{k}" / "adapter.safetensors").is_file() and (
+            tmp_path / f"seq{k}" / "adapter.losses.png"
+        ).is_file()
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert len(metrics["rows"]) == 2 * 5
 
@@ -197,7 +390,11 @@ def _write_segment(folder, camera, n_frames: int = 6, seed: int = 5, render_came
     cameras.save(camera, folder / "camera.json")
     frames = folder / "frames"
     frames.mkdir()
-    for k, image in enumerate(synthetic.render_sequence("indoor", render_camera or camera, n_frames=n_frames, seed=seed).images):
+    for k, image in enumerate(
+        synthetic.render_sequence(
+            "indoor", render_camera or camera, n_frames=n_frames, seed=seed
+        ).images
+    ):
         cv2.imwrite(str(frames / f"{k:04d}.png"), (image[..., ::-1] * 255).round().astype(np.uint8))
     return folder / "camera.json", frames
 
@@ -220,8 +417,27 @@ def test_adapt_then_infer_on_a_non_square_camera(setup, tmp_path, width, height,
     camera_file, frames = _write_segment(tmp_path, camera)
     model = ["--backbone", "da3-small", "--weights", str(setup["weights"])]
     adapter = tmp_path / "adapter.safetensors"
-    assert main(["adapt", *model, "--camera", str(camera_file), "--frames", str(frames), "--size", str(size),
-                 "--steps", "1", "--windows", "2", "--out", str(adapter)]) == 0
+    assert (
+        main(
+            [
+                "adapt",
+                *model,
+                "--camera",
+                str(camera_file),
+                "--frames",
+                str(frames),
+                "--size",
+                str(size),
+                "--steps",
+                "1",
+                "--windows",
+                "2",
+                "--out",
+                str(adapter),
+            ]
+        )
+        == 0
+    )
     layout = input_layout(camera, size)
     assert layout.crop == crop
     fitted = Adapter.load(adapter)
@@ -230,8 +446,25 @@ def test_adapt_then_infer_on_a_non_square_camera(setup, tmp_path, width, height,
 
     # Strict (the default): the same camera and frames are accepted, and prepared alike.
     out = tmp_path / "infer"
-    assert main(["infer", *model, "--adapter", str(adapter), "--camera", str(camera_file), "--frames", str(frames),
-                 "--size", str(size), "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "infer",
+                *model,
+                "--adapter",
+                str(adapter),
+                "--camera",
+                str(camera_file),
+                "--frames",
+                str(frames),
+                "--size",
+                str(size),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     depth = np.load(out / "depth" / "0000.npy")
     assert depth.shape == (layout.height, layout.width) and np.isfinite(depth).all()
     summary = json.loads((out / "summary.json").read_text())
@@ -240,7 +473,21 @@ def test_adapt_then_infer_on_a_non_square_camera(setup, tmp_path, width, height,
 
     # Without --camera and --size: the adapter's camera (its crop undone) and its long side.
     again = tmp_path / "again"
-    assert main(["infer", *model, "--adapter", str(adapter), "--frames", str(frames), "--out", str(again)]) == 0
+    assert (
+        main(
+            [
+                "infer",
+                *model,
+                "--adapter",
+                str(adapter),
+                "--frames",
+                str(frames),
+                "--out",
+                str(again),
+            ]
+        )
+        == 0
+    )
     assert np.array_equal(np.load(again / "depth" / "0000.npy"), depth)
 
 
@@ -249,18 +496,75 @@ def test_infer_rescales_the_camera_to_frames_of_another_size(setup, tmp_path, ca
     camera_file, frames = _write_segment(tmp_path / "native", camera)
     model = ["--backbone", "da3-small", "--weights", str(setup["weights"])]
     adapter = tmp_path / "adapter.safetensors"
-    assert main(["adapt", *model, "--camera", str(camera_file), "--frames", str(frames), "--size", "112",
-                 "--steps", "1", "--windows", "2", "--out", str(adapter)]) == 0
+    assert (
+        main(
+            [
+                "adapt",
+                *model,
+                "--camera",
+                str(camera_file),
+                "--frames",
+                str(frames),
+                "--size",
+                "112",
+                "--steps",
+                "1",
+                "--windows",
+                "2",
+                "--out",
+                str(adapter),
+            ]
+        )
+        == 0
+    )
     # The same calibration, frames recorded at twice the size: a pure resize of the camera.
-    _, large = _write_segment(tmp_path / "large", camera, n_frames=3, render_camera=camera.resized(320, 240))
+    _, large = _write_segment(
+        tmp_path / "large", camera, n_frames=3, render_camera=camera.resized(320, 240)
+    )
     out = tmp_path / "infer"
-    assert main(["infer", *model, "--adapter", str(adapter), "--camera", str(camera_file), "--frames", str(large), "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "infer",
+                *model,
+                "--adapter",
+                str(adapter),
+                "--camera",
+                str(camera_file),
+                "--frames",
+                str(large),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert np.load(out / "depth" / "0000.npy").shape == (84, 112)
-    assert json.loads((out / "summary.json").read_text())["camera"] == json.loads(camera.resized(320, 240).resized(112, 84).to_json())
+    assert json.loads((out / "summary.json").read_text())["camera"] == json.loads(
+        camera.resized(320, 240).resized(112, 84).to_json()
+    )
     # Frames of another aspect ratio are not a resize of this camera: an error, not a stretch.
-    _, other = _write_segment(tmp_path / "other", camera, n_frames=2, render_camera=fisheye(160, 100, 190.0))
+    _, other = _write_segment(
+        tmp_path / "other", camera, n_frames=2, render_camera=fisheye(160, 100, 190.0)
+    )
     capsys.readouterr()
-    assert main(["infer", *model, "--adapter", str(adapter), "--camera", str(camera_file), "--frames", str(other), "--out", str(tmp_path / "bad")]) == 2
+    assert (
+        main(
+            [
+                "infer",
+                *model,
+                "--adapter",
+                str(adapter),
+                "--camera",
+                str(camera_file),
+                "--frames",
+                str(other),
+                "--out",
+                str(tmp_path / "bad"),
+            ]
+        )
+        == 2
+    )
     assert "only a pure resize" in capsys.readouterr().err
 
 
@@ -276,7 +580,16 @@ def test_adapt_infer_and_eval_feed_the_network_the_same_input(setup, tmp_path, m
     camera_file, frames = _write_segment(tmp_path, camera)
     native, _ = read_frames(frames)
     problem = prepare_problem(camera, native, AdaptConfig(input_size=84, n_windows=2, steps=1))
-    evaluated = fit_sequence(Sequence(name="s", camera=camera, timestamps=np.arange(len(native)), cam_from_world=None, images=native), 84)
+    evaluated = fit_sequence(
+        Sequence(
+            name="s",
+            camera=camera,
+            timestamps=np.arange(len(native)),
+            cam_from_world=None,
+            images=native,
+        ),
+        84,
+    )
     seen = {}
     real = inference.predict_with_camera
 
@@ -285,8 +598,26 @@ def test_adapt_infer_and_eval_feed_the_network_the_same_input(setup, tmp_path, m
         return real(model, camera, adapter, images, **kwargs)
 
     monkeypatch.setattr(inference, "predict_with_camera", spy)
-    assert main(["infer", "--backbone", "da3-small", "--weights", str(setup["weights"]), "--camera", str(camera_file),
-                 "--frames", str(frames), "--size", "84", "--out", str(tmp_path / "out")]) == 0
+    assert (
+        main(
+            [
+                "infer",
+                "--backbone",
+                "da3-small",
+                "--weights",
+                str(setup["weights"]),
+                "--camera",
+                str(camera_file),
+                "--frames",
+                str(frames),
+                "--size",
+                "84",
+                "--out",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 0
+    )
     for frame, adapted in problem.inputs.items():
         assert torch.equal(seen["images"][0, frame], adapted)
         assert torch.equal(torch.from_numpy(evaluated.images[frame]).permute(2, 0, 1), adapted)

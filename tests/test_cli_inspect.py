@@ -18,7 +18,14 @@ TRAINING = {
     "interrupted": True,
     "final_losses": {"loss": 0.1234567, "photometric": 0.0812, "pose": 0.0421},
     "final_losses_over_steps": 8,
-    "segment": {"name": "corridor", "start": 10, "frames": 60, "mask": None, "windows": [[0, 1, 2], [3, 4, 5]], "skipped_static": 1},
+    "segment": {
+        "name": "corridor",
+        "start": 10,
+        "frames": 60,
+        "mask": None,
+        "windows": [[0, 1, 2], [3, 4, 5]],
+        "skipped_static": 1,
+    },
     "input": {"width": 504, "height": 406, "crop": None},
     "adaptation_set": "0123456789abcdef" * 4,
     "config": {"steps": 200, "lr": 0.01, "window": 3},
@@ -28,7 +35,9 @@ TRAINING = {
 
 @pytest.fixture
 def adapter_file(tmp_path):
-    adapter = randomise_(Adapter("da3-small", embed_dim=64, patch_size=14, camera=fisheye(), training=TRAINING))
+    adapter = randomise_(
+        Adapter("da3-small", embed_dim=64, patch_size=14, camera=fisheye(), training=TRAINING)
+    )
     return adapter.save(tmp_path / "adapter.safetensors")
 
 

@@ -72,7 +72,10 @@ def test_bad_mask_is_refused_before_the_model_is_touched(net, images):
         doubled = outputs(net, images)
     with rt.apply(net, camera):
         unmasked = outputs(net, images)
-    assert max_relative_difference(at_size, doubled) == 0.0 and max_relative_difference(at_size, unmasked) > 1e-3
+    assert (
+        max_relative_difference(at_size, doubled) == 0.0
+        and max_relative_difference(at_size, unmasked) > 1e-3
+    )
 
 
 def test_adapter_for_other_backbone_or_weights_is_refused(net):
@@ -91,7 +94,9 @@ def test_adapter_for_other_backbone_or_weights_is_refused(net):
 
 def test_da3_wrapper_is_unwrapped_to_its_network(net, images):
     """The ``depth_anything_3.api.DepthAnything3`` wrapper keeps the network at ``.model``."""
-    wrapper_class = type("DepthAnything3", (torch.nn.Module,), {"__module__": "depth_anything_3.api"})
+    wrapper_class = type(
+        "DepthAnything3", (torch.nn.Module,), {"__module__": "depth_anything_3.api"}
+    )
     wrapper = wrapper_class()
     wrapper.model = net
     reference = outputs(net, images)
@@ -104,7 +109,11 @@ def test_da3_wrapper_is_unwrapped_to_its_network(net, images):
 
 
 def test_real_da3_wrapper_when_it_imports():
-    api = pytest.importorskip("depth_anything_3.api", reason="depth_anything_3.api needs moviepy, not installed here", exc_type=ImportError)
+    api = pytest.importorskip(
+        "depth_anything_3.api",
+        reason="depth_anything_3.api needs moviepy, not installed here",
+        exc_type=ImportError,
+    )
     wrapper = api.DepthAnything3(model_name="da3-small")
     with rt.apply(wrapper, fisheye(W, H)) as handle:
         assert handle.root is wrapper.model

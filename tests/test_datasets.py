@@ -46,7 +46,9 @@ def rigid(R: np.ndarray, t) -> np.ndarray:
 
 def poses(n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    return np.stack([rigid(rot(rng.normal(size=3), rng.uniform(0, 170)), rng.normal(size=3)) for _ in range(n)])
+    return np.stack(
+        [rigid(rot(rng.normal(size=3), rng.uniform(0, 170)), rng.normal(size=3)) for _ in range(n)]
+    )
 
 
 def write_png(path: Path, value: int, dtype=np.uint8, channels: int = 3, size=(H, W)) -> None:
@@ -103,8 +105,14 @@ def test_sequence_basics(tmp_path):
     cam = cameras.Pinhole(W, H, {"fx": 10.0, "fy": 10.0, "cx": 5.5, "cy": 4.5})
     imgs = np.random.default_rng(0).uniform(size=(4, H, W, 3)).astype(np.float32)
     seq = Sequence(
-        "s", cam, np.arange(4) * 0.1, poses(4), images=imgs, depth=np.ones((4, H, W), np.float32),
-        mask=np.ones((H, W), bool), meta={"per_frame": {"id": np.arange(4)}, "other": 1},
+        "s",
+        cam,
+        np.arange(4) * 0.1,
+        poses(4),
+        images=imgs,
+        depth=np.ones((4, H, W), np.float32),
+        mask=np.ones((H, W), bool),
+        meta={"per_frame": {"id": np.arange(4)}, "other": 1},
     )
     assert len(seq) == 4 and seq.height == H and seq.width == W
     assert np.array_equal(seq.image(-1), imgs[3])
@@ -112,7 +120,10 @@ def test_sequence_basics(tmp_path):
     assert len(sub) == 2 and np.array_equal(sub.cam_from_world, seq.cam_from_world[[3, 1]])
     assert sub.meta["per_frame"]["id"].tolist() == [3, 1] and sub.meta["other"] == 1
     assert sub.mask.shape == (H, W) and np.array_equal(sub.images[0], imgs[3])
-    assert len(seq.subset(slice(0, 4, 2))) == 2 and len(seq.subset(np.array([True, False, True, True]))) == 3
+    assert (
+        len(seq.subset(slice(0, 4, 2))) == 2
+        and len(seq.subset(np.array([True, False, True, True]))) == 3
+    )
     with pytest.raises(IndexError):
         seq.image(4)
     with pytest.raises(DatasetError):
@@ -122,12 +133,16 @@ def test_sequence_basics(tmp_path):
     # lazy images and the size check
     write_png(tmp_path / "ok.png", 10)
     write_png(tmp_path / "big.png", 10, size=(H + 1, W))
-    lazy = Sequence("lazy", cam, [0.0, 1.0], None, image_paths=[tmp_path / "ok.png", tmp_path / "big.png"])
+    lazy = Sequence(
+        "lazy", cam, [0.0, 1.0], None, image_paths=[tmp_path / "ok.png", tmp_path / "big.png"]
+    )
     assert lazy.image(0).shape == (H, W, 3)
     with pytest.raises(DatasetError, match="big.png"):
         lazy.image(1)
     # z-depth to range
-    zseq = Sequence("z", cam, [0.0], None, depth=np.full((1, H, W), 2.0, np.float32), depth_kind="z")
+    zseq = Sequence(
+        "z", cam, [0.0], None, depth=np.full((1, H, W), 2.0, np.float32), depth_kind="z"
+    )
     rays = cam.ray_table()[0].numpy()
     assert np.allclose(zseq.range_depth(0), 2.0 / rays[..., 2], rtol=1e-6)
     assert issubclass(DatasetError, Raytun3rError)
@@ -136,8 +151,13 @@ def test_sequence_basics(tmp_path):
 def test_synthetic_folder_malformed(tmp_path):
     cam = cameras.Pinhole(W, H, {"fx": 10.0, "fy": 10.0, "cx": 5.5, "cy": 4.5})
     seq = Sequence(
-        "f", cam, [0.0, 0.5], poses(2), images=np.zeros((2, H, W, 3), np.float32),
-        depth=np.ones((2, H, W), np.float32), mask=np.ones((2, H, W), bool),
+        "f",
+        cam,
+        [0.0, 0.5],
+        poses(2),
+        images=np.zeros((2, H, W, 3), np.float32),
+        depth=np.ones((2, H, W), np.float32),
+        mask=np.ones((2, H, W), bool),
     )
     folder = write_sequence(seq, tmp_path / "f")
     back = load_sequence(folder)
@@ -148,7 +168,9 @@ def test_synthetic_folder_malformed(tmp_path):
     with pytest.raises(DatasetError) as e:
         load_synthetic(folder)
     raises_at(e, "poses.txt", 3)
-    (folder / "meta.json").write_text('{"format": "raytun3r-sequence",\n "format_version": 1,\n "n_frames": 2 2}')
+    (folder / "meta.json").write_text(
+        '{"format": "raytun3r-sequence",\n "format_version": 1,\n "n_frames": 2 2}'
+    )
     with pytest.raises(DatasetError) as e:
         load_synthetic(folder)
     raises_at(e, "meta.json", 3)
@@ -170,7 +192,10 @@ def colmap_fixture(root: Path, T: np.ndarray, names: list[str], cam_ids=None) ->
         f"2 PINHOLE {W} {H} 20 20 6 5\n"
     )
     cam_ids = cam_ids or [1] * len(names)
-    lines = ["# Image list with two lines of data per image:", "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME"]
+    lines = [
+        "# Image list with two lines of data per image:",
+        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+    ]
     for k, (Tk, nm) in enumerate(zip(T, names, strict=True)):
         q = rot_to_quat(Tk[:3, :3])
         vals = " ".join(repr(float(x)) for x in [*q, *Tk[:3, 3]])
@@ -229,7 +254,9 @@ def test_colmap_reader_errors(tmp_path):
         load_colmap(root, camera_id=2)
     raises_at(e, "images.txt", 6)
     (root / "images.txt").write_text("\n".join(lines) + "\n")
-    (root / "cameras.txt").write_text(f"1 OPENCV_FISHEYE {W} {H} 9.5 9.75 6.0\n2 PINHOLE {W} {H} 20 20 6 5\n")
+    (root / "cameras.txt").write_text(
+        f"1 OPENCV_FISHEYE {W} {H} 9.5 9.75 6.0\n2 PINHOLE {W} {H} 20 20 6 5\n"
+    )
     with pytest.raises(DatasetError) as e:
         load_colmap(root, camera_id=1)
     assert "cameras.txt" in str(e.value) and "line 1" in str(e.value)
@@ -244,7 +271,9 @@ def test_colmap_reader_errors(tmp_path):
 # ------------------------------------------------------------------------------------------
 
 
-def scannetpp_fixture(scene: Path, world_from_cam: np.ndarray, bad_index: int | None = None) -> Path:
+def scannetpp_fixture(
+    scene: Path, world_from_cam: np.ndarray, bad_index: int | None = None
+) -> Path:
     ns = scene / "dslr" / "nerfstudio"
     ns.mkdir(parents=True, exist_ok=True)
     gl = world_from_cam @ np.diag([1.0, -1.0, -1.0, 1.0])
@@ -256,9 +285,19 @@ def scannetpp_fixture(scene: Path, world_from_cam: np.ndarray, bad_index: int | 
     if bad_index is not None:
         frames[bad_index]["transform_matrix"] = [[1, 0, 0], [0, 1, 0]]
     d = {
-        "camera_model": "OPENCV_FISHEYE", "fl_x": 9.0, "fl_y": 9.5, "cx": 6.25, "cy": 5.0, "w": W, "h": H,
-        "k1": -0.03, "k2": -0.006, "k3": -0.002, "k4": 0.0001,
-        "frames": frames[:3], "test_frames": frames[3:],
+        "camera_model": "OPENCV_FISHEYE",
+        "fl_x": 9.0,
+        "fl_y": 9.5,
+        "cx": 6.25,
+        "cy": 5.0,
+        "w": W,
+        "h": H,
+        "k1": -0.03,
+        "k2": -0.006,
+        "k3": -0.002,
+        "k4": 0.0001,
+        "frames": frames[:3],
+        "test_frames": frames[3:],
     }
     path = ns / "transforms.json"
     path.write_text(json.dumps(d, indent=2))
@@ -316,7 +355,9 @@ T0 = 1_520_530_308_000_000_000
 def world_from_imu(t_ns: int) -> np.ndarray:
     s = (t_ns - T0) * 1e-9
     ang = np.linalg.norm(W_RATE) * s
-    return rigid(rot(W_RATE, math.degrees(ang)) @ rot([1, 0, 0], 30.0), np.array([1.0, 2.0, 0.5]) + V * s)
+    return rigid(
+        rot(W_RATE, math.degrees(ang)) @ rot([1, 0, 0], 30.0), np.array([1.0, 2.0, 0.5]) + V * s
+    )
 
 
 def tumvi_fixture(root: Path, bad_line: str | None = None) -> list[int]:
@@ -340,7 +381,9 @@ def tumvi_fixture(root: Path, bad_line: str | None = None) -> list[int]:
     (root / "camchain.yaml").write_text(yaml.safe_dump(cc, sort_keys=False))
     mocap = [T0 + k * 10_000_000 for k in range(40)]  # 100 Hz over 0.4 s
     mocap = [t for t in mocap if not (200_000_000 <= t - T0 <= 330_000_000)]  # a gap
-    rows = ["#timestamp [ns], p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z []"]
+    rows = [
+        "#timestamp [ns], p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z []"
+    ]
     for t in mocap:
         Twi = world_from_imu(t)
         q = rot_to_quat(Twi[:3, :3])
@@ -362,7 +405,9 @@ def test_tumvi_reader(tmp_path):
     seq = load_tumvi(root)
     # images at 0.203, 0.253, 0.303 s have no mocap within 10 ms (gap 0.2..0.33 s)
     kept = [t for t in images if not (0.2e9 < t - T0 < 0.31e9)]
-    assert seq.meta["per_frame"]["timestamp_ns"].tolist() == kept and seq.meta["n_dropped"] == len(images) - len(kept)
+    assert seq.meta["per_frame"]["timestamp_ns"].tolist() == kept and seq.meta["n_dropped"] == len(
+        images
+    ) - len(kept)
     np.testing.assert_allclose(seq.timestamps, np.array(kept) * 1e-9)
     expect = np.stack([T_CAM_IMU @ np.linalg.inv(world_from_imu(t)) for t in kept])
     np.testing.assert_allclose(seq.cam_from_world, expect, atol=1e-9)
@@ -417,7 +462,9 @@ projection_parameters:
 SEQ = "2013_05_28_drive_0007_sync"
 
 
-def kitti_fixture(root: Path, pose_rows: dict[int, np.ndarray], c2p: np.ndarray, n_images: int = 6) -> None:
+def kitti_fixture(
+    root: Path, pose_rows: dict[int, np.ndarray], c2p: np.ndarray, n_images: int = 6
+) -> None:
     (root / "calibration").mkdir(parents=True)
     (root / "calibration" / "image_02.yaml").write_text(MEI_YAML)
     lines = []
@@ -426,12 +473,17 @@ def kitti_fixture(root: Path, pose_rows: dict[int, np.ndarray], c2p: np.ndarray,
         lines.append(f"image_0{k}: " + " ".join(repr(float(x)) for x in T[:3].reshape(-1)))
     (root / "calibration" / "calib_cam_to_pose.txt").write_text("\n".join(lines) + "\n")
     (root / "data_poses" / SEQ).mkdir(parents=True)
-    rows = [f"{f} " + " ".join(repr(float(x)) for x in T[:3].reshape(-1)) for f, T in sorted(pose_rows.items())]
+    rows = [
+        f"{f} " + " ".join(repr(float(x)) for x in T[:3].reshape(-1))
+        for f, T in sorted(pose_rows.items())
+    ]
     (root / "data_poses" / SEQ / "poses.txt").write_text("\n".join(rows) + "\n")
     cam_dir = root / "data_2d_raw" / SEQ / "image_02"
     for f in range(n_images):
         write_png(cam_dir / "data_rgb" / f"{f:010d}.png", 20 + f, size=(28, 28))
-    stamps = [f"2013-05-28 08:46:02.{100000000 * f + 879058484 % 100000000:09d}" for f in range(n_images)]
+    stamps = [
+        f"2013-05-28 08:46:02.{100000000 * f + 879058484 % 100000000:09d}" for f in range(n_images)
+    ]
     (cam_dir / "timestamps.txt").write_text("\n".join(stamps) + "\n")
 
 

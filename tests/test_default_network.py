@@ -31,7 +31,9 @@ def _default():
 def _weights() -> Path:
     path = _default().data_dir() / _default().WEIGHTS_FILE
     if not path.is_file():
-        pytest.fail(f"packaged weights {path} are missing (run scripts/train_default_network.py --export)")
+        pytest.fail(
+            f"packaged weights {path} are missing (run scripts/train_default_network.py --export)"
+        )
     return path
 
 
@@ -93,14 +95,30 @@ def test_model_card_numbers_match_metrics_sidecar():
     metrics = json.loads(metrics_path.read_text())
     text = CARD.read_text()
     block = text.split("<!-- metrics:begin -->", 1)[1].split("<!-- metrics:end -->", 1)[0]
-    rows = [line for line in block.splitlines() if line.startswith("| ") and re.search(r"\d", line.split("|")[2])]
-    keys = ["abs_rel", "abs_rel_constant", "abs_rel_ratio", "delta_125", "delta_125_constant",
-            "rotation_deg", "rotation_deg_no_rotation", "rotation_ratio", "translation_deg"]
+    rows = [
+        line
+        for line in block.splitlines()
+        if line.startswith("| ") and re.search(r"\d", line.split("|")[2])
+    ]
+    keys = [
+        "abs_rel",
+        "abs_rel_constant",
+        "abs_rel_ratio",
+        "delta_125",
+        "delta_125_constant",
+        "rotation_deg",
+        "rotation_deg_no_rotation",
+        "rotation_ratio",
+        "translation_deg",
+    ]
     assert len(rows) == len(metrics["results"]) == 3
     for row, name in zip(rows, ("pinhole", "kb4_120", "kb4_190"), strict=True):
         cells = [c.strip() for c in row.strip().strip("|").split("|")]
         for key, cell in zip(keys, cells[1:10], strict=True):
-            assert float(cell) == pytest.approx(metrics["results"][name][key], abs=5e-5), (name, key)
+            assert float(cell) == pytest.approx(metrics["results"][name][key], abs=5e-5), (
+                name,
+                key,
+            )
     # the pinhole headline numbers quoted in the card's summary
     p = metrics["results"]["pinhole"]
     assert f"{p['abs_rel_ratio']:.2f}" in text.split("<!-- metrics:begin -->")[0]
@@ -131,8 +149,29 @@ def test_beats_constant_depth_on_a_held_out_pinhole_frame():
 
 def test_training_smoke_run_resumes_exactly(tmp_path):
     train = _script("train_default_network")
-    common = ["--tiny", "--size", "28", "--n-seq", "1", "--n-frames", "2", "--max-gap", "1", "--batch", "1",
-              "--steps", "2", "--warmup", "1", "--log-every", "1", "--ckpt-every", "1", "--threads", "1"]
+    common = [
+        "--tiny",
+        "--size",
+        "28",
+        "--n-seq",
+        "1",
+        "--n-frames",
+        "2",
+        "--max-gap",
+        "1",
+        "--batch",
+        "1",
+        "--steps",
+        "2",
+        "--warmup",
+        "1",
+        "--log-every",
+        "1",
+        "--ckpt-every",
+        "1",
+        "--threads",
+        "1",
+    ]
     a, b = tmp_path / "a", tmp_path / "b"
     assert train.main(["--out", str(a), "--stop-after", "1", *common]) == 0
     assert json.loads((a / "checkpoint.json").read_text())["step"] == 1
@@ -143,7 +182,10 @@ def test_training_smoke_run_resumes_exactly(tmp_path):
     assert train.main(["--out", str(b), *common]) == 0  # uninterrupted
     from safetensors.torch import load_file
 
-    wa, wb = load_file(str(a / "checkpoint.safetensors")), load_file(str(b / "checkpoint.safetensors"))
+    wa, wb = (
+        load_file(str(a / "checkpoint.safetensors")),
+        load_file(str(b / "checkpoint.safetensors")),
+    )
     assert wa.keys() == wb.keys()
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
     rows = (a / "log.csv").read_text().strip().splitlines()
@@ -154,7 +196,10 @@ def test_quaternion_target_is_da3s_encoding_of_the_rotation():
     train = _script("train_default_network")
     from depth_anything_3.model.utils.transform import quat_to_mat
 
-    angles = torch.tensor([[0.0, 0.0, 0.0], [0.3, -0.2, 0.1], [2.5, 0.4, -1.0]], dtype=torch.float64)
+    angles = torch.tensor(
+        [[0.0, 0.0, 0.0], [0.3, -0.2, 0.1], [2.5, 0.4, -1.0]], dtype=torch.float64
+    )
+
     def rot(a):
         cx, cy, cz = torch.cos(a)
         sx, sy, sz = torch.sin(a)
@@ -178,23 +223,55 @@ def test_sincos_pe_init_has_the_requested_std_and_is_resolved_by_the_token_grid(
     # DA3 resizes the 37x37 table to the token grid (8x8 at 112 px): the map must survive that,
     # so neighbouring tokens of the 8x8 grid still differ.
     grid = table.reshape(1, 37, 37, 128).permute(0, 3, 1, 2)
-    small = torch.nn.functional.interpolate(grid, size=(8, 8), mode="bicubic", align_corners=False)[0]
+    small = torch.nn.functional.interpolate(grid, size=(8, 8), mode="bicubic", align_corners=False)[
+        0
+    ]
     step = (small[:, :, 1:] - small[:, :, :-1]).norm(dim=0)
     assert float(step.min()) > 0.1 * float(small.norm(dim=0).mean())
 
 
 def test_training_with_pe_init_and_quaternion_loss_starts_from_the_sincos_table(tmp_path):
     train = _script("train_default_network")
-    common = ["--tiny", "--size", "28", "--n-seq", "1", "--n-frames", "2", "--max-gap", "1", "--batch", "1",
-              "--steps", "1", "--warmup", "1", "--log-every", "1", "--ckpt-every", "1", "--threads", "1",
-              "--pe-std", "0.5", "--w-quat", "10", "--lr", "0"]
+    common = [
+        "--tiny",
+        "--size",
+        "28",
+        "--n-seq",
+        "1",
+        "--n-frames",
+        "2",
+        "--max-gap",
+        "1",
+        "--batch",
+        "1",
+        "--steps",
+        "1",
+        "--warmup",
+        "1",
+        "--log-every",
+        "1",
+        "--ckpt-every",
+        "1",
+        "--threads",
+        "1",
+        "--pe-std",
+        "0.5",
+        "--w-quat",
+        "10",
+        "--lr",
+        "0",
+    ]
     assert train.main(["--out", str(tmp_path), *common]) == 0
     from safetensors.torch import load_file
 
     weights = load_file(str(tmp_path / "checkpoint.safetensors"))
     key = next(k for k in weights if k.endswith("pretrained.pos_embed"))
     table = weights[key][0]
-    assert torch.allclose(table[1:], train.sincos_table(int(round((table.shape[0] - 1) ** 0.5)), table.shape[1], 0.5), atol=1e-6)
+    assert torch.allclose(
+        table[1:],
+        train.sincos_table(int(round((table.shape[0] - 1) ** 0.5)), table.shape[1], 0.5),
+        atol=1e-6,
+    )
     header, row = (tmp_path / "log.csv").read_text().strip().splitlines()[:2]
     quat_loss = float(row.split(",")[header.split(",").index("quat")])
     assert quat_loss > 0
@@ -210,8 +287,29 @@ def test_fixed_batch_trains_on_the_first_batch_every_step(tmp_path, monkeypatch)
         return original(data, seed, step, *args)
 
     monkeypatch.setattr(train, "make_batch", recording)
-    common = ["--tiny", "--size", "28", "--n-seq", "1", "--n-frames", "3", "--max-gap", "1", "--batch", "1",
-              "--steps", "3", "--warmup", "1", "--log-every", "1", "--ckpt-every", "3", "--threads", "1"]
+    common = [
+        "--tiny",
+        "--size",
+        "28",
+        "--n-seq",
+        "1",
+        "--n-frames",
+        "3",
+        "--max-gap",
+        "1",
+        "--batch",
+        "1",
+        "--steps",
+        "3",
+        "--warmup",
+        "1",
+        "--log-every",
+        "1",
+        "--ckpt-every",
+        "3",
+        "--threads",
+        "1",
+    ]
     assert train.main(["--out", str(tmp_path / "fixed"), "--fixed-batch", *common]) == 0
     assert requested == [0, 0, 0]
     requested.clear()

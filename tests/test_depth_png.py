@@ -17,8 +17,12 @@ H, W = 70, 84
 def _inputs(frames: int = 2):
     generator = torch.Generator().manual_seed(0)
     images = torch.rand(1, frames, 3, H, W, generator=generator)
-    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
-    depth = (1.0 + xs / W * 4.0 + ys / H)[None, None].expand(1, frames, H, W).contiguous()  # 1 .. 6 m
+    ys, xs = torch.meshgrid(
+        torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij"
+    )
+    depth = (
+        (1.0 + xs / W * 4.0 + ys / H)[None, None].expand(1, frames, H, W).contiguous()
+    )  # 1 .. 6 m
     pose = torch.eye(4).expand(1, frames, 4, 4).contiguous()
     return images, Prediction(depth=depth, cam_from_world=pose, confidence=None, extras={})
 
@@ -50,7 +54,13 @@ def test_depth_panel_layout_scale_and_input():
     assert np.abs(left.astype(np.float32) - expected).mean() < 25
     # middle: the depth colours vary across the image (depth grows to the right)
     middle = panel[:, panel_w : 2 * panel_w].astype(np.float32)
-    assert np.abs(middle[:, : panel_w // 4].mean(axis=(0, 1)) - middle[:, -panel_w // 4 :].mean(axis=(0, 1))).sum() > 50
+    assert (
+        np.abs(
+            middle[:, : panel_w // 4].mean(axis=(0, 1))
+            - middle[:, -panel_w // 4 :].mean(axis=(0, 1))
+        ).sum()
+        > 50
+    )
     # right: a colour bar whose rows change colour from top to bottom, then text
     bar = panel[:, 2 * panel_w :].astype(np.float32)
     assert bar.shape[1] >= 60

@@ -35,7 +35,9 @@ def test_frame_windows_cover_every_frame_once():
 
 def test_center_pinhole_has_the_stated_field_of_view(seq):
     pinhole = center_pinhole(seq.camera)
-    rays, _ = pinhole.unproject(torch.tensor([[-0.5, (SIZE - 1) / 2], [SIZE - 0.5, (SIZE - 1) / 2]], dtype=torch.float64))
+    rays, _ = pinhole.unproject(
+        torch.tensor([[-0.5, (SIZE - 1) / 2], [SIZE - 0.5, (SIZE - 1) / 2]], dtype=torch.float64)
+    )
     assert math.degrees(math.acos(float(rays[0] @ rays[1]))) == pytest.approx(110.0, abs=1e-6)
 
 
@@ -69,7 +71,10 @@ def test_methods_are_scored_on_the_same_pairs(seq):
         rows[method] = summary
         assert summary["n_pairs"] == 3  # windows [0,1,2] and [3,4]: pairs (0,1),(1,2),(3,4)
         values = headline(summary)
-        assert all(math.isfinite(values[k]) for k in ("rot_deg", "trans_deg", "d_reproj_px", "abs_rel", "delta_1.25"))
+        assert all(
+            math.isfinite(values[k])
+            for k in ("rot_deg", "trans_deg", "d_reproj_px", "abs_rel", "delta_1.25")
+        )
     assert rows["center-ph"]["coverage"] < 0.6 and rows["vanilla"]["coverage"] == 1.0
     assert rows["vanilla"]["abs_rel"]["mean"] != rows["raytun3r"]["abs_rel"]["mean"]
 

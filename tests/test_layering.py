@@ -21,7 +21,17 @@ APPS = f"{PACKAGE}.apps"
 #: rigid-transform helpers Pi3 re-exports), ``_layout`` (the split-install guard in
 #: ``patches/__init__.py``) and the other patch modules. Anything else (adaptation, cameras,
 #: apps) would make a backbone depend on code that depends on the backbones.
-PATCH_ALLOWED = {"hooks", "registry", "prediction", "weights", "errors", "rope", "poses", "_layout", "patches"}
+PATCH_ALLOWED = {
+    "hooks",
+    "registry",
+    "prediction",
+    "weights",
+    "errors",
+    "rope",
+    "poses",
+    "_layout",
+    "patches",
+}
 
 
 def _module_name(path: Path, root: Path) -> tuple[str, bool]:
@@ -78,12 +88,16 @@ def layering_violations(root: Path) -> list[str]:
                 continue
             where = f"{path.relative_to(root)}:{line}"
             if _is_within(name, APPS):
-                problems.append(f"{where}: core module {module} imports the application module {name}")
+                problems.append(
+                    f"{where}: core module {module} imports the application module {name}"
+                )
                 reported.add(line)
             elif is_patch and _is_within(name, PACKAGE) and name != PACKAGE:
                 first = name.split(".")[1]
                 if first not in PATCH_ALLOWED:
-                    problems.append(f"{where}: patch module {module} imports {name} (allowed: {sorted(PATCH_ALLOWED)})")
+                    problems.append(
+                        f"{where}: patch module {module} imports {name} (allowed: {sorted(PATCH_ALLOWED)})"
+                    )
                     reported.add(line)
     return problems
 
@@ -107,7 +121,9 @@ def test_the_scan_sees_every_import_form(tmp_path):
     (core / "bad_relative.py").write_text("from .apps import cli\n")
     (core / "good.py").write_text("from raytun3r_plugin import geometry\nfrom . import hooks\n")
     (tmp_path / "patches").mkdir()
-    (tmp_path / "patches" / "bad_patch.py").write_text("from raytun3r_plugin import hooks\nfrom ..adaptation import train\n")
+    (tmp_path / "patches" / "bad_patch.py").write_text(
+        "from raytun3r_plugin import hooks\nfrom ..adaptation import train\n"
+    )
 
     problems = layering_violations(tmp_path)
     assert [p.split(": ")[0] for p in problems] == [

@@ -52,10 +52,19 @@ def test_the_library_raises_only_raytun3r_errors():
         for line, name in plain_raises(path.read_text(encoding="utf-8")):
             if (relative, name) not in ALLOWED:
                 offenders.append(f"{relative}:{line}: raise {name}")
-    assert not offenders, "raise a raytun3r_plugin.errors subclass instead:\n" + "\n".join(offenders)
+    assert not offenders, "raise a raytun3r_plugin.errors subclass instead:\n" + "\n".join(
+        offenders
+    )
 
 
-@pytest.mark.parametrize("name", [n for n, c in vars(errors).items() if inspect.isclass(c) and issubclass(c, Exception) and c is not errors.Raytun3rError])
+@pytest.mark.parametrize(
+    "name",
+    [
+        n
+        for n, c in vars(errors).items()
+        if inspect.isclass(c) and issubclass(c, Exception) and c is not errors.Raytun3rError
+    ],
+)
 def test_every_error_class_derives_from_the_base(name):
     assert issubclass(getattr(errors, name), errors.Raytun3rError)
 

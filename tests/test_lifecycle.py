@@ -70,7 +70,9 @@ def test_unpatched_model_is_freed(kind):
 
 def test_patched_model_is_freed(kind):
     model, size = _make(kind)
-    handle = rt.apply(model, fisheye(size[1], size[0]), randomise_(rt.Adapter.for_model(model)), strict=False)
+    handle = rt.apply(
+        model, fisheye(size[1], size[0]), randomise_(rt.Adapter.for_model(model)), strict=False
+    )
     outputs(model, _images(size))  # fill the caches and, for Pi3X, install the uv trampoline
     ref = weakref.ref(model)
     del model
@@ -110,7 +112,9 @@ def test_deepcopy_is_a_patched_copy_running_its_own_weights(kind):
 
     # Removing the source leaves the copy patched and working.
     handle.remove()
-    assert rt.handle_of(model) is None and rt.handle_of(twin) is twin_handle and twin_handle.is_active
+    assert (
+        rt.handle_of(model) is None and rt.handle_of(twin) is twin_handle and twin_handle.is_active
+    )
     zeroed_patched = outputs(twin, images)
     with twin_handle.disabled():
         zeroed_plain = outputs(twin, images)
@@ -124,13 +128,17 @@ def test_removing_a_deepcopy_restores_it_exactly(kind):
     model, size = _make(kind)
     images = _images(size)
     plain_twin = copy.deepcopy(model)
-    rt.apply(model, fisheye(size[1], size[0]), randomise_(rt.Adapter.for_model(model)), strict=False)
+    rt.apply(
+        model, fisheye(size[1], size[0]), randomise_(rt.Adapter.for_model(model)), strict=False
+    )
     twin = copy.deepcopy(model)
     rt.remove(twin)
     assert rt.handle_of(twin) is None and rt.handle_of(model) is not None
     assert not any(name in vars(twin) for name in patching.ADDED_ATTRIBUTES)
     for module in twin.modules():
-        assert not any(getattr(value, patching.WRAPPER_MARK, False) for value in vars(module).values())
+        assert not any(
+            getattr(value, patching.WRAPPER_MARK, False) for value in vars(module).values()
+        )
     expected, found = outputs(plain_twin, images), outputs(twin, images)
     for key in expected:
         assert torch.equal(expected[key], found[key]), key
@@ -154,7 +162,9 @@ def test_handle_remove_after_deepcopy_of_the_source(kind):
 
 def test_wrapped_methods_keep_name_and_signature_while_patched(kind):
     model, size = _make(kind)
-    with rt.apply(model, fisheye(size[1], size[0]), randomise_(rt.Adapter.for_model(model)), strict=False) as handle:
+    with rt.apply(
+        model, fisheye(size[1], size[0]), randomise_(rt.Adapter.for_model(model)), strict=False
+    ) as handle:
         assert handle.patched
         for owner, attribute in handle.wrapped():
             wrapped = vars(owner)[attribute]
@@ -182,4 +192,6 @@ def test_deepcopy_of_a_patched_submodule_is_refused():
         with pytest.raises(PatchedCopyError, match="copy the whole model") as error:
             copy.deepcopy(model.backbone)
         assert isinstance(error.value, Raytun3rError)
-        assert copy.deepcopy(model.backbone.pretrained.blocks[0]) is not None  # unpatched parts copy freely
+        assert (
+            copy.deepcopy(model.backbone.pretrained.blocks[0]) is not None
+        )  # unpatched parts copy freely

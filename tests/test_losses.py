@@ -78,14 +78,18 @@ def room_render(camera, cam_from_world: np.ndarray) -> tuple[np.ndarray, np.ndar
     return np.where(valid, depth, 0.0), valid, image
 
 
-def room_sequence(camera, n_frames: int, step: float = 0.25, yaw: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def room_sequence(
+    camera, n_frames: int, step: float = 0.25, yaw: float = 0.05
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Images (N, H, W, 3) float32, range depth (N, H, W) float64, cam_from_world (N, 4, 4)."""
     poses = np.stack([room_pose(k, step, yaw) for k in range(n_frames)])
     rendered = [room_render(camera, pose) for pose in poses]
     return np.stack([r[2] for r in rendered]), np.stack([r[0] for r in rendered]), poses
 
 
-def room_matches(camera, depth_i: np.ndarray, valid: np.ndarray, cam_j_from_cam_i: np.ndarray, stride: int = 2):
+def room_matches(
+    camera, depth_i: np.ndarray, valid: np.ndarray, cam_j_from_cam_i: np.ndarray, stride: int = 2
+):
     """Ground-truth matches: pixel centres of frame i (every ``stride``) and their images in j."""
     rows, cols = np.mgrid[0 : camera.height : stride, 0 : camera.width : stride]
     keep = valid[rows, cols]
@@ -95,7 +99,12 @@ def room_matches(camera, depth_i: np.ndarray, valid: np.ndarray, cam_j_from_cam_
     moved = points @ cam_j_from_cam_i[:3, :3].T + cam_j_from_cam_i[:3, 3]
     uv_j, ok = camera.project(torch.from_numpy(moved))
     uv_j, ok = uv_j.numpy(), ok.numpy().astype(bool)
-    inside = (uv_j[:, 0] > 0) & (uv_j[:, 0] < camera.width - 1) & (uv_j[:, 1] > 0) & (uv_j[:, 1] < camera.height - 1)
+    inside = (
+        (uv_j[:, 0] > 0)
+        & (uv_j[:, 0] < camera.width - 1)
+        & (uv_j[:, 1] > 0)
+        & (uv_j[:, 1] < camera.height - 1)
+    )
     ok &= inside
     ok[ok] &= valid[np.rint(uv_j[ok, 1]).astype(int), np.rint(uv_j[ok, 0]).astype(int)]
     return uv_i[ok], uv_j[ok]
@@ -118,7 +127,9 @@ def test_reprojection_vanishes_at_ground_truth(room):
     camera, _, depth, poses, valid = room
     poses_t = torch.from_numpy(poses).float()
     relative = relative_pose(poses_t, 0, 1)
-    assert torch.allclose(relative.double(), torch.from_numpy(poses[1] @ np.linalg.inv(poses[0])), atol=1e-5)
+    assert torch.allclose(
+        relative.double(), torch.from_numpy(poses[1] @ np.linalg.inv(poses[0])), atol=1e-5
+    )
     uv_i, uv_j = room_matches(camera, depth[0], valid, poses[1] @ np.linalg.inv(poses[0]))
     assert len(uv_i) > 200
     depth_t = torch.from_numpy(depth[0]).float()
@@ -130,14 +141,18 @@ def test_reprojection_vanishes_at_ground_truth(room):
     # A wrong pose or a wrong depth scale costs pixels; the loss is differentiable in both.
     depth_var = (depth_t * 1.3).requires_grad_(True)
     wrong = relative.clone().requires_grad_(True)
-    bad, _ = reprojection_loss(depth_var, wrong, uv_i_t, uv_j_t, torch.full((len(uv_i),), 0.5), camera)
+    bad, _ = reprojection_loss(
+        depth_var, wrong, uv_i_t, uv_j_t, torch.full((len(uv_i),), 0.5), camera
+    )
     assert float(bad.detach()) > 0.1
     bad.backward()
     assert torch.isfinite(depth_var.grad).all() and depth_var.grad.abs().sum() > 0
     assert torch.isfinite(wrong.grad).all() and wrong.grad.abs().sum() > 0
 
     # Confidence weights scale the error; matches outside the valid region do not count.
-    half, _ = reprojection_loss(depth_t * 1.3, relative, uv_i_t, uv_j_t, torch.full((len(uv_i),), 0.5), camera)
+    half, _ = reprojection_loss(
+        depth_t * 1.3, relative, uv_i_t, uv_j_t, torch.full((len(uv_i),), 0.5), camera
+    )
     full, _ = reprojection_loss(depth_t * 1.3, relative, uv_i_t, uv_j_t, None, camera)
     assert float(half) == pytest.approx(float(full) / 2, rel=1e-5)
     outside = torch.tensor([[0.0, 0.0]])  # corner of the image: outside the 190-degree circle
@@ -157,11 +172,20 @@ def test_reprojection_scales_native_matches_to_the_input_size():
     uv_i_in = to_input_pixels(torch.from_numpy(uv_i).float(), (168, 140), (84, 70))
     uv_j_in = to_input_pixels(torch.from_numpy(uv_j).float(), (168, 140), (84, 70))
     rel_t = torch.from_numpy(relative).float()
-    loss, n_valid = reprojection_loss(torch.from_numpy(depth_small).float(), rel_t, uv_i_in, uv_j_in, None, small)
+    loss, n_valid = reprojection_loss(
+        torch.from_numpy(depth_small).float(), rel_t, uv_i_in, uv_j_in, None, small
+    )
     assert n_valid > 200
     assert float(loss) < 0.1  # input pixels: bilinear depth between pixel centres only
     # Rescaling without the pixel-centre shift (u / 2) is already measurably wrong.
-    wrong, _ = reprojection_loss(torch.from_numpy(depth_small).float(), rel_t, torch.from_numpy(uv_i).float() / 2, torch.from_numpy(uv_j).float() / 2, None, small)
+    wrong, _ = reprojection_loss(
+        torch.from_numpy(depth_small).float(),
+        rel_t,
+        torch.from_numpy(uv_i).float() / 2,
+        torch.from_numpy(uv_j).float() / 2,
+        None,
+        small,
+    )
     assert float(wrong) > 5 * float(loss)
 
 
@@ -175,7 +199,15 @@ def test_reprojection_matches_synthetic_ground_truth():
     assert len(uv_i) > 100
     relative = torch.from_numpy(synthetic.relative_pose(seq.cam_from_world, 0, 1)).float()
     depth = torch.from_numpy(np.asarray(seq.range_depth(0))).float()
-    loss, n_valid = reprojection_loss(depth, relative, torch.from_numpy(uv_i).float(), torch.from_numpy(uv_j).float(), None, camera, depth > 0)
+    loss, n_valid = reprojection_loss(
+        depth,
+        relative,
+        torch.from_numpy(uv_i).float(),
+        torch.from_numpy(uv_j).float(),
+        None,
+        camera,
+        depth > 0,
+    )
     assert n_valid >= 0.9 * len(uv_i)
     assert float(loss) < 1e-2
 
@@ -186,10 +218,14 @@ def test_translation_scale_recovers_the_depth_scale(room):
     uv_i, uv_j = room_matches(camera, depth[0], valid, relative)
     rays_i, _ = camera.unproject(torch.from_numpy(uv_i))
     rays_j, _ = camera.unproject(torch.from_numpy(uv_j))
-    points = torch.from_numpy(depth[0][uv_i[:, 1].astype(int), uv_i[:, 0].astype(int)])[:, None] * rays_i
+    points = (
+        torch.from_numpy(depth[0][uv_i[:, 1].astype(int), uv_i[:, 0].astype(int)])[:, None] * rays_i
+    )
     translation = torch.from_numpy(relative[:3, 3])
     direction = translation / translation.norm()
-    scale = fit_translation_scale(points * 2.0, rays_j, torch.from_numpy(relative[:3, :3]), direction)
+    scale = fit_translation_scale(
+        points * 2.0, rays_j, torch.from_numpy(relative[:3, :3]), direction
+    )
     assert float(scale) == pytest.approx(2.0 * float(translation.norm()), rel=1e-6)
 
 
@@ -201,7 +237,10 @@ def test_translation_scale_recovers_the_depth_scale(room):
 def _axis_angle(axis, angle: float) -> torch.Tensor:
     axis = torch.as_tensor(axis, dtype=torch.float64)
     axis = axis / axis.norm()
-    k = torch.tensor([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]], dtype=torch.float64)
+    k = torch.tensor(
+        [[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]],
+        dtype=torch.float64,
+    )
     return torch.eye(3, dtype=torch.float64) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
 
 
@@ -220,9 +259,13 @@ def test_pose_term_measures_angles_in_radians():
     rotation = _axis_angle([0.3, 1.0, -0.2], 0.0)
     turned = _axis_angle([0.3, 1.0, -0.2], 0.2)
     assert float(rotation_angle(rotation, turned)) == pytest.approx(0.2, abs=1e-9)
-    assert float(rotation_angle(rotation, _axis_angle([1.0, 0.0, 0.0], math.pi))) == pytest.approx(math.pi, abs=1e-6)
+    assert float(rotation_angle(rotation, _axis_angle([1.0, 0.0, 0.0], math.pi))) == pytest.approx(
+        math.pi, abs=1e-6
+    )
     t = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
-    assert float(translation_angle(t, torch.tensor([math.cos(0.3), math.sin(0.3), 0.0], dtype=torch.float64))) == pytest.approx(0.3, abs=1e-9)
+    assert float(
+        translation_angle(t, torch.tensor([math.cos(0.3), math.sin(0.3), 0.0], dtype=torch.float64))
+    ) == pytest.approx(0.3, abs=1e-9)
     assert float(translation_angle(t, -t)) == pytest.approx(math.pi, abs=1e-6)
     pose = torch.eye(4, dtype=torch.float64)
     pose[:3, :3] = turned
@@ -261,7 +304,9 @@ def test_smoothness_follows_image_edges():
     # An image edge elsewhere does not discount the depth step.
     elsewhere = torch.zeros(3, height, width)
     elsewhere[:, :, 5:] = 1.0
-    assert float(smoothness_loss(depth, elsewhere)) == pytest.approx(float(in_flat_region), rel=1e-5)
+    assert float(smoothness_loss(depth, elsewhere)) == pytest.approx(
+        float(in_flat_region), rel=1e-5
+    )
     # Mean-normalised: scaling the depth changes nothing; a constant depth costs nothing.
     assert float(smoothness_loss(depth * 9.0, edged)) == pytest.approx(float(aligned), rel=1e-5)
     assert float(smoothness_loss(torch.full((height, width), 3.0), edged)) == 0.0
@@ -299,7 +344,9 @@ def test_pe_regularisers_act_on_the_correction_only():
     camera = fisheye(84, 70, 190.0)
     geometry = GeometryCache(camera, 14).at(70, 84)
     model_a, model_b = build_tiny_network(seed=0), build_tiny_network(seed=1)
-    assert not torch.equal(model_a.backbone.pretrained.pos_embed, model_b.backbone.pretrained.pos_embed)
+    assert not torch.equal(
+        model_a.backbone.pretrained.pos_embed, model_b.backbone.pretrained.pos_embed
+    )
 
     zero = Adapter.for_model(model_a, camera)
     correction = pe_correction_grid(zero, geometry)
@@ -318,7 +365,9 @@ def test_pe_regularisers_act_on_the_correction_only():
         assert float(pe_l2(measured)) == pytest.approx(values[name][0], rel=1e-5)
         # Gradients reach the PE tables (and only them: the RoPE table is not involved).
         (2 * l2 + 20 * tv).backward()
-        assert adapter.pe["radial"].grad.abs().sum() > 0 and adapter.pe["angular"].grad.abs().sum() > 0
+        assert (
+            adapter.pe["radial"].grad.abs().sum() > 0 and adapter.pe["angular"].grad.abs().sum() > 0
+        )
         assert adapter.rope["radial"].grad is None
     assert values["a"] == values["b"]
 
@@ -333,7 +382,14 @@ def test_pe_tv_is_the_squared_neighbour_difference():
 
 def test_total_loss_uses_the_paper_weights():
     weights = LossWeights()
-    assert weights.as_dict() == {"reproj": 1.0, "smooth": 10.0, "l2": 2.0, "tv": 20.0, "pose": 1.0, "depth": 1.0}
+    assert weights.as_dict() == {
+        "reproj": 1.0,
+        "smooth": 10.0,
+        "l2": 2.0,
+        "tv": 20.0,
+        "pose": 1.0,
+        "depth": 1.0,
+    }
     terms = {name: torch.tensor(1.0) for name in ("reproj", "smooth", "l2", "tv", "pose")}
     assert float(total_loss(terms, weights)) == 34.0
     del terms["pose"]

@@ -305,13 +305,17 @@ def _end_point_errors(seq, i: int, j: int, m: Matches) -> np.ndarray:
     return np.linalg.norm(uv + np.stack([fu, fv], 1) - m.uv_j, axis=1)[ok]
 
 
-@pytest.mark.parametrize(("matcher", "min_matches", "max_median", "min_in1"), [
-    (DISFlowMatcher(appearance_check=False), 500, 0.5, 0.85),
-    (DISFlowMatcher(), 150, 0.3, 0.95),
-    (SIFTMatcher(), 100, 0.5, 0.85),
-])
-def test_matchers_on_synthetic_fisheye(fisheye_indoor, matcher, min_matches, max_median,
-                                       min_in1) -> None:
+@pytest.mark.parametrize(
+    ("matcher", "min_matches", "max_median", "min_in1"),
+    [
+        (DISFlowMatcher(appearance_check=False), 500, 0.5, 0.85),
+        (DISFlowMatcher(), 150, 0.3, 0.95),
+        (SIFTMatcher(), 100, 0.5, 0.85),
+    ],
+)
+def test_matchers_on_synthetic_fisheye(
+    fisheye_indoor, matcher, min_matches, max_median, min_in1
+) -> None:
     seq = fisheye_indoor
     valid = seq.camera.valid_mask().numpy()
     for i, j in ((0, 1), (1, 0), (1, 2)):
@@ -335,7 +339,11 @@ def test_appearance_check_rejects_the_zero_flow_failure() -> None:
     rng = np.random.default_rng(3)
     texture = cv2.GaussianBlur(rng.random((96, 120)).astype(np.float32), (0, 0), 0.8)
     gray_i, gray_j = texture[:, 12:108], texture[:, :96]  # scene moves 12 px to the right
-    grid = np.stack(np.meshgrid(np.arange(16, 80, 4), np.arange(16, 80, 4)), -1).reshape(-1, 2).astype(np.float32)
+    grid = (
+        np.stack(np.meshgrid(np.arange(16, 80, 4), np.arange(16, 80, 4)), -1)
+        .reshape(-1, 2)
+        .astype(np.float32)
+    )
     true = appearance_check(gray_i, gray_j, grid, grid + [12.0, 0.0])
     zero = appearance_check(gray_i, gray_j, grid, grid)
     assert true.mean() > 0.9
@@ -367,7 +375,10 @@ def test_dis_default_holds_at_large_motion_on_the_benchmark_cameras() -> None:
         seq = synthetic.render_sequence("outdoor", camera, n_frames=6, seed=80_001 + 10 * index)
         valid = camera.valid_mask().numpy()
         worst = {}
-        for name, matcher in (("checked", DISFlowMatcher()), ("raw", DISFlowMatcher(appearance_check=False))):
+        for name, matcher in (
+            ("checked", DISFlowMatcher()),
+            ("raw", DISFlowMatcher(appearance_check=False)),
+        ):
             errors, motion = [], []
             for i, j in ((0, 2), (2, 0), (1, 3), (3, 1), (2, 4), (4, 2)):
                 m = matcher.match(seq.images[i], seq.images[j], valid)
@@ -381,8 +392,11 @@ def test_dis_default_holds_at_large_motion_on_the_benchmark_cameras() -> None:
                 errors.append(np.linalg.norm(uv[ok] + truth - m.uv_j[ok], axis=1))
                 motion.append(np.linalg.norm(truth, axis=1))
             error, moved = np.concatenate(errors), np.concatenate(motion)
-            medians = [np.median(error[(moved >= lo) & (moved < hi)]) for lo, hi in zip(bins[:-1], bins[1:], strict=True)
-                       if ((moved >= lo) & (moved < hi)).mean() >= 0.05]
+            medians = [
+                np.median(error[(moved >= lo) & (moved < hi)])
+                for lo, hi in zip(bins[:-1], bins[1:], strict=True)
+                if ((moved >= lo) & (moved < hi)).mean() >= 0.05
+            ]
             worst[name] = max(medians)
         assert worst["checked"] < 1.0, (spec.label, worst)
         assert worst["raw"] > worst["checked"]

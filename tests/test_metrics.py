@@ -52,7 +52,9 @@ def pose(R: np.ndarray, t) -> np.ndarray:
 def synth():
     f = 47.0 / math.radians(97.5)
     cam = cameras.KannalaBrandt4(
-        96, 96, {"fx": f, "fy": f, "cx": 47.5, "cy": 47.5, "k1": 0.01, "k2": 0.0, "k3": 0.0, "k4": 0.0},
+        96,
+        96,
+        {"fx": f, "fy": f, "cx": 47.5, "cy": 47.5, "k1": 0.01, "k2": 0.0, "k3": 0.0, "k4": 0.0},
         max_fov_deg=195.0,
     )
     return render_sequence("indoor", cam, n_frames=3, seed=11, flow_px=3.0)
@@ -67,7 +69,9 @@ def test_rotation_error_known_values():
     # tiny angles stay accurate (no acos precision loss)
     assert rotation_error_deg(rot([0, 0, 1], 1e-6), np.eye(3)) == pytest.approx(1e-6, rel=1e-6)
     batch = np.stack([rot([1, 0, 0], a) for a in (0.5, 10.0, 90.0)])
-    np.testing.assert_allclose(rotation_error_deg(batch, np.eye(3)[None]), [0.5, 10.0, 90.0], atol=1e-9)
+    np.testing.assert_allclose(
+        rotation_error_deg(batch, np.eye(3)[None]), [0.5, 10.0, 90.0], atol=1e-9
+    )
     t = rotation_error_deg(torch.from_numpy(batch), torch.eye(3, dtype=torch.float64))
     assert isinstance(t, torch.Tensor)
     np.testing.assert_allclose(t.numpy(), [0.5, 10.0, 90.0], atol=1e-9)
@@ -77,9 +81,20 @@ def test_rotation_error_known_values():
 
 def test_translation_direction_signed_and_folded():
     a = np.array([[1.0, 0, 0], [1.0, 0, 0], [1.0, 0, 0], [0, 0, 2.0]])
-    b = np.array([[-3.0, 0, 0], [math.cos(math.radians(100)), math.sin(math.radians(100)), 0], [2.0, 0, 0], [0, 0, 1e-3]])
-    np.testing.assert_allclose(translation_direction_error_deg(a, b), [180.0, 100.0, 0.0, 0.0], atol=1e-9)
-    np.testing.assert_allclose(translation_direction_error_deg(a, b, folded=True), [0.0, 80.0, 0.0, 0.0], atol=1e-9)
+    b = np.array(
+        [
+            [-3.0, 0, 0],
+            [math.cos(math.radians(100)), math.sin(math.radians(100)), 0],
+            [2.0, 0, 0],
+            [0, 0, 1e-3],
+        ]
+    )
+    np.testing.assert_allclose(
+        translation_direction_error_deg(a, b), [180.0, 100.0, 0.0, 0.0], atol=1e-9
+    )
+    np.testing.assert_allclose(
+        translation_direction_error_deg(a, b, folded=True), [0.0, 80.0, 0.0, 0.0], atol=1e-9
+    )
     assert math.isnan(translation_direction_error_deg(np.zeros(3), np.ones(3)))
     t = translation_direction_error_deg(torch.tensor(a), torch.tensor(b), folded=True)
     np.testing.assert_allclose(t.numpy(), [0.0, 80.0, 0.0, 0.0], atol=1e-9)
@@ -145,7 +160,9 @@ def test_d_reproj_zero_for_ground_truth(synth):
         det = d_reproj(synth.depth[i] * 2.5, cam, uv_i[vis], uv_j[vis], T, return_details=True)
         assert det["d_reproj"] < 0.05 and det["scale"] == pytest.approx(0.4, rel=1e-6)
         # 3-D residual variant with the other view's depth
-        dj = d_reproj(synth.depth[i] * 2.5, cam, uv_i[vis], uv_j[vis], T, depth_j=synth.depth[j] * 2.5)
+        dj = d_reproj(
+            synth.depth[i] * 2.5, cam, uv_i[vis], uv_j[vis], T, depth_j=synth.depth[j] * 2.5
+        )
         assert dj < 0.05
 
 
@@ -159,7 +176,16 @@ def test_d_reproj_robust_and_sensitive(synth):
     det = d_reproj(bad, cam, uv_i[vis], uv_j[vis], T, return_details=True)
     assert det["scale"] == pytest.approx(1.0, abs=0.03)  # outliers do not drag the scale
     conf = np.ones(vis.sum())
-    det2 = d_reproj(synth.depth[0], cam, uv_i[vis], uv_j[vis], T, conf=conf * 0.2, conf_threshold=0.5, return_details=True)
+    det2 = d_reproj(
+        synth.depth[0],
+        cam,
+        uv_i[vis],
+        uv_j[vis],
+        T,
+        conf=conf * 0.2,
+        conf_threshold=0.5,
+        return_details=True,
+    )
     assert det2["n_used"] == 0 and math.isnan(det2["d_reproj"])
     # a wrong depth shape (not a scale) gives a clearly non-zero error
     warped = synth.depth[0] ** 1.5
@@ -168,7 +194,13 @@ def test_d_reproj_robust_and_sensitive(synth):
     T_bad = pose(rot([0, 1, 0], 3.0), [0, 0, 0]) @ T
     assert d_reproj(synth.depth[0], cam, uv_i[vis], uv_j[vis], T_bad) > 1.0
     # torch inputs work
-    v = d_reproj(torch.from_numpy(synth.depth[0]), cam, torch.from_numpy(uv_i[vis]), torch.from_numpy(uv_j[vis]), torch.from_numpy(T))
+    v = d_reproj(
+        torch.from_numpy(synth.depth[0]),
+        cam,
+        torch.from_numpy(uv_i[vis]),
+        torch.from_numpy(uv_j[vis]),
+        torch.from_numpy(T),
+    )
     assert v < 0.05
 
 
@@ -188,7 +220,9 @@ def test_abs_rel_and_delta_known_values():
     expect = np.mean(np.abs(s * (g + b) - g) / g)
     assert abs_rel(gt + b, gt) == pytest.approx(expect, rel=1e-12)
     s_ls = np.sum((g + b) * g) / np.sum((g + b) ** 2)
-    assert abs_rel(gt + b, gt, align="lstsq") == pytest.approx(np.mean(np.abs(s_ls * (g + b) - g) / g), rel=1e-12)
+    assert abs_rel(gt + b, gt, align="lstsq") == pytest.approx(
+        np.mean(np.abs(s_ls * (g + b) - g) / g), rel=1e-12
+    )
     assert abs_rel(gt + b, gt, align="none") == pytest.approx(np.mean(b / g), rel=1e-12)
     r = (s * (g + b)) / g
     assert delta_125(gt + b, gt) == pytest.approx(np.mean(np.maximum(r, 1 / r) < 1.25))
@@ -196,7 +230,9 @@ def test_abs_rel_and_delta_known_values():
     m = np.zeros_like(valid)
     m[5:, :] = True
     assert abs_rel(gt + b, gt, valid=m) == pytest.approx(
-        np.mean(np.abs((np.median(gt[5:]) / np.median(gt[5:] + b)) * (gt[5:] + b) - gt[5:]) / gt[5:])
+        np.mean(
+            np.abs((np.median(gt[5:]) / np.median(gt[5:] + b)) * (gt[5:] + b) - gt[5:]) / gt[5:]
+        )
     )
     batch = abs_rel(np.stack([gt * 2, gt + b]), np.stack([gt, gt]))
     assert batch.shape == (2,) and batch[0] == pytest.approx(0.0, abs=1e-12)
@@ -218,11 +254,22 @@ def test_summarize_and_auc():
     pred = gt.copy()
     pred[3] = pose(rot([0, 0, 1], 8.0), [0, 0, 0]) @ gt[3]
     res = relative_pose_errors(pred, gt)
-    out = summarize(res, d_reproj=[0.1, 0.3, np.nan], abs_rel=[0.1, 0.2], delta_125=[0.9, 1.0], name="seq")
+    out = summarize(
+        res, d_reproj=[0.1, 0.3, np.nan], abs_rel=[0.1, 0.2], delta_125=[0.9, 1.0], name="seq"
+    )
     assert out["name"] == "seq" and out["n_pairs"] == 5 and out["n_skipped"] == 0
-    assert out["rotation_deg"]["count"] == 5 and out["rotation_deg"]["median"] == pytest.approx(0.0, abs=1e-6)
-    assert out["d_reproj"] == {"mean": pytest.approx(0.2), "median": pytest.approx(0.2), "count": 3, "n_nan": 1}
-    assert out["abs_rel"]["mean"] == pytest.approx(0.15) and out["delta_125"]["median"] == pytest.approx(0.95)
+    assert out["rotation_deg"]["count"] == 5 and out["rotation_deg"]["median"] == pytest.approx(
+        0.0, abs=1e-6
+    )
+    assert out["d_reproj"] == {
+        "mean": pytest.approx(0.2),
+        "median": pytest.approx(0.2),
+        "count": 3,
+        "n_nan": 1,
+    }
+    assert out["abs_rel"]["mean"] == pytest.approx(0.15) and out["delta_125"][
+        "median"
+    ] == pytest.approx(0.95)
     assert out["acc@5"] == pytest.approx(3 / 5) and out["acc@20"] == 1.0
     assert 0.6 < out["auc@10"] < 1.0
     assert auc([0.0, 5.0, np.nan], 10.0) == pytest.approx((1.0 + 0.5 + 0.0) / 3)

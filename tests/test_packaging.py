@@ -15,13 +15,28 @@ ROOT = Path(__file__).parent.parent
 def test_editable_install_maps_patches_into_the_package():
     module = importlib.import_module("raytun3r_plugin.patches.da3")
     assert Path(module.__file__).resolve() == (ROOT / "patches" / "da3.py").resolve()
-    assert importlib.util.find_spec("patches") is None or "raytun3r" not in str(importlib.util.find_spec("patches").origin)
+    assert importlib.util.find_spec("patches") is None or "raytun3r" not in str(
+        importlib.util.find_spec("patches").origin
+    )
 
 
 def test_wheel_contains_patches_under_the_package(tmp_path):
     subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp_path)],
-        check=True, capture_output=True, text=True,
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            str(ROOT),
+            "--no-deps",
+            "--no-build-isolation",
+            "-q",
+            "-w",
+            str(tmp_path),
+        ],
+        check=True,
+        capture_output=True,
+        text=True,
     )
     wheel = next(tmp_path.glob("raytun3r-*.whl"))
     names = set(zipfile.ZipFile(wheel).namelist())
@@ -52,8 +67,12 @@ def _run_with_foreign_patches(tmp_path, statement: str) -> subprocess.CompletedP
     folder = tmp_path / "other-clone" / "patches"
     folder.mkdir(parents=True)
     (folder / "__init__.py").write_text("FOREIGN = True\n")
-    script = _FOREIGN_PATCHES.format(init=str(folder / "__init__.py"), folder=str(folder), root=str(ROOT), statement=statement)
-    return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    script = _FOREIGN_PATCHES.format(
+        init=str(folder / "__init__.py"), folder=str(folder), root=str(ROOT), statement=statement
+    )
+    return subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, timeout=120
+    )
 
 
 def test_patches_from_another_tree_fail_loudly_at_import(tmp_path):
@@ -68,6 +87,10 @@ def test_patches_from_another_tree_fail_loudly_at_import(tmp_path):
 def test_layout_rule_accepts_the_source_tree_and_the_wheel(tmp_path):
     from raytun3r_plugin._layout import same_tree
 
-    assert same_tree(tmp_path / "clone" / "raytun3r_plugin", tmp_path / "clone" / "patches")  # source / editable
-    assert same_tree(tmp_path / "site" / "raytun3r_plugin", tmp_path / "site" / "raytun3r_plugin" / "patches")  # wheel
+    assert same_tree(
+        tmp_path / "clone" / "raytun3r_plugin", tmp_path / "clone" / "patches"
+    )  # source / editable
+    assert same_tree(
+        tmp_path / "site" / "raytun3r_plugin", tmp_path / "site" / "raytun3r_plugin" / "patches"
+    )  # wheel
     assert not same_tree(tmp_path / "clone" / "raytun3r_plugin", tmp_path / "other" / "patches")

@@ -28,8 +28,13 @@ FISHEYE = KannalaBrandt4(
 
 
 def _scene_matches(
-    camera, R: np.ndarray, t: np.ndarray, n: int = 1500, noise_px: float = 0.2,
-    outlier_frac: float = 0.15, seed: int = 0,
+    camera,
+    R: np.ndarray,
+    t: np.ndarray,
+    n: int = 1500,
+    noise_px: float = 0.2,
+    outlier_frac: float = 0.15,
+    seed: int = 0,
 ) -> tuple[Matches, np.ndarray]:
     """Random 3-D points seen by two cameras ``cam_j_from_cam_i = (R, t)``; pixel noise + outliers.
 
@@ -44,8 +49,12 @@ def _scene_matches(
     uv_j, ok_j = camera.project(torch.from_numpy(Y))
     uv_i, uv_j = uv_i.numpy(), uv_j.numpy()
     inside = (
-        ok_i.numpy() & ok_j.numpy()
-        & (uv_i >= 0).all(1) & (uv_i <= 159).all(1) & (uv_j >= 0).all(1) & (uv_j <= 159).all(1)
+        ok_i.numpy()
+        & ok_j.numpy()
+        & (uv_i >= 0).all(1)
+        & (uv_i <= 159).all(1)
+        & (uv_j >= 0).all(1)
+        & (uv_j <= 159).all(1)
     )
     uv_i, uv_j = uv_i[inside][:n], uv_j[inside][:n]
     uv_i = uv_i + rng.normal(0, noise_px, uv_i.shape)
@@ -150,8 +159,9 @@ def test_fails_soft() -> None:
         estimate_relative_pose(few, FISHEYE, max_angle_deg=95.0)
 
 
-@pytest.mark.parametrize(("kind", "max_rot_deg", "max_t_deg"), [("indoor", 0.5, 2.0),
-                                                                 ("outdoor", 1.0, 5.0)])
+@pytest.mark.parametrize(
+    ("kind", "max_rot_deg", "max_t_deg"), [("indoor", 0.5, 2.0), ("outdoor", 1.0, 5.0)]
+)
 def test_pose_targets_on_synthetic_fisheye(kind: str, max_rot_deg: float, max_t_deg: float) -> None:
     """DIS matches on consecutive frames of a rendered ~190 degree KB4 sequence (hand-held
     indoors, driving outdoors) against the ground-truth relative poses."""

@@ -41,7 +41,9 @@ def test_invert_rigid_is_the_inverse_in_numpy_and_torch():
     poses = random_poses(5)
     inverse = invert_rigid(poses)
     np.testing.assert_allclose(inverse @ poses, np.broadcast_to(np.eye(4), poses.shape), atol=1e-12)
-    np.testing.assert_array_equal(inverse[:, :3, :3], np.swapaxes(poses[:, :3, :3], -1, -2))  # exact transpose
+    np.testing.assert_array_equal(
+        inverse[:, :3, :3], np.swapaxes(poses[:, :3, :3], -1, -2)
+    )  # exact transpose
     as_torch = invert_rigid(torch.from_numpy(poses))
     assert isinstance(as_torch, torch.Tensor) and as_torch.dtype == torch.float64
     np.testing.assert_allclose(as_torch.numpy(), np.linalg.inv(poses), atol=1e-12)
@@ -51,7 +53,9 @@ def test_relative_pose_conventions_agree():
     poses = random_poses(4, seed=1)
     expected = poses[2] @ np.linalg.inv(poses[0])  # cam_2_from_cam_0
     np.testing.assert_array_equal(relative_pose(poses, 0, 2), expected)
-    np.testing.assert_allclose(relative_pose(torch.from_numpy(poses), 0, 2).numpy(), expected, atol=1e-12)
+    np.testing.assert_allclose(
+        relative_pose(torch.from_numpy(poses), 0, 2).numpy(), expected, atol=1e-12
+    )
     batched = relative_poses(poses, np.array([[0, 2], [3, 1]]))
     np.testing.assert_allclose(batched[0], expected, atol=1e-12)
     np.testing.assert_allclose(batched[1], poses[1] @ np.linalg.inv(poses[3]), atol=1e-12)
@@ -97,14 +101,23 @@ def test_backproject_range_and_z_depth():
 
 
 def test_quaternions_round_trip_on_every_branch():
-    rotations = [np.eye(3), axis_angle([0, 0, 1], math.pi / 2), axis_angle([1, 1, 0], math.pi), axis_angle([0.2, -1, 0.4], 3.0)]
+    rotations = [
+        np.eye(3),
+        axis_angle([0, 0, 1], math.pi / 2),
+        axis_angle([1, 1, 0], math.pi),
+        axis_angle([0.2, -1, 0.4], 3.0),
+    ]
     rotations += list(random_poses(20, seed=3)[:, :3, :3])
     quaternions = rotation_to_quaternion(np.stack(rotations))
     assert quaternions.shape == (len(rotations), 4)
     assert (quaternions[:, 0] >= 0).all()
     np.testing.assert_allclose(np.linalg.norm(quaternions, axis=-1), 1.0, atol=1e-15)
     np.testing.assert_allclose(quaternion_to_rotation(quaternions), np.stack(rotations), atol=1e-12)
-    np.testing.assert_allclose(rotation_to_quaternion(axis_angle([0, 0, 1], math.pi / 2)), [math.sqrt(0.5), 0, 0, math.sqrt(0.5)], atol=1e-15)
+    np.testing.assert_allclose(
+        rotation_to_quaternion(axis_angle([0, 0, 1], math.pi / 2)),
+        [math.sqrt(0.5), 0, 0, math.sqrt(0.5)],
+        atol=1e-15,
+    )
 
 
 def test_tum_trajectories_store_x_y_z_w(tmp_path):
@@ -115,4 +128,6 @@ def test_tum_trajectories_store_x_y_z_w(tmp_path):
     world_from_cam[:3, 3] = [1.0, 2.0, 3.0]
     write_tum(tmp_path / "t.txt", np.array([0.5]), np.linalg.inv(world_from_cam)[None])
     values = [float(v) for v in (tmp_path / "t.txt").read_text().splitlines()[1].split()]
-    np.testing.assert_allclose(values, [0.5, 1.0, 2.0, 3.0, 0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)], atol=1e-8)
+    np.testing.assert_allclose(
+        values, [0.5, 1.0, 2.0, 3.0, 0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)], atol=1e-8
+    )

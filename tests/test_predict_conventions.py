@@ -22,8 +22,15 @@ def rotation(axis, degrees) -> torch.Tensor:
     axis = torch.tensor(axis, dtype=torch.float64)
     axis = axis / axis.norm()
     angle = math.radians(degrees)
-    cross = torch.tensor([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]], dtype=torch.float64)
-    return torch.eye(3, dtype=torch.float64) + math.sin(angle) * cross + (1 - math.cos(angle)) * cross @ cross
+    cross = torch.tensor(
+        [[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]],
+        dtype=torch.float64,
+    )
+    return (
+        torch.eye(3, dtype=torch.float64)
+        + math.sin(angle) * cross
+        + (1 - math.cos(angle)) * cross @ cross
+    )
 
 
 def quaternion_xyzw(axis, degrees) -> torch.Tensor:
@@ -77,11 +84,18 @@ def images():
 def test_da3_extrinsics_are_returned_as_cam_from_world():
     from raytun3r_plugin.patches import da3
 
-    cam_from_world = torch.stack([rigid(rotation(axis, deg), t) for axis, deg, t in POSES]).float()[None]
+    cam_from_world = torch.stack([rigid(rotation(axis, deg), t) for axis, deg, t in POSES]).float()[
+        None
+    ]
     depth = torch.rand(B, S, H, W) + 0.5
     intrinsics = torch.eye(3).expand(B, S, 3, 3)
     root = StandIn(
-        {"depth": depth, "depth_conf": depth + 1, "extrinsics": cam_from_world[..., :3, :], "intrinsics": intrinsics},
+        {
+            "depth": depth,
+            "depth_conf": depth + 1,
+            "extrinsics": cam_from_world[..., :3, :],
+            "intrinsics": intrinsics,
+        },
         backbone=namespace(pretrained=namespace(patch_size=14)),
     )
     given = images()
@@ -106,25 +120,42 @@ def test_vggt_pose_encoding_decodes_to_the_known_cam_from_world():
     fov_h, fov_w = math.radians(50.0), math.radians(70.0)
     encodings, expected = [], []
     for index, (axis, degrees, translation) in enumerate(POSES):
-        quaternion = quaternion_xyzw(axis, degrees) * (-1 if index else 1)  # q and -q: same rotation
-        encodings.append(torch.cat((torch.tensor(translation, dtype=torch.float64), quaternion, torch.tensor([fov_h, fov_w], dtype=torch.float64))))
+        quaternion = quaternion_xyzw(axis, degrees) * (
+            -1 if index else 1
+        )  # q and -q: same rotation
+        encodings.append(
+            torch.cat(
+                (
+                    torch.tensor(translation, dtype=torch.float64),
+                    quaternion,
+                    torch.tensor([fov_h, fov_w], dtype=torch.float64),
+                )
+            )
+        )
         expected.append(rigid(rotation(axis, degrees), translation))
     pose_enc = torch.stack(encodings).float()[None]
     expected = torch.stack(expected).float()[None]
     depth = torch.rand(B, S, H, W, 1) + 0.5
-    root = StandIn({"pose_enc": pose_enc, "depth": depth, "depth_conf": depth[..., 0] + 1}, aggregator=namespace(patch_size=14))
+    root = StandIn(
+        {"pose_enc": pose_enc, "depth": depth, "depth_conf": depth[..., 0] + 1},
+        aggregator=namespace(patch_size=14),
+    )
     given = images()
     prediction = vggt.predict(root, given)
     assert torch.equal(root.seen, given)  # VGGT normalises inside: images go in as [0, 1]
     assert prediction.cam_from_world.shape == (B, S, 4, 4)
     assert torch.allclose(prediction.cam_from_world, expected, atol=1e-5)
-    assert torch.equal(prediction.depth, depth[..., 0]) and torch.equal(prediction.confidence, depth[..., 0] + 1)
+    assert torch.equal(prediction.depth, depth[..., 0]) and torch.equal(
+        prediction.confidence, depth[..., 0] + 1
+    )
     intrinsics = prediction.extras["intrinsics"]
     assert torch.allclose(intrinsics[..., 0, 0], torch.tensor((W / 2) / math.tan(fov_w / 2)))
     assert torch.allclose(intrinsics[..., 1, 1], torch.tensor((H / 2) / math.tan(fov_h / 2)))
     # cam_from_world maps a world point into the camera frame: X_c = R X_w + t
     point = torch.tensor([0.2, -0.3, 4.0])
-    camera = prediction.cam_from_world[0, 1, :3, :3] @ point + prediction.cam_from_world[0, 1, :3, 3]
+    camera = (
+        prediction.cam_from_world[0, 1, :3, :3] @ point + prediction.cam_from_world[0, 1, :3, 3]
+    )
     assert torch.allclose(camera, expected[0, 1, :3, :3] @ point + expected[0, 1, :3, 3], atol=1e-5)
 
 
@@ -151,19 +182,39 @@ def test_pi3_world_from_cam_is_inverted():
     cam_from_world = torch.linalg.inv(world_from_cam)
     local_points = torch.randn(B, S, H, W, 3, generator=torch.Generator().manual_seed(2))
     local_points[..., 2] = local_points[..., 2].abs() + 0.5
-    points = torch.einsum("bnij,bnhwj->bnhwi", world_from_cam.float(), torch.cat((local_points, torch.ones_like(local_points[..., :1])), -1))[..., :3]
+    points = torch.einsum(
+        "bnij,bnhwj->bnhwi",
+        world_from_cam.float(),
+        torch.cat((local_points, torch.ones_like(local_points[..., :1])), -1),
+    )[..., :3]
     conf = torch.randn(B, S, H, W, 1)
-    root = StandIn({"local_points": local_points, "points": points, "conf": conf, "camera_poses": world_from_cam.float()}, patch_size=14)
+    root = StandIn(
+        {
+            "local_points": local_points,
+            "points": points,
+            "conf": conf,
+            "camera_poses": world_from_cam.float(),
+        },
+        patch_size=14,
+    )
     given = images()
     prediction = pi3.predict(root, given)
     assert torch.equal(root.seen, given)  # Pi3 normalises inside
     assert torch.allclose(prediction.cam_from_world, cam_from_world.float(), atol=1e-6)
-    assert torch.allclose(prediction.cam_from_world @ world_from_cam.float(), torch.eye(4).expand(B, S, 4, 4), atol=1e-6)
+    assert torch.allclose(
+        prediction.cam_from_world @ world_from_cam.float(),
+        torch.eye(4).expand(B, S, 4, 4),
+        atol=1e-6,
+    )
     assert torch.allclose(prediction.depth, local_points.norm(dim=-1))  # range along the ray
     assert torch.equal(prediction.extras["depth_z"], local_points[..., 2])
     assert torch.allclose(prediction.confidence, torch.sigmoid(conf[..., 0]))
     # a world point goes back to the camera frame with cam_from_world
-    back = torch.einsum("bnij,bnhwj->bnhwi", prediction.cam_from_world, torch.cat((points, torch.ones_like(points[..., :1])), -1))[..., :3]
+    back = torch.einsum(
+        "bnij,bnhwj->bnhwi",
+        prediction.cam_from_world,
+        torch.cat((points, torch.ones_like(points[..., :1])), -1),
+    )[..., :3]
     assert torch.allclose(back, local_points, atol=1e-5)
 
 
@@ -201,7 +252,11 @@ def test_pi3_models_predict_consistent_poses(which):
     assert model.encoder.pos_embed.grad is not None
     assert torch.equal(with_grad.cam_from_world.detach(), plain.cam_from_world)
     points = plain.extras["points"]
-    back = torch.einsum("bnij,bnhwj->bnhwi", plain.cam_from_world, torch.cat((points, torch.ones_like(points[..., :1])), -1))[..., :3]
+    back = torch.einsum(
+        "bnij,bnhwj->bnhwi",
+        plain.cam_from_world,
+        torch.cat((points, torch.ones_like(points[..., :1])), -1),
+    )[..., :3]
     scale = float(plain.extras["local_points"].abs().max())
     assert torch.allclose(back, plain.extras["local_points"], atol=1e-5 * scale)
     assert torch.allclose(plain.depth, plain.extras["local_points"].norm(dim=-1))

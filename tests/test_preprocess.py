@@ -40,10 +40,17 @@ def test_rule_sizes_and_crops(width, height, long_side, expected):
     layout = InputLayout.for_camera(camera, long_side)
     assert (layout.width, layout.height, layout.crop) == expected
     assert layout.width % 14 == 0 and layout.height % 14 == 0
-    assert layout.source_size == (width, height) and layout.long_side == long_side and layout.patch == 14
+    assert (
+        layout.source_size == (width, height)
+        and layout.long_side == long_side
+        and layout.patch == 14
+    )
     # What is left after the crop is a pure resize: the aspect ratio changes by at most 1%.
     native_w, native_h = layout.native_size
-    assert abs(layout.width / layout.height - native_w / native_h) / (native_w / native_h) <= ASPECT_TOLERANCE
+    assert (
+        abs(layout.width / layout.height - native_w / native_h) / (native_w / native_h)
+        <= ASPECT_TOLERANCE
+    )
     assert input_layout(camera, long_side) == layout
 
 
@@ -57,11 +64,16 @@ def test_cameras_are_the_stated_crop_then_a_pure_resize(width, height, long_side
     assert layout.offset == ((0, 0) if layout.crop is None else layout.crop[:2])
 
 
-@pytest.mark.parametrize(("width", "height", "long_side"), [(1280, 1024, 504), (1280, 720, 504), (160, 128, 84), (128, 160, 112)])
+@pytest.mark.parametrize(
+    ("width", "height", "long_side"),
+    [(1280, 1024, 504), (1280, 720, 504), (160, 128, 84), (128, 160, 112)],
+)
 def test_native_pixels_map_to_the_input_pixels_of_the_input_camera(width, height, long_side):
     camera = fisheye(width, height, 190.0)
     layout = InputLayout.for_camera(camera, long_side)
-    points = torch.tensor([[0.3, -0.2, 1.0], [-1.0, 0.4, 0.5], [0.0, 0.0, 1.0], [0.7, 0.6, 0.2]], dtype=torch.float64)
+    points = torch.tensor(
+        [[0.3, -0.2, 1.0], [-1.0, 0.4, 0.5], [0.0, 0.0, 1.0], [0.7, 0.6, 0.2]], dtype=torch.float64
+    )
     native_uv, _ = camera.project(points)
     input_uv, _ = layout.camera.project(points)
     torch.testing.assert_close(layout.to_input_pixels(native_uv), input_uv, atol=1e-6, rtol=0)
@@ -75,7 +87,13 @@ def test_frames_are_cropped_then_resized_bilinear_antialiased():
     out = layout.frames(frames)
     assert out.shape == (2, 3, 70, 84) and out.dtype == torch.float32 and out.is_contiguous()
     x0, y0, w, h = layout.crop
-    expected = F.interpolate(torch.from_numpy(frames).permute(0, 3, 1, 2)[..., y0 : y0 + h, x0 : x0 + w], size=(70, 84), mode="bilinear", align_corners=False, antialias=True)
+    expected = F.interpolate(
+        torch.from_numpy(frames).permute(0, 3, 1, 2)[..., y0 : y0 + h, x0 : x0 + w],
+        size=(70, 84),
+        mode="bilinear",
+        align_corners=False,
+        antialias=True,
+    )
     assert torch.equal(out, expected.clamp(0, 1))
     assert float(out.max()) <= 1.0
     assert torch.equal(layout.frames(torch.from_numpy(frames)), out)  # tensors take the same path
@@ -87,7 +105,10 @@ def test_frames_at_the_input_size_pass_through_bit_identically():
         layout = InputLayout.for_camera(fisheye(size, size, 190.0), size)
         frames = np.random.default_rng(size).random((3, size, size, 3), dtype=np.float32)
         assert torch.equal(layout.frames(frames), torch.from_numpy(frames).permute(0, 3, 1, 2))
-        assert layout.camera is layout.native_camera or layout.camera.to_dict() == layout.native_camera.to_dict()
+        assert (
+            layout.camera is layout.native_camera
+            or layout.camera.to_dict() == layout.native_camera.to_dict()
+        )
 
 
 def test_masks_follow_the_frames_nearest_neighbour():
@@ -101,11 +122,17 @@ def test_masks_follow_the_frames_nearest_neighbour():
     fitted = layout.mask(mask)
     assert fitted.shape == (70, 84) and fitted.dtype == torch.bool
     # Where the resized frame of the same mask is clearly inside or outside the block, they agree.
-    frame = layout.frames(np.repeat(mask[None, ..., None].astype(np.float32), 3, axis=-1))[0, 0].numpy()
+    frame = layout.frames(np.repeat(mask[None, ..., None].astype(np.float32), 3, axis=-1))[
+        0, 0
+    ].numpy()
     clear = (frame > 0.9) | (frame < 0.1)
     assert clear.mean() > 0.8 and np.array_equal(fitted.numpy()[clear], frame[clear] > 0.5)
     stacked = layout.mask(np.stack([mask, ~mask]))
-    assert stacked.shape == (2, 70, 84) and torch.equal(stacked[0], fitted) and torch.equal(stacked[1], layout.mask(~mask))
+    assert (
+        stacked.shape == (2, 70, 84)
+        and torch.equal(stacked[0], fitted)
+        and torch.equal(stacked[1], layout.mask(~mask))
+    )
 
 
 def test_depth_maps_keep_their_values_and_holes():
@@ -141,13 +168,23 @@ class _Adapter:
         self.camera, self.patch_size, self.training_info = camera, patch_size, {"input": record}
 
 
-@pytest.mark.parametrize(("width", "height", "long_side"), [(160, 128, 84), (128, 160, 112), (1280, 1024, 504)])
+@pytest.mark.parametrize(
+    ("width", "height", "long_side"), [(160, 128, 84), (128, 160, 112), (1280, 1024, 504)]
+)
 def test_the_record_reproduces_the_fitted_layout(width, height, long_side):
     camera = fisheye(width, height, 190.0)
     layout = InputLayout.for_camera(camera, long_side)
     record = layout.record()
-    assert record == {"rule": RULE, "rule_version": RULE_VERSION, "long_side": long_side, "patch": 14, "source": [width, height],
-                      "width": layout.width, "height": layout.height, "crop": list(layout.crop) if layout.crop else None}
+    assert record == {
+        "rule": RULE,
+        "rule_version": RULE_VERSION,
+        "long_side": long_side,
+        "patch": 14,
+        "source": [width, height],
+        "width": layout.width,
+        "height": layout.height,
+        "crop": list(layout.crop) if layout.crop else None,
+    }
     adapter = _Adapter(layout.native_camera, record)
     # The adapter's camera with its crop undone is the calibration itself.
     assert fitted_source_camera(adapter).to_dict() == camera.to_dict()
@@ -159,7 +196,11 @@ def test_the_record_reproduces_the_fitted_layout(width, height, long_side):
 def test_inference_rescales_the_camera_to_frames_of_another_size():
     camera = fisheye(160, 120, 190.0)
     layout = layout_for_inference(camera, (320, 240), long_side=112)
-    assert layout.source_size == (320, 240) and (layout.width, layout.height, layout.crop) == (112, 84, None)
+    assert layout.source_size == (320, 240) and (layout.width, layout.height, layout.crop) == (
+        112,
+        84,
+        None,
+    )
     assert layout.native_camera.to_dict() == camera.resized(320, 240).to_dict()
     with pytest.raises(InputError, match="only a pure resize"):
         layout_for_inference(camera, (160, 100), long_side=112)
@@ -170,7 +211,10 @@ def test_inference_refuses_another_rule():
     record = {**InputLayout.for_camera(camera, 84).record(), "rule_version": RULE_VERSION + 1}
     with pytest.raises(AdapterError, match="prepared by rule"):
         layout_for_inference(camera, (160, 128), _Adapter(camera, record))
-    assert layout_for_inference(camera, (160, 128), _Adapter(camera, record), strict=False).long_side == 84
+    assert (
+        layout_for_inference(camera, (160, 128), _Adapter(camera, record), strict=False).long_side
+        == 84
+    )
     # An adapter without a record (older files, or none at all): the long side given, else 504.
     assert layout_for_inference(camera, (160, 128), _Adapter(camera, {})).long_side == 504
     assert layout_for_inference(camera, (160, 128), None, long_side=112).long_side == 112

@@ -41,7 +41,9 @@ def fisheye(size: int = 96, fov: float = 195.0) -> cameras.KannalaBrandt4:
     f = (size / 2 - 1) / math.radians(fov / 2)
     c = (size - 1) / 2
     return cameras.KannalaBrandt4(
-        size, size, {"fx": f, "fy": f, "cx": c, "cy": c, "k1": 0.01, "k2": -0.002, "k3": 0.0005, "k4": 0.0},
+        size,
+        size,
+        {"fx": f, "fy": f, "cx": c, "cy": c, "k1": 0.01, "k2": -0.002, "k3": 0.0005, "k4": 0.0},
         max_fov_deg=fov,
     )
 
@@ -95,7 +97,9 @@ def test_intersections_are_analytic():
     np.testing.assert_allclose(hit.normal[0].numpy(), [0, 0, -1], atol=1e-5)
     np.testing.assert_allclose(hit.normal[2].numpy(), [0, 0, 1], atol=1e-5)
     # the room is seen from inside; the floor (+y) normal points into the room (-y)
-    room = _empty_scene(room=np.array([-1.0, -2.0, -3.0, 1.0, 0.5, 3.0]), room_materials=np.arange(6))
+    room = _empty_scene(
+        room=np.array([-1.0, -2.0, -3.0, 1.0, 0.5, 3.0]), room_materials=np.arange(6)
+    )
     h = intersect(room, np.zeros(3), torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))
     np.testing.assert_allclose(h.t.numpy(), [0.5, 3.0], atol=1e-6)
     np.testing.assert_allclose(h.normal[0].numpy(), [0, -1, 0])
@@ -115,10 +119,15 @@ def test_noise_is_smooth_deterministic_and_in_range():
 
 
 def test_trajectories_are_smooth_rigid_and_move():
-    for poses in (handheld_trajectory(30, seed=1, step=0.3), driving_trajectory(30, seed=1, step=0.8)):
+    for poses in (
+        handheld_trajectory(30, seed=1, step=0.3),
+        driving_trajectory(30, seed=1, step=0.8),
+    ):
         assert poses.shape == (30, 4, 4) and poses.dtype == np.float64
         R = poses[:, :3, :3]
-        np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+        np.testing.assert_allclose(
+            R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-12
+        )
         np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
         C = -np.einsum("nji,nj->ni", R, poses[:, :3, 3])
         v = np.diff(C, axis=0)
@@ -252,7 +261,9 @@ def test_write_and_load_round_trip(tmp_path, indoor):
     a = correspondences(back, 0, 1, occlusion="raycast")[2]
     b = correspondences(indoor, 0, 1, occlusion="raycast")[2]
     assert np.array_equal(a, b)
-    png = load_synthetic(write_sequence(indoor, tmp_path / "png", depth_format="png16"), load_images=True)
+    png = load_synthetic(
+        write_sequence(indoor, tmp_path / "png", depth_format="png16"), load_images=True
+    )
     assert png.images.shape == indoor.images.shape
     np.testing.assert_allclose(png.depth, indoor.depth, atol=0.5e-3 + 1e-6)
 

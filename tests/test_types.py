@@ -27,18 +27,35 @@ CHECKED = [
 def _mypy(paths: list[str], cwd: Path) -> subprocess.CompletedProcess:
     # --no-incremental: no .mypy_cache left in the tree, and no stale cache hiding an error.
     return subprocess.run(
-        [sys.executable, "-m", "mypy", "--no-incremental", "--config-file", str(ROOT / "pyproject.toml"), *paths],
-        capture_output=True, text=True, cwd=cwd, timeout=600,
+        [
+            sys.executable,
+            "-m",
+            "mypy",
+            "--no-incremental",
+            "--config-file",
+            str(ROOT / "pyproject.toml"),
+            *paths,
+        ],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=600,
     )
 
 
-@pytest.mark.skipif(importlib.util.find_spec("mypy") is None, reason="mypy is not installed (pip install -e '.[test]')")
+@pytest.mark.skipif(
+    importlib.util.find_spec("mypy") is None,
+    reason="mypy is not installed (pip install -e '.[test]')",
+)
 def test_typed_core_modules_pass_mypy():
     result = _mypy(CHECKED, ROOT)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-1000:]
 
 
-@pytest.mark.skipif(importlib.util.find_spec("mypy") is None, reason="mypy is not installed (pip install -e '.[test]')")
+@pytest.mark.skipif(
+    importlib.util.find_spec("mypy") is None,
+    reason="mypy is not installed (pip install -e '.[test]')",
+)
 def test_mypy_reports_a_type_error(tmp_path):
     """The run above can fail: the same command and configuration reject a wrong annotation."""
     bad = tmp_path / "bad.py"

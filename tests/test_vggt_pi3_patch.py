@@ -91,11 +91,19 @@ def test_rope_sees_float_displaced_positions_with_special_tokens_at_zero(net, im
     adapter = randomise_(rt.Adapter.for_model(net, camera))
     seen = []
     real = hooks.apply_rope_2d
-    monkeypatch.setattr(hooks, "apply_rope_2d", lambda tokens, positions, base: seen.append(positions.detach().clone()) or real(tokens, positions, base))
+    monkeypatch.setattr(
+        hooks,
+        "apply_rope_2d",
+        lambda tokens, positions, base: (
+            seen.append(positions.detach().clone()) or real(tokens, positions, base)
+        ),
+    )
     with rt.apply(net, camera, adapter, components=["rope"]) as handle:
         outputs(net, images)
         geometry = handle._state.geometry(H, W)
-        displacement = handle._state.rope_displacement(geometry, torch.device("cpu"), torch.float32).detach()
+        displacement = handle._state.rope_displacement(
+            geometry, torch.device("cpu"), torch.float32
+        ).detach()
     h, w = H // 14, W // 14
     grid = torch.cartesian_prod(torch.arange(h), torch.arange(w)).float() + 1
     expected_frame = torch.cat((torch.zeros(5, 2), grid + displacement))  # (5 + hw, 2)
@@ -106,7 +114,10 @@ def test_rope_sees_float_displaced_positions_with_special_tokens_at_zero(net, im
         frames = positions.reshape(-1, 5 + h * w, 2)
         layouts.add(positions.shape[1] // (5 + h * w))
         assert torch.equal(frames, expected_frame.expand_as(frames))
-    assert layouts == {1, 2}  # frame blocks / head decoders (one view per row), global blocks (both views)
+    assert layouts == {
+        1,
+        2,
+    }  # frame blocks / head decoders (one view per row), global blocks (both views)
 
 
 def test_displacement_matches_the_layout_based_core_helper(net):
@@ -115,13 +126,20 @@ def test_displacement_matches_the_layout_based_core_helper(net):
     adapter = randomise_(rt.Adapter.for_model(net, camera))
     with rt.apply(net, camera, adapter) as handle:
         state = handle._state
-        grid = torch.cartesian_prod(torch.arange(H // 14), torch.arange(W // 14))[None].expand(4, -1, -1) + 1
+        grid = (
+            torch.cartesian_prod(torch.arange(H // 14), torch.arange(W // 14))[None].expand(
+                4, -1, -1
+            )
+            + 1
+        )
         frame = torch.cat((torch.zeros(4, 5, 2, dtype=torch.long), grid), dim=1)
         ours = hooks.displace_grid_positions(frame, state, 14)
         core = hooks.displaced_rope_positions(frame, 5, state, H, W)
         assert torch.equal(ours, core)
         global_layout = frame.reshape(2, -1, 2)
-        assert torch.equal(hooks.displace_grid_positions(global_layout, state, 14), core.reshape(2, -1, 2))
+        assert torch.equal(
+            hooks.displace_grid_positions(global_layout, state, 14), core.reshape(2, -1, 2)
+        )
         specials_only = torch.zeros(2, 1, 2, dtype=torch.long)
         assert hooks.displace_grid_positions(specials_only, state, 14) is specials_only
 
@@ -151,7 +169,10 @@ def test_compiled_curope_is_refused_before_any_change(which, monkeypatch):
     model = build(which)
     assert type(model.rope).__name__ == "cuRoPE2D"
     snap = snapshot(model)
-    with pytest.raises(UnsupportedUpstreamError, match=r"compiled RoPE models\.curope\.cuRoPE2D at 'rope'.*PyTorch RoPE2D"):
+    with pytest.raises(
+        UnsupportedUpstreamError,
+        match=r"compiled RoPE models\.curope\.cuRoPE2D at 'rope'.*PyTorch RoPE2D",
+    ):
         rt.apply(model, fisheye(W, H))
     assert_same_snapshot(model, snap)
     assert rt.handle_of(model) is None
@@ -165,7 +186,11 @@ def test_compiled_curope_is_refused_before_any_change(which, monkeypatch):
 def _conditions():
     generator = torch.Generator().manual_seed(7)
     focal = 30.0
-    intrinsics = torch.tensor([[focal, 0.0, W / 2], [0.0, focal, H / 2], [0.0, 0.0, 1.0]]).expand(1, 2, 3, 3).clone()
+    intrinsics = (
+        torch.tensor([[focal, 0.0, W / 2], [0.0, focal, H / 2], [0.0, 0.0, 1.0]])
+        .expand(1, 2, 3, 3)
+        .clone()
+    )
     depths = 1.0 + torch.rand(1, 2, H, W, generator=generator)
     return {"intrinsics": intrinsics, "depths": depths}
 
@@ -177,9 +202,14 @@ def test_pi3x_conditioning_paths_are_untouched(images):
     recorded = {}
 
     def recorder(name):
-        return lambda module, args, output: recorded.setdefault(name, []).append(output["x_norm_patchtokens"] if isinstance(output, dict) else output)
+        return lambda module, args, output: recorded.setdefault(name, []).append(
+            output["x_norm_patchtokens"] if isinstance(output, dict) else output
+        )
 
-    handles = [net.ray_embed.register_forward_hook(recorder("ray")), net.depth_encoder.register_forward_hook(recorder("depth"))]
+    handles = [
+        net.ray_embed.register_forward_hook(recorder("ray")),
+        net.depth_encoder.register_forward_hook(recorder("depth")),
+    ]
     try:
         with torch.no_grad():
             plain = net(images, **conditions)
@@ -195,7 +225,9 @@ def test_pi3x_conditioning_paths_are_untouched(images):
     assert len(recorded["ray"]) == len(recorded["depth"]) == 2
     assert torch.equal(recorded["ray"][0], recorded["ray"][1])
     assert torch.equal(recorded["depth"][0], recorded["depth"][1])
-    assert not torch.allclose(plain["local_points"], patched["local_points"])  # the image path did change
+    assert not torch.allclose(
+        plain["local_points"], patched["local_points"]
+    )  # the image path did change
 
 
 def test_pi3x_pinhole_identity_with_conditions(images):
@@ -206,7 +238,9 @@ def test_pi3x_pinhole_identity_with_conditions(images):
         with rt.apply(net, pinhole(W, H), rt.Adapter.for_model(net)):
             patched = net(images, **conditions)
     for key in ("local_points", "conf", "camera_poses"):
-        assert torch.allclose(plain[key], patched[key], rtol=0, atol=1e-5 * float(plain[key].abs().max()))
+        assert torch.allclose(
+            plain[key], patched[key], rtol=0, atol=1e-5 * float(plain[key].abs().max())
+        )
 
 
 def test_pi3x_uv_trampoline_lifecycle(images):
@@ -220,7 +254,10 @@ def test_pi3x_uv_trampoline_lifecycle(images):
     trampoline = module.normalized_view_plane_uv
     assert isinstance(trampoline, pi3_patch._UvTrampoline) and trampoline.original is original
     # outside a patched head it is the original function
-    assert torch.equal(trampoline(width=4, height=3, aspect_ratio=4 / 3, dtype=torch.float32), original(width=4, height=3, aspect_ratio=4 / 3, dtype=torch.float32))
+    assert torch.equal(
+        trampoline(width=4, height=3, aspect_ratio=4 / 3, dtype=torch.float32),
+        original(width=4, height=3, aspect_ratio=4 / 3, dtype=torch.float32),
+    )
     handle_a.remove()
     gc.collect()
     assert module.normalized_view_plane_uv is trampoline  # net_b still uses it
@@ -256,7 +293,12 @@ def test_load_backbone_strict(name, tmp_path, monkeypatch):
     assert not loaded.training
     assert all(torch.equal(loaded.state_dict()[k], v) for k, v in source.state_dict().items())
     with pytest.raises(WeightsError, match="unexpected keys"):
-        rt.load_backbone(name, _save(source.state_dict() | {"extra.weight": torch.zeros(1)}, tmp_path / "x.safetensors"))
+        rt.load_backbone(
+            name,
+            _save(
+                source.state_dict() | {"extra.weight": torch.zeros(1)}, tmp_path / "x.safetensors"
+            ),
+        )
     with pytest.raises(WeightsError, match="never downloads"):
         rt.load_backbone(name)
     with pytest.raises(WeightsError, match="no such weight file"):
@@ -272,7 +314,14 @@ def test_pi3x_checkpoint_without_conditioning_branches(tmp_path, monkeypatch):
     assert loaded.state_dict().keys() == source.state_dict().keys()
 
 
-@pytest.mark.parametrize("name, module_name, hint", [("vggt-1b", "vggt.models.vggt", "facebookresearch/vggt"), ("pi3", "pi3.models.pi3", "yyfz/Pi3"), ("pi3x", "pi3.models.pi3x", "yyfz/Pi3")])
+@pytest.mark.parametrize(
+    "name, module_name, hint",
+    [
+        ("vggt-1b", "vggt.models.vggt", "facebookresearch/vggt"),
+        ("pi3", "pi3.models.pi3", "yyfz/Pi3"),
+        ("pi3x", "pi3.models.pi3x", "yyfz/Pi3"),
+    ],
+)
 def test_missing_upstream_package_is_a_clear_error(name, module_name, hint, tmp_path, monkeypatch):
     path = _save({"a": torch.zeros(1)}, tmp_path / "w.safetensors")
     monkeypatch.setitem(sys.modules, module_name, None)  # makes the import fail

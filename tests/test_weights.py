@@ -47,7 +47,9 @@ def test_round_trip_in_official_layout(official):
 
 def test_aliases_are_exactly_the_shared_layernorm(official):
     net, _ = official
-    assert sorted(alias_keys(net)) == sorted(f"head.scratch.output_conv2_aux.{i}.2.{p}" for i in (1, 2, 3) for p in ("weight", "bias"))
+    assert sorted(alias_keys(net)) == sorted(
+        f"head.scratch.output_conv2_aux.{i}.2.{p}" for i in (1, 2, 3) for p in ("weight", "bias")
+    )
 
 
 def test_pt_file_through_weights_only(official, tmp_path):
@@ -67,7 +69,11 @@ def test_pickled_objects_are_refused(tmp_path):
 
 def test_missing_and_unexpected_keys_are_errors(official, tmp_path):
     net, _ = official
-    state = {k: v for k, v in net.state_dict().items() if not k.startswith("head.scratch.output_conv2_aux.1")}
+    state = {
+        k: v
+        for k, v in net.state_dict().items()
+        if not k.startswith("head.scratch.output_conv2_aux.1")
+    }
     state["model.extra.weight"] = torch.zeros(3)
     path = tmp_path / "bad.safetensors"
     save_file({k: v.clone().contiguous() for k, v in state.items()}, str(path))
@@ -94,7 +100,9 @@ def test_loading_never_imports_huggingface_hub(official):
         "import sys, raytun3r_plugin as rt; rt.load_backbone('da3-small', sys.argv[1]);"
         "print('huggingface_hub' in sys.modules)"
     )
-    result = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True)
+    result = subprocess.run(
+        [sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True
+    )
     assert result.stdout.strip().splitlines()[-1] == "False"
 
 

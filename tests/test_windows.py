@@ -54,7 +54,12 @@ def segment() -> np.ndarray:
     for cell, amp in ((4, 0.5), (8, 0.3), (16, 0.2)):
         n = (SIZE + 64) // cell + 2
         noise = rng.random((n, n, 3)).astype(np.float32)
-        big += amp * cv2.resize(noise, (n * cell, n * cell), interpolation=cv2.INTER_CUBIC)[: SIZE + 64, : SIZE + 64]
+        big += (
+            amp
+            * cv2.resize(noise, (n * cell, n * cell), interpolation=cv2.INTER_CUBIC)[
+                : SIZE + 64, : SIZE + 64
+            ]
+        )
     mask = CAMERA.valid_mask().numpy()
     frames = []
     for k in range(12):
@@ -169,25 +174,33 @@ def test_cache_roundtrip_recomputes_nothing(segment, tmp_path) -> None:
         {"sequence_id": "seq-A"},
     ):
         m = CountingMatcher(fast=True)
-        c = prepare_adaptation_set(segment, CAMERA, m, **{"n_windows": 2, **kwargs},
-                                   cache_dir=tmp_path)
+        c = prepare_adaptation_set(
+            segment, CAMERA, m, **{"n_windows": 2, **kwargs}, cache_dir=tmp_path
+        )
         assert not c.from_cache and m.calls > 0
         keys.add(c.cache_key)
     m = CountingMatcher(stride=6, fast=True)
     keys.add(prepare_adaptation_set(segment, CAMERA, m, n_windows=2, cache_dir=tmp_path).cache_key)
     other_camera = KannalaBrandt4(SIZE, SIZE, [27.5, 27.0, 47.5, 47.5, 0.0, 0.0, 0.0, 0.0])
-    keys.add(prepare_adaptation_set(segment, other_camera, CountingMatcher(fast=True), n_windows=2,
-                                    cache_dir=tmp_path).cache_key)
+    keys.add(
+        prepare_adaptation_set(
+            segment, other_camera, CountingMatcher(fast=True), n_windows=2, cache_dir=tmp_path
+        ).cache_key
+    )
     changed = segment.copy()
     changed[-1, 40, 40] = 0.25
-    keys.add(prepare_adaptation_set(changed, CAMERA, CountingMatcher(fast=True), n_windows=2,
-                                    cache_dir=tmp_path).cache_key)
+    keys.add(
+        prepare_adaptation_set(
+            changed, CAMERA, CountingMatcher(fast=True), n_windows=2, cache_dir=tmp_path
+        ).cache_key
+    )
     assert len(keys) == 8
 
     # A caller-provided sequence id replaces the image hash (the caller vouches for it).
     m = CountingMatcher(fast=True)
-    d = prepare_adaptation_set(changed, CAMERA, m, n_windows=2, cache_dir=tmp_path,
-                               sequence_id="seq-A")
+    d = prepare_adaptation_set(
+        changed, CAMERA, m, n_windows=2, cache_dir=tmp_path, sequence_id="seq-A"
+    )
     assert d.from_cache and m.calls == 0
 
 

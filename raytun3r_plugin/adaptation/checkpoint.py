@@ -19,7 +19,14 @@ from raytun3r_plugin.adaptation.config import TERMS
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AdapterError
 
-__all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "artifact_paths", "load_checkpoint", "read_loss_log", "write_loss_artifacts"]
+__all__ = [
+    "CHECKPOINT_FORMAT",
+    "CHECKPOINT_VERSION",
+    "artifact_paths",
+    "load_checkpoint",
+    "read_loss_log",
+    "write_loss_artifacts",
+]
 
 CHECKPOINT_FORMAT = "raytun3r-adapt-checkpoint"
 CHECKPOINT_VERSION = "1"
@@ -57,7 +64,11 @@ def write_loss_artifacts(paths: Mapping[str, Path], records: list[dict[str, Any]
         writer.writerow(columns)
         for record in records:
             writer.writerow([record.get(name, "") for name in columns])
-    series = {name: [float(r[name]) for r in records] for name in ("loss", *terms) if any(float(r[name]) > 0 for r in records)}
+    series = {
+        name: [float(r[name]) for r in records]
+        for name in ("loss", *terms)
+        if any(float(r[name]) > 0 for r in records)
+    }
     title = f"adaptation losses ({len(records)} steps)"
     cv2.imwrite(str(paths["curve"]), line_chart(series, title))
 
@@ -71,14 +82,27 @@ def read_loss_log(path: str | os.PathLike) -> list[dict[str, Any]]:
         return [json.loads(line) for line in handle if line.strip()]
 
 
-def _save_checkpoint(path: Path, adapter: Adapter, optimizer: torch.optim.Optimizer, step: int, identity: dict[str, str]) -> None:
+def _save_checkpoint(
+    path: Path,
+    adapter: Adapter,
+    optimizer: torch.optim.Optimizer,
+    step: int,
+    identity: dict[str, str],
+) -> None:
     names = [name for name, _ in adapter.named_parameters()]
     tensors = {f"adapter.{name}": value for name, value in adapter.tensors().items()}
     state = optimizer.state_dict()["state"]
     for index, name in enumerate(names):
         for key, value in state.get(index, {}).items():
-            tensors[f"adam.{name}.{key}"] = torch.as_tensor(value).detach().to("cpu", torch.float32).reshape(-1).clone()
-    metadata = {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_VERSION, "step": str(step), **identity}
+            tensors[f"adam.{name}.{key}"] = (
+                torch.as_tensor(value).detach().to("cpu", torch.float32).reshape(-1).clone()
+            )
+    metadata = {
+        "format": CHECKPOINT_FORMAT,
+        "format_version": CHECKPOINT_VERSION,
+        "step": str(step),
+        **identity,
+    }
     atomic_save_safetensors(path, tensors, metadata)
 
 
@@ -90,11 +114,15 @@ def load_checkpoint(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], d
         metadata = dict(handle.metadata() or {})
         tensors = {name: handle.get_tensor(name) for name in handle.keys()}  # noqa: SIM118
     if metadata.get("format") != CHECKPOINT_FORMAT:
-        raise AdapterError(f"{path}: not a raytun3r adaptation checkpoint (format {metadata.get('format')!r})")
+        raise AdapterError(
+            f"{path}: not a raytun3r adaptation checkpoint (format {metadata.get('format')!r})"
+        )
     return tensors, metadata
 
 
-def _restore_checkpoint(path: Path, adapter: Adapter, optimizer: torch.optim.Optimizer, identity: dict[str, str]) -> int:
+def _restore_checkpoint(
+    path: Path, adapter: Adapter, optimizer: torch.optim.Optimizer, identity: dict[str, str]
+) -> int:
     tensors, metadata = load_checkpoint(path)
     for key, expected in identity.items():
         if metadata.get(key) != expected:
@@ -106,7 +134,9 @@ def _restore_checkpoint(path: Path, adapter: Adapter, optimizer: torch.optim.Opt
         for name, parameter in adapter.named_parameters():
             stored = tensors.get(f"adapter.{name}")
             if stored is None or stored.shape != parameter.shape:
-                raise AdapterError(f"{path}: checkpoint has no table {name!r} of shape {tuple(parameter.shape)}")
+                raise AdapterError(
+                    f"{path}: checkpoint has no table {name!r} of shape {tuple(parameter.shape)}"
+                )
             parameter.copy_(stored)
     state: dict[int, dict[str, torch.Tensor]] = {}
     for index, (name, parameter) in enumerate(adapter.named_parameters()):
@@ -114,10 +144,14 @@ def _restore_checkpoint(path: Path, adapter: Adapter, optimizer: torch.optim.Opt
         for key in ("step", "exp_avg", "exp_avg_sq"):
             stored = tensors.get(f"adam.{name}.{key}")
             if stored is not None:
-                entry[key] = stored.reshape(()) if key == "step" else stored.reshape(parameter.shape).clone()
+                entry[key] = (
+                    stored.reshape(()) if key == "step" else stored.reshape(parameter.shape).clone()
+                )
         if entry:
             state[index] = entry
-    optimizer.load_state_dict({"state": state, "param_groups": optimizer.state_dict()["param_groups"]})
+    optimizer.load_state_dict(
+        {"state": state, "param_groups": optimizer.state_dict()["param_groups"]}
+    )
     return int(metadata["step"])
 
 
@@ -125,5 +159,9 @@ def _rewrite_log(path: Path, keep_before: int) -> None:
     """Drop records of steps >= ``keep_before`` (they are redone after a resume)."""
     if not path.is_file():
         return
-    kept = [line for line in path.read_text(encoding="utf-8").splitlines() if line.strip() and json.loads(line)["step"] < keep_before]
+    kept = [
+        line
+        for line in path.read_text(encoding="utf-8").splitlines()
+        if line.strip() and json.loads(line)["step"] < keep_before
+    ]
     path.write_text("".join(line + "\n" for line in kept), encoding="utf-8")

@@ -14,7 +14,15 @@ from typing import Any
 from raytun3r_plugin.adaptation.losses import LossWeights
 from raytun3r_plugin.errors import InputError
 
-__all__ = ["PE_REGULARISERS", "POSE_SOURCES", "SCALES", "SELF_SUPERVISED_WEIGHTS", "SUPERVISED_WEIGHTS", "TERMS", "AdaptConfig"]
+__all__ = [
+    "PE_REGULARISERS",
+    "POSE_SOURCES",
+    "SCALES",
+    "SELF_SUPERVISED_WEIGHTS",
+    "SUPERVISED_WEIGHTS",
+    "TERMS",
+    "AdaptConfig",
+]
 
 POSE_SOURCES = ("model", "targets")
 SCALES = ("pixel", "least_squares")
@@ -28,7 +36,14 @@ TERMS = ("reproj", "smooth", "l2", "tv", "pose", "depth")
 #: against data terms of about 2, so the tables stay at zero. These weights were chosen on the
 #: three development sequences of docs/adaptation.md ("Choosing the defaults"), never on the
 #: benchmark's held-out seeds.
-SELF_SUPERVISED_WEIGHTS = {"reproj": 1.0, "smooth": 1.0, "l2": 0.02, "tv": 0.2, "pose": 1.0, "depth": 0.0}
+SELF_SUPERVISED_WEIGHTS = {
+    "reproj": 1.0,
+    "smooth": 1.0,
+    "l2": 0.02,
+    "tv": 0.2,
+    "pose": 1.0,
+    "depth": 0.0,
+}
 #: Loss weights of the supervised fit (:func:`adapt` with ``depth=``): the scale-invariant depth
 #: term alone, no regulariser (the ground truth decides the correction).
 SUPERVISED_WEIGHTS = {"reproj": 0.0, "smooth": 0.0, "l2": 0.0, "tv": 0.0, "pose": 0.0, "depth": 1.0}
@@ -151,4 +166,6 @@ class AdaptConfig:
     def identity(self) -> str:
         """Hash of the settings that must not change when a checkpoint is resumed."""
         kept = {k: v for k, v in self.to_dict().items() if k not in _RESUMABLE_CHANGES}
-        return hashlib.sha256(json.dumps(kept, sort_keys=True, default=str).encode()).hexdigest()[:16]
+        return hashlib.sha256(json.dumps(kept, sort_keys=True, default=str).encode()).hexdigest()[
+            :16
+        ]

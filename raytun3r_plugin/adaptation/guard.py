@@ -51,8 +51,16 @@ class _CollapseGuard:
     its own module holds, so a test can tighten them there.
     """
 
-    def __init__(self, problem: AdaptationProblem, config: AdaptConfig, min_correlation: float | None = None, spread_range: tuple[float, float] | None = None) -> None:
-        self.min_correlation = GUARD_MIN_CORRELATION if min_correlation is None else float(min_correlation)
+    def __init__(
+        self,
+        problem: AdaptationProblem,
+        config: AdaptConfig,
+        min_correlation: float | None = None,
+        spread_range: tuple[float, float] | None = None,
+    ) -> None:
+        self.min_correlation = (
+            GUARD_MIN_CORRELATION if min_correlation is None else float(min_correlation)
+        )
         self.spread_range = tuple(GUARD_SPREAD_RANGE if spread_range is None else spread_range)
         self.images = problem.batch(0)
         self.valid = problem.valid
@@ -77,8 +85,14 @@ class _CollapseGuard:
             self.healthy_step = step
             return True
         current = torch.log(depth[self.usable].clamp_min(1e-12))
-        correlation, spread = depth_health(self.reference, current) if torch.isfinite(current).all() else (float("nan"), float("nan"))
-        self.checks.append({"step": step, "correlation": round(correlation, 4), "spread": round(spread, 4)})
+        correlation, spread = (
+            depth_health(self.reference, current)
+            if torch.isfinite(current).all()
+            else (float("nan"), float("nan"))
+        )
+        self.checks.append(
+            {"step": step, "correlation": round(correlation, 4), "spread": round(spread, 4)}
+        )
         low, high = self.spread_range
         if correlation >= self.min_correlation and low <= spread <= high:
             self.snapshot = {name: p.detach().clone() for name, p in adapter.named_parameters()}
@@ -87,14 +101,29 @@ class _CollapseGuard:
         with torch.no_grad():
             for name, parameter in adapter.named_parameters():
                 parameter.copy_(self.snapshot[name])
-        self.tripped = {"step": step, "correlation": correlation, "spread": spread, "restored_step": self.healthy_step}
+        self.tripped = {
+            "step": step,
+            "correlation": correlation,
+            "spread": spread,
+            "restored_step": self.healthy_step,
+        }
         return False
 
     def report(self) -> dict[str, Any]:
-        return {"tripped": self.tripped, "checks": self.checks[-12:], "min_correlation": self.min_correlation, "spread_range": list(self.spread_range)}
+        return {
+            "tripped": self.tripped,
+            "checks": self.checks[-12:],
+            "min_correlation": self.min_correlation,
+            "spread_range": list(self.spread_range),
+        }
 
 
-def fit_verdict(adapter: Adapter, history: list[dict[str, Any]], problem: AdaptationProblem, guard: _CollapseGuard | None) -> dict[str, Any]:
+def fit_verdict(
+    adapter: Adapter,
+    history: list[dict[str, Any]],
+    problem: AdaptationProblem,
+    guard: _CollapseGuard | None,
+) -> dict[str, Any]:
     """What a finished fit did, in one word and one sentence.
 
     ``status``: ``"collapsed"`` (the guard stopped it and restored earlier tables),
@@ -103,7 +132,11 @@ def fit_verdict(adapter: Adapter, history: list[dict[str, Any]], problem: Adapta
     backbone's PE rms and the RoPE table below 0.01 token) or ``"ok"``.
     """
     correction = pe_correction_grid(adapter, problem.geometry).detach()
-    relative = math.sqrt(float(pe_l2(correction)) / problem.pe_scale) if problem.pe_scale > 0 else float("nan")
+    relative = (
+        math.sqrt(float(pe_l2(correction)) / problem.pe_scale)
+        if problem.pe_scale > 0
+        else float("nan")
+    )
     rope = float(adapter.rope["radial"].detach().abs().max()) if adapter.rope else 0.0
     window = max(1, len(problem.windows))
     first = [r["loss"] for r in history[:window]]
@@ -128,5 +161,12 @@ def fit_verdict(adapter: Adapter, history: list[dict[str, Any]], problem: Adapta
     else:
         status = "ok"
         summary = f"ok: loss {first_mean:.4g} -> {last_mean:.4g} over {len(history)} steps; {size}"
-    return {"status": status, "summary": summary, "pe_correction_relative_rms": relative, "rope_max_token": rope,
-            "first_pass_loss": first_mean, "last_pass_loss": last_mean, "skipped_steps": skipped}
+    return {
+        "status": status,
+        "summary": summary,
+        "pe_correction_relative_rms": relative,
+        "rope_max_token": rope,
+        "first_pass_loss": first_mean,
+        "last_pass_loss": last_mean,
+        "skipped_steps": skipped,
+    }

@@ -102,14 +102,27 @@ def sample_bilinear(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     planes = image[None, None] if squeeze else image[None]
     height, width = planes.shape[-2:]
     grid = torch.stack(((2 * uv[:, 0] + 1) / width - 1, (2 * uv[:, 1] + 1) / height - 1), dim=-1)
-    out = F.grid_sample(planes, grid.to(planes.dtype)[None, None], mode="bilinear", padding_mode="border", align_corners=False)
+    out = F.grid_sample(
+        planes,
+        grid.to(planes.dtype)[None, None],
+        mode="bilinear",
+        padding_mode="border",
+        align_corners=False,
+    )
     out = out[0, :, 0, :]
     return out[0] if squeeze else out
 
 
-def _inside_mask(uv: torch.Tensor, mask: torch.Tensor | None, width: int, height: int) -> torch.Tensor:
+def _inside_mask(
+    uv: torch.Tensor, mask: torch.Tensor | None, width: int, height: int
+) -> torch.Tensor:
     """(M,) bool: inside the image and, when given, the nearest pixel of ``mask`` (H, W) is set."""
-    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= height - 0.5)
+    inside = (
+        (uv[:, 0] >= -0.5)
+        & (uv[:, 0] <= width - 0.5)
+        & (uv[:, 1] >= -0.5)
+        & (uv[:, 1] <= height - 0.5)
+    )
     inside &= torch.isfinite(uv).all(dim=-1)
     if mask is not None:
         col = torch.round(uv[:, 0].detach()).clamp(0, width - 1).long()
@@ -163,13 +176,21 @@ def reprojection_loss(
     """
     height, width = depth_i.shape[-2:]
     if (int(camera.width), int(camera.height)) != (width, height):
-        raise InputError(f"camera is {camera.width}x{camera.height} px but the depth map is {width}x{height}")
+        raise InputError(
+            f"camera is {camera.width}x{camera.height} px but the depth map is {width}x{height}"
+        )
     if uv_i.shape != uv_j.shape or uv_i.ndim != 2 or uv_i.shape[-1] != 2:
-        raise InputError(f"uv_i and uv_j must both be (M, 2), got {tuple(uv_i.shape)} and {tuple(uv_j.shape)}")
+        raise InputError(
+            f"uv_i and uv_j must both be (M, 2), got {tuple(uv_i.shape)} and {tuple(uv_j.shape)}"
+        )
     dtype, device = depth_i.dtype, depth_i.device
     uv_i = uv_i.to(device=device, dtype=dtype)
     uv_j = uv_j.to(device=device, dtype=dtype)
-    weights = torch.ones_like(uv_i[:, 0]) if confidence is None else confidence.to(device=device, dtype=dtype)
+    weights = (
+        torch.ones_like(uv_i[:, 0])
+        if confidence is None
+        else confidence.to(device=device, dtype=dtype)
+    )
     if valid is None:
         valid = camera.valid_mask()
     valid = valid.to(device).bool()
@@ -181,7 +202,11 @@ def reprojection_loss(
     rays, ray_ok = rays_i
     depth = sample_bilinear(depth_i, uv_i)
     ok = ok & ray_ok.to(device) & torch.isfinite(depth) & (depth > 0)
-    points = backproject(torch.where(ok, depth, torch.ones_like(depth)), rays.to(device=device, dtype=dtype), depth_convention)
+    points = backproject(
+        torch.where(ok, depth, torch.ones_like(depth)),
+        rays.to(device=device, dtype=dtype),
+        depth_convention,
+    )
     rotation, translation = cam_j_from_cam_i[:3, :3].to(dtype), cam_j_from_cam_i[:3, 3].to(dtype)
     moved = points @ rotation.T + translation
     # Terms already known to be invalid project a harmless point, so no NaN/inf can reach the
@@ -208,7 +233,14 @@ def robust_px_error(error: torch.Tensor, scale_px: float) -> torch.Tensor:
     return scale_px * torch.log1p(error / scale_px)
 
 
-def _projected_error(points_i: torch.Tensor, rotation: torch.Tensor, direction: torch.Tensor, scales: torch.Tensor, uv_j: torch.Tensor, camera: Camera) -> torch.Tensor:
+def _projected_error(
+    points_i: torch.Tensor,
+    rotation: torch.Tensor,
+    direction: torch.Tensor,
+    scales: torch.Tensor,
+    uv_j: torch.Tensor,
+    camera: Camera,
+) -> torch.Tensor:
     """(S, M) L1 pixel errors of ``R X + s t`` for each candidate scale ``s`` (S,)."""
     moved = (points_i @ rotation.T)[None] + scales[:, None, None] * direction[None, None]
     projected, ok = camera.project(moved.reshape(-1, 3))
@@ -263,18 +295,24 @@ def pixel_optimal_scale(
             return points_i.new_zeros(())
         if initial is None:
             rays_j, _ = camera.unproject(uv_j.to(dtype))
-            initial = fit_translation_scale(points_i, rays_j.to(dtype), rotation, direction, weights)
+            initial = fit_translation_scale(
+                points_i, rays_j.to(dtype), rotation, direction, weights
+            )
         centre = float(initial)
         if not math.isfinite(centre) or centre <= 0:
             centre = float(points_i.norm(dim=-1).median()) * 0.05
         centre = max(centre, 1e-9)
 
         def cost(log_scales: torch.Tensor) -> torch.Tensor:
-            error = _projected_error(points_i, rotation, direction, log_scales.exp(), uv_j.to(dtype), camera)
+            error = _projected_error(
+                points_i, rotation, direction, log_scales.exp(), uv_j.to(dtype), camera
+            )
             return (weights[None] * robust_px_error(error, robust_px)).sum(dim=-1)
 
         log_span = math.log(span)
-        grid = torch.linspace(math.log(centre) - log_span, math.log(centre) + log_span, samples, dtype=dtype)
+        grid = torch.linspace(
+            math.log(centre) - log_span, math.log(centre) + log_span, samples, dtype=dtype
+        )
         best = grid[int(torch.argmin(cost(grid)))]
         step = float(grid[1] - grid[0])
         fine = torch.linspace(float(best) - step, float(best) + step, 21, dtype=dtype)
@@ -282,7 +320,9 @@ def pixel_optimal_scale(
         return best.exp()
 
 
-def silog_loss(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+def silog_loss(
+    pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None
+) -> torch.Tensor:
     """Scale-invariant log error of depth samples: ``var(log pred - log target)``.
 
     The variance (Eigen et al.'s scale-invariant error with lambda = 1) ignores a global scale,
@@ -309,7 +349,9 @@ def silog_loss(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor |
 # --------------------------------------------------------------------------------------------
 
 
-def smoothness_loss(depth: torch.Tensor, image: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+def smoothness_loss(
+    depth: torch.Tensor, image: torch.Tensor, valid: torch.Tensor | None = None
+) -> torch.Tensor:
     """Edge-aware smoothness of mean-normalised depth, averaged over frames.
 
     ``mean_x(exp(-|d_x I|) |d_x D*|) + mean_y(exp(-|d_y I|) |d_y D*|)`` with ``D* = D / mean(D)``
@@ -326,10 +368,21 @@ def smoothness_loss(depth: torch.Tensor, image: torch.Tensor, valid: torch.Tenso
     """
     if depth.ndim == 2:
         depth, image = depth[None], image[None]
-    if depth.ndim != 3 or image.ndim != 4 or image.shape[0] != depth.shape[0] or image.shape[-2:] != depth.shape[-2:]:
-        raise InputError(f"depth (N, H, W) and image (N, 3, H, W) must match, got {tuple(depth.shape)} and {tuple(image.shape)}")
+    if (
+        depth.ndim != 3
+        or image.ndim != 4
+        or image.shape[0] != depth.shape[0]
+        or image.shape[-2:] != depth.shape[-2:]
+    ):
+        raise InputError(
+            f"depth (N, H, W) and image (N, 3, H, W) must match, got {tuple(depth.shape)} and {tuple(image.shape)}"
+        )
     image = image.to(depth.dtype)
-    mask = torch.ones(depth.shape[-2:], dtype=torch.bool, device=depth.device) if valid is None else valid.to(depth.device).bool()
+    mask = (
+        torch.ones(depth.shape[-2:], dtype=torch.bool, device=depth.device)
+        if valid is None
+        else valid.to(depth.device).bool()
+    )
     maskf = mask.to(depth.dtype)
     mean = (depth * maskf).sum(dim=(-2, -1), keepdim=True) / maskf.sum().clamp_min(1.0)
     normalised = depth / mean.clamp_min(_EPS)
@@ -340,8 +393,12 @@ def smoothness_loss(depth: torch.Tensor, image: torch.Tensor, valid: torch.Tenso
     grad_dy = (normalised[..., 1:, :] - normalised[..., :-1, :]).abs()
     grad_ix = (image[..., :, 1:] - image[..., :, :-1]).abs().mean(dim=1)
     grad_iy = (image[..., 1:, :] - image[..., :-1, :]).abs().mean(dim=1)
-    term_x = (torch.exp(-grad_ix) * grad_dx * pair_x).sum(dim=(-2, -1)) / pair_x.sum().clamp_min(1.0)
-    term_y = (torch.exp(-grad_iy) * grad_dy * pair_y).sum(dim=(-2, -1)) / pair_y.sum().clamp_min(1.0)
+    term_x = (torch.exp(-grad_ix) * grad_dx * pair_x).sum(dim=(-2, -1)) / pair_x.sum().clamp_min(
+        1.0
+    )
+    term_y = (torch.exp(-grad_iy) * grad_dy * pair_y).sum(dim=(-2, -1)) / pair_y.sum().clamp_min(
+        1.0
+    )
     return (term_x + term_y).mean()
 
 
@@ -350,7 +407,12 @@ def smoothness_loss(depth: torch.Tensor, image: torch.Tensor, valid: torch.Tenso
 # --------------------------------------------------------------------------------------------
 
 
-def pe_correction_grid(adapter: Any, geometry: Any, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+def pe_correction_grid(
+    adapter: Any,
+    geometry: Any,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
     """The adapter's PE correction ``P' - P_A`` over the token grid, differentiable in the tables.
 
     :meth:`Adapter.pe_correction <raytun3r_plugin.adapter.Adapter.pe_correction>` (the same
@@ -427,7 +489,9 @@ def translation_angle(t_a: torch.Tensor, t_b: torch.Tensor) -> torch.Tensor:
     return poses.translation_angle(t_a, t_b, eps=_EPS)
 
 
-def pose_loss(cam_j_from_cam_i: torch.Tensor, target_rotation: torch.Tensor, target_translation: torch.Tensor) -> torch.Tensor:
+def pose_loss(
+    cam_j_from_cam_i: torch.Tensor, target_rotation: torch.Tensor, target_translation: torch.Tensor
+) -> torch.Tensor:
     """Rotation geodesic + translation-direction angle (radians) against a MAGSAC++ target.
 
     Args:
@@ -447,7 +511,11 @@ def pose_loss(cam_j_from_cam_i: torch.Tensor, target_rotation: torch.Tensor, tar
 
 
 def fit_translation_scale(
-    points_i: torch.Tensor, rays_j: torch.Tensor, rotation: torch.Tensor, direction: torch.Tensor, weights: torch.Tensor | None = None
+    points_i: torch.Tensor,
+    rays_j: torch.Tensor,
+    rotation: torch.Tensor,
+    direction: torch.Tensor,
+    weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Scale ``s`` making ``R X_i + s t`` parallel to the rays of the matches in frame ``j``.
 

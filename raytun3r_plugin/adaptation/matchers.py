@@ -101,7 +101,9 @@ class Matches:
     @classmethod
     def empty(cls) -> Matches:
         """No correspondences (``M = 0``)."""
-        return cls(np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32), np.zeros(0, np.float32))
+        return cls(
+            np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32), np.zeros(0, np.float32)
+        )
 
     def select(self, keep: np.ndarray) -> Matches:
         """The subset given by a boolean mask ``(M,)`` or an index array."""
@@ -276,8 +278,10 @@ def _patches(gray: np.ndarray, uv: np.ndarray, radius: int) -> np.ndarray:
     u0, v0 = u.astype(np.int64), v.astype(np.int64)
     fu, fv = u - u0, v - v0
     values = (
-        gray[v0, u0] * (1 - fu) * (1 - fv) + gray[v0, u0 + 1] * fu * (1 - fv)
-        + gray[v0 + 1, u0] * (1 - fu) * fv + gray[v0 + 1, u0 + 1] * fu * fv
+        gray[v0, u0] * (1 - fu) * (1 - fv)
+        + gray[v0, u0 + 1] * fu * (1 - fv)
+        + gray[v0 + 1, u0] * (1 - fu) * fv
+        + gray[v0 + 1, u0 + 1] * fu * fv
     )
     return values.reshape(uv.shape[0], -1).astype(np.float32)
 
@@ -404,7 +408,9 @@ class DISFlowMatcher:
         self.fb_threshold_px = float(fb_threshold_px)
         self.border_px = int(border_px)
         if int(patch_radius) < 1 or not distinct_shift_px > 0 or not -1.0 <= zncc_min <= 1.0:
-            raise InputError("appearance check: patch_radius >= 1, distinct_shift_px > 0 and zncc_min in [-1, 1] are required")
+            raise InputError(
+                "appearance check: patch_radius >= 1, distinct_shift_px > 0 and zncc_min in [-1, 1] are required"
+            )
         self.appearance_check = bool(appearance_check)
         self.zncc_min = float(zncc_min)
         self.distinct_margin = float(distinct_margin)
@@ -424,9 +430,12 @@ class DISFlowMatcher:
         }
         if self.appearance_check:
             out["appearance_check"] = {
-                "zncc_min": self.zncc_min, "distinct_margin": self.distinct_margin,
-                "distinct_shift_px": self.distinct_shift_px, "patch_radius": self.patch_radius,
-                "min_patch_std": self.min_patch_std, "motion_px": "before the check",
+                "zncc_min": self.zncc_min,
+                "distinct_margin": self.distinct_margin,
+                "distinct_shift_px": self.distinct_shift_px,
+                "patch_radius": self.patch_radius,
+                "min_patch_std": self.min_patch_std,
+                "motion_px": "before the check",
             }
         return out
 
@@ -450,8 +459,14 @@ class DISFlowMatcher:
         if not self.appearance_check or len(matches) == 0:
             return matches
         keep = appearance_check(
-            gray_i, gray_j, matches.uv_i, matches.uv_j, radius=self.patch_radius,
-            zncc_min=self.zncc_min, margin=self.distinct_margin, shift_px=self.distinct_shift_px,
+            gray_i,
+            gray_j,
+            matches.uv_i,
+            matches.uv_j,
+            radius=self.patch_radius,
+            zncc_min=self.zncc_min,
+            margin=self.distinct_margin,
+            shift_px=self.distinct_shift_px,
             min_std=self.min_patch_std,
         )
         kept = matches.select(keep)
@@ -521,9 +536,7 @@ class SIFTMatcher:
         }
 
     def _detect(self, gray: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        sift = cv2.SIFT_create(
-            nfeatures=self.n_features, contrastThreshold=self.contrast_threshold
-        )
+        sift = cv2.SIFT_create(nfeatures=self.n_features, contrastThreshold=self.contrast_threshold)
         keypoints, desc = sift.detectAndCompute(gray, mask.astype(np.uint8) * 255)
         if desc is None or not keypoints:
             return np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32)

@@ -371,8 +371,13 @@ def estimate_relative_pose(
     cv2.setRNGSeed(int(seed))
     try:
         E, mask = cv2.findEssentialMat(
-            x1, x2, cameraMatrix=np.eye(3), method=cv2.USAC_MAGSAC, prob=0.999,
-            threshold=thr, maxIters=int(max_iters),
+            x1,
+            x2,
+            cameraMatrix=np.eye(3),
+            method=cv2.USAC_MAGSAC,
+            prob=0.999,
+            threshold=thr,
+            maxIters=int(max_iters),
         )
     except cv2.error as exc:
         return PoseTarget.failed(n, f"findEssentialMat failed: {exc}")
@@ -411,7 +416,12 @@ def estimate_relative_pose(
     mask_full[idx[inl]] = True
     n_inl = int(inl.sum())
     if n_inl < min_inliers:
-        return PoseTarget(np.eye(3), np.zeros(3), mask_full, n_inl, False,
-                          f"too few inliers ({n_inl} < {min_inliers})")
+        return PoseTarget(
+            np.eye(3),
+            np.zeros(3),
+            mask_full,
+            n_inl,
+            False,
+            f"too few inliers ({n_inl} < {min_inliers})",
+        )
     return PoseTarget(R, t, mask_full, n_inl, True)
-

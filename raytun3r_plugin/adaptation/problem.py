@@ -26,6 +26,7 @@ if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load 
 
 __all__ = ["MAX_DEPTH_SAMPLES", "AdaptationProblem", "prepare_problem", "scene_mask"]
 
+
 def scene_mask(mask: Any, camera: Camera) -> np.ndarray:
     """A user mask of the native frames, checked and combined with the camera's valid region.
 
@@ -43,7 +44,9 @@ def scene_mask(mask: Any, camera: Camera) -> np.ndarray:
     array = np.asarray(mask.detach().cpu() if isinstance(mask, torch.Tensor) else mask)
     expected = (int(camera.height), int(camera.width))
     if array.shape != expected:
-        raise InputError(f"mask must be (H, W) = {expected} like the frames, got shape {array.shape}")
+        raise InputError(
+            f"mask must be (H, W) = {expected} like the frames, got shape {array.shape}"
+        )
     combined = (array != 0) & camera.valid_mask().cpu().numpy().astype(bool)
     if not combined.any():
         raise InputError("mask leaves no pixel inside the camera's valid region")
@@ -92,7 +95,12 @@ class _Pair:
 
 def _inside(uv: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     height, width = valid.shape
-    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= height - 0.5)
+    inside = (
+        (uv[:, 0] >= -0.5)
+        & (uv[:, 0] <= width - 0.5)
+        & (uv[:, 1] >= -0.5)
+        & (uv[:, 1] <= height - 0.5)
+    )
     col = torch.round(uv[:, 0]).clamp(0, width - 1).long()
     row = torch.round(uv[:, 1]).clamp(0, height - 1).long()
     return inside & valid[row, col]
@@ -102,8 +110,18 @@ def _prepare_pairs(window: Window, layout: InputLayout, valid: torch.Tensor) -> 
     camera = layout.camera
     pairs = []
     for (a, b), matches in window.pairs.items():
-        uv_i = to_input_pixels(torch.from_numpy(matches.uv_i).float(), layout.native_size, (layout.width, layout.height), layout.offset)
-        uv_j = to_input_pixels(torch.from_numpy(matches.uv_j).float(), layout.native_size, (layout.width, layout.height), layout.offset)
+        uv_i = to_input_pixels(
+            torch.from_numpy(matches.uv_i).float(),
+            layout.native_size,
+            (layout.width, layout.height),
+            layout.offset,
+        )
+        uv_j = to_input_pixels(
+            torch.from_numpy(matches.uv_j).float(),
+            layout.native_size,
+            (layout.width, layout.height),
+            layout.offset,
+        )
         with torch.no_grad():
             rays_i, ok_i = camera.unproject(uv_i)
             rays_j, ok_j = camera.unproject(uv_j)
@@ -112,8 +130,13 @@ def _prepare_pairs(window: Window, layout: InputLayout, valid: torch.Tensor) -> 
         usable = target is not None and target.ok
         pairs.append(
             _Pair(
-                a, b, uv_i[keep], uv_j[keep], torch.from_numpy(matches.confidence).float()[keep],
-                rays_i[keep].float(), rays_j[keep].float(),
+                a,
+                b,
+                uv_i[keep],
+                uv_j[keep],
+                torch.from_numpy(matches.confidence).float()[keep],
+                rays_i[keep].float(),
+                rays_j[keep].float(),
                 torch.from_numpy(target.R).double() if usable else None,
                 torch.from_numpy(target.t).double() if usable else None,
             )
@@ -174,7 +197,12 @@ MAX_DEPTH_SAMPLES = 8192
 
 
 def _depth_targets(
-    depth: Any, frames: list[int], layout: InputLayout, native_valid: np.ndarray | None, shape: tuple[int, ...], seed: int,
+    depth: Any,
+    frames: list[int],
+    layout: InputLayout,
+    native_valid: np.ndarray | None,
+    shape: tuple[int, ...],
+    seed: int,
 ) -> tuple[dict[int, tuple[torch.Tensor, torch.Tensor]], dict[str, Any]]:
     """Ground-truth depth of the native frames -> per-frame samples at network-input pixels.
 
@@ -183,13 +211,19 @@ def _depth_targets(
     input-pixel position of that centre (``to_input_pixels``, so a crop is honoured), where the
     prediction is read bilinearly; no resampling of the ground truth blurs depth edges.
     """
-    array = np.asarray(depth.detach().cpu() if isinstance(depth, torch.Tensor) else depth, dtype=np.float64)
+    array = np.asarray(
+        depth.detach().cpu() if isinstance(depth, torch.Tensor) else depth, dtype=np.float64
+    )
     if array.shape != tuple(shape):
-        raise InputError(f"depth must be (N, H, W) = {tuple(shape)} like the frames, got shape {array.shape}")
+        raise InputError(
+            f"depth must be (N, H, W) = {tuple(shape)} like the frames, got shape {array.shape}"
+        )
     width, height = layout.native_size
     x0, y0 = layout.offset
     lens = layout.native_camera.valid_mask().cpu().numpy().astype(bool)
-    region = lens if native_valid is None else lens & native_valid[y0 : y0 + height, x0 : x0 + width]
+    region = (
+        lens if native_valid is None else lens & native_valid[y0 : y0 + height, x0 : x0 + width]
+    )
     generator = np.random.default_rng(seed)
     targets, known = {}, []
     for frame in frames:
@@ -205,11 +239,25 @@ def _depth_targets(
         targets[frame] = (uv, torch.from_numpy(values[rows, cols].astype(np.float32)))
     coverage = float(np.mean(known)) if known else 0.0
     if coverage == 0.0:
-        raise InputError("depth has no positive, finite value inside the lens on the adaptation frames")
-    return targets, {"kind": "depth", "coverage": round(coverage, 4), "dense": coverage > 0.5, "frames": len(frames)}
+        raise InputError(
+            "depth has no positive, finite value inside the lens on the adaptation frames"
+        )
+    return targets, {
+        "kind": "depth",
+        "coverage": round(coverage, 4),
+        "dense": coverage > 0.5,
+        "frames": len(frames),
+    }
 
 
-def prepare_problem(camera: Camera, frames: Any, config: AdaptConfig, patch: int = 14, mask: Any = None, depth: Any = None) -> AdaptationProblem:
+def prepare_problem(
+    camera: Camera,
+    frames: Any,
+    config: AdaptConfig,
+    patch: int = 14,
+    mask: Any = None,
+    depth: Any = None,
+) -> AdaptationProblem:
     """Match, estimate targets (or load them from the cache) and lay the segment out for training.
 
     ``mask`` (optional, (H, W) like the frames, True where the scene is seen) keeps matches,
@@ -218,14 +266,24 @@ def prepare_problem(camera: Camera, frames: Any, config: AdaptConfig, patch: int
     """
     images, segment = _frames_array(frames)
     if (segment["width"], segment["height"]) != (int(camera.width), int(camera.height)):
-        raise InputError(f"frames are {segment['width']}x{segment['height']} px but the camera is {camera.width}x{camera.height}")
+        raise InputError(
+            f"frames are {segment['width']}x{segment['height']} px but the camera is {camera.width}x{camera.height}"
+        )
     native_valid = None if mask is None else scene_mask(mask, camera)
     segment["sequence_id"] = config.sequence_id
     layout = input_layout(camera, config.input_size, patch)
     adaptation = prepare_adaptation_set(
-        images, camera, get_matcher(config.matcher, **config.matcher_options), n_windows=config.n_windows,
-        stride=config.stride, cache_dir=config.cache_dir, sequence_id=config.sequence_id,
-        min_motion_px=config.min_motion_px, window_size=config.window_size, seed=config.seed, valid=native_valid,
+        images,
+        camera,
+        get_matcher(config.matcher, **config.matcher_options),
+        n_windows=config.n_windows,
+        stride=config.stride,
+        cache_dir=config.cache_dir,
+        sequence_id=config.sequence_id,
+        min_motion_px=config.min_motion_px,
+        window_size=config.window_size,
+        seed=config.seed,
+        valid=native_valid,
     )
     if len(adaptation) == 0:
         raise InputError(
@@ -237,12 +295,19 @@ def prepare_problem(camera: Camera, frames: Any, config: AdaptConfig, patch: int
     if native_valid is not None:
         native_mask = layout.native_mask(native_valid)
         valid = valid & layout.mask(native_valid)
-        segment["mask"] = {"valid_fraction": round(float(native_valid.mean()), 4), "sha256": hashlib.sha256(np.packbits(native_valid).tobytes()).hexdigest()}
+        segment["mask"] = {
+            "valid_fraction": round(float(native_valid.mean()), 4),
+            "sha256": hashlib.sha256(np.packbits(native_valid).tobytes()).hexdigest(),
+        }
     used = sorted({frame for window in adaptation.windows for frame in window.frames})
     inputs = dict(zip(used, layout.frames(images[used]), strict=True))
     windows = [(window, _prepare_pairs(window, layout, valid)) for window in adaptation.windows]
     geometry = GeometryCache(layout.native_camera, patch).at(layout.height, layout.width)
-    problem = AdaptationProblem(layout, adaptation, windows, inputs, valid, geometry, segment, native_mask)
+    problem = AdaptationProblem(
+        layout, adaptation, windows, inputs, valid, geometry, segment, native_mask
+    )
     if depth is not None:
-        problem.depth_targets, problem.supervision = _depth_targets(depth, used, layout, native_valid, tuple(images.shape[:3]), config.seed)
+        problem.depth_targets, problem.supervision = _depth_targets(
+            depth, used, layout, native_valid, tuple(images.shape[:3]), config.seed
+        )
     return problem

@@ -43,6 +43,7 @@ if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load 
 
 __all__ = ["adaptation_step", "objective_value", "window_of_step", "window_terms"]
 
+
 @contextmanager
 def _frozen(model: nn.Module) -> Iterator[None]:
     """Backbone parameters without gradients and every module in eval mode; restored after."""
@@ -69,26 +70,49 @@ def _subset(pair: _Pair, max_matches: int, generator: torch.Generator) -> tuple[
     count = pair.uv_i.shape[0]
     if max_matches and count > max_matches:
         index = torch.randperm(count, generator=generator)[:max_matches]
-        return pair.uv_i[index], pair.uv_j[index], pair.confidence[index], pair.rays_i[index], pair.rays_j[index]
+        return (
+            pair.uv_i[index],
+            pair.uv_j[index],
+            pair.confidence[index],
+            pair.rays_i[index],
+            pair.rays_j[index],
+        )
     return pair.uv_i, pair.uv_j, pair.confidence, pair.rays_i, pair.rays_j
 
 
 def _targets_pose(
-    pair: _Pair, depth_i: torch.Tensor, uv_i: torch.Tensor, uv_j: torch.Tensor, confidence: torch.Tensor,
-    rays_i: torch.Tensor, rays_j: torch.Tensor, camera: Camera, config: AdaptConfig,
+    pair: _Pair,
+    depth_i: torch.Tensor,
+    uv_i: torch.Tensor,
+    uv_j: torch.Tensor,
+    confidence: torch.Tensor,
+    rays_i: torch.Tensor,
+    rays_j: torch.Tensor,
+    camera: Camera,
+    config: AdaptConfig,
 ) -> torch.Tensor:
     """``cam_j_from_cam_i`` from the MAGSAC++ target, translation scaled to the predicted depth
     (``config.scale``: pixel-optimal and detached, or the differentiable least-squares scale)."""
     depth = sample_bilinear(depth_i, uv_i)
     usable = torch.isfinite(depth) & (depth > 0)
-    points = backproject(torch.where(usable, depth, torch.ones_like(depth)), rays_i, config.depth_convention)
+    points = backproject(
+        torch.where(usable, depth, torch.ones_like(depth)), rays_i, config.depth_convention
+    )
     rotation = pair.rotation.to(depth_i.dtype)
     direction = pair.direction.to(depth_i.dtype)
-    scale = fit_translation_scale(points[usable], rays_j[usable], rotation, direction, confidence[usable])
+    scale = fit_translation_scale(
+        points[usable], rays_j[usable], rotation, direction, confidence[usable]
+    )
     if config.scale == "pixel":
         scale = pixel_optimal_scale(
-            points[usable], uv_j[usable], rotation, direction, camera, confidence[usable],
-            robust_px=config.robust_px or 1.0, initial=scale.detach(),
+            points[usable],
+            uv_j[usable],
+            rotation,
+            direction,
+            camera,
+            confidence[usable],
+            robust_px=config.robust_px or 1.0,
+            initial=scale.detach(),
         )
     pose = torch.eye(4, dtype=depth_i.dtype)
     return torch.cat((torch.cat((rotation, (scale * direction)[:, None]), dim=1), pose[3:]), dim=0)
@@ -129,7 +153,11 @@ def window_terms(
     correction = pe_correction_grid(adapter, geometry)
     regularisers = {"l2": pe_l2(correction) / pe_scale, "tv": pe_tv(correction) / pe_scale}
     if depth_targets is not None:
-        losses = [silog_loss(sample_bilinear(depth[k], uv), target) for k, (uv, target) in enumerate(depth_targets) if uv.shape[0]]
+        losses = [
+            silog_loss(sample_bilinear(depth[k], uv), target)
+            for k, (uv, target) in enumerate(depth_targets)
+            if uv.shape[0]
+        ]
         n_depth = sum(int(uv.shape[0]) for uv, _ in depth_targets)
         term = torch.stack(losses).mean() if losses else depth.sum() * 0.0
         return {"depth": term, **regularisers}, {"n_matches": 0, "n_pose": 0, "n_depth": n_depth}
@@ -143,10 +171,20 @@ def window_terms(
             continue
         uv_i, uv_j, confidence, rays_i, rays_j = _subset(pair, config.max_matches, generator)
         if config.pose_source == "targets":
-            relative = _targets_pose(pair, depth[pair.a], uv_i, uv_j, confidence, rays_i, rays_j, layout.camera, config)
+            relative = _targets_pose(
+                pair, depth[pair.a], uv_i, uv_j, confidence, rays_i, rays_j, layout.camera, config
+            )
         loss, count = reprojection_loss(
-            depth[pair.a], relative, uv_i, uv_j, confidence, layout.camera, valid, config.depth_convention,
-            rays_i=(rays_i, torch.ones_like(confidence, dtype=torch.bool)), robust_px=config.robust_px,
+            depth[pair.a],
+            relative,
+            uv_i,
+            uv_j,
+            confidence,
+            layout.camera,
+            valid,
+            config.depth_convention,
+            rays_i=(rays_i, torch.ones_like(confidence, dtype=torch.bool)),
+            robust_px=config.robust_px,
         )
         if count:
             reproj.append(loss)
@@ -199,8 +237,17 @@ def adaptation_step(
     window, pairs = problem.windows[index]
     generator = torch.Generator().manual_seed(int(config.seed) * 7_919 + step)
     terms, counts = window_terms(
-        model, adapter, problem.batch(index), pairs, problem.layout, problem.valid, problem.geometry, config, generator,
-        pe_scale=problem.pe_scale, depth_targets=problem.window_depth(index),
+        model,
+        adapter,
+        problem.batch(index),
+        pairs,
+        problem.layout,
+        problem.valid,
+        problem.geometry,
+        config,
+        generator,
+        pe_scale=problem.pe_scale,
+        depth_targets=problem.window_depth(index),
     )
     loss = total_loss(terms, config.weights)
     parameters = [p for group in optimizer.param_groups for p in group["params"]]
@@ -212,7 +259,9 @@ def adaptation_step(
         if config.clip is not None:
             grad_norm = float(torch.nn.utils.clip_grad_norm_(parameters, config.clip))
         elif grads:
-            grad_norm = float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads])))
+            grad_norm = float(
+                torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
+            )
         if math.isfinite(grad_norm):
             optimizer.step()
     return {
@@ -228,7 +277,13 @@ def adaptation_step(
     }
 
 
-def objective_value(model: nn.Module, adapter: Adapter, problem: AdaptationProblem, config: AdaptConfig, seed: int = 0) -> dict[str, float]:
+def objective_value(
+    model: nn.Module,
+    adapter: Adapter,
+    problem: AdaptationProblem,
+    config: AdaptConfig,
+    seed: int = 0,
+) -> dict[str, float]:
     """The objective of ``config`` for ``adapter``, averaged over every window of ``problem``.
 
     Runs the model patched with ``adapter`` (the model must be unpatched; it is again
@@ -242,12 +297,32 @@ def objective_value(model: nn.Module, adapter: Adapter, problem: AdaptationProbl
     if handle_of(model) is not None:
         raise AlreadyAppliedError("objective_value needs an unpatched model")
     sums: dict[str, float] = {}
-    with _frozen(model), torch.no_grad(), apply(model, problem.layout.native_camera, adapter, components=config.components, strict=False, mask=problem.mask):
+    with (
+        _frozen(model),
+        torch.no_grad(),
+        apply(
+            model,
+            problem.layout.native_camera,
+            adapter,
+            components=config.components,
+            strict=False,
+            mask=problem.mask,
+        ),
+    ):
         for index, (_, pairs) in enumerate(problem.windows):
             generator = torch.Generator().manual_seed(int(seed) * 7_919 + index)
             terms, _ = window_terms(
-                model, adapter, problem.batch(index), pairs, problem.layout, problem.valid, problem.geometry, config, generator,
-                pe_scale=problem.pe_scale, depth_targets=problem.window_depth(index),
+                model,
+                adapter,
+                problem.batch(index),
+                pairs,
+                problem.layout,
+                problem.valid,
+                problem.geometry,
+                config,
+                generator,
+                pe_scale=problem.pe_scale,
+                depth_targets=problem.window_depth(index),
             )
             terms = {**terms, "loss": total_loss(terms, config.weights)}
             for name, value in terms.items():

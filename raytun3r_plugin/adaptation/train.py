@@ -146,7 +146,9 @@ class _Progress:
             try:
                 from tqdm.auto import tqdm
 
-                self.bar = tqdm(total=total, initial=initial, desc="adapt", unit="step", dynamic_ncols=True)
+                self.bar = tqdm(
+                    total=total, initial=initial, desc="adapt", unit="step", dynamic_ncols=True
+                )
             except ImportError:
                 self.bar = None
         self.every = max(1, total // 20)
@@ -158,7 +160,9 @@ class _Progress:
             self.bar.update(1)
             self.bar.set_postfix(loss=f"{loss:.4g}", refresh=False)
         elif (step + 1) % self.every == 0 or step + 1 == self.total:
-            print(f"adapt: step {step + 1}/{self.total} loss {loss:.4g}", file=sys.stderr, flush=True)
+            print(
+                f"adapt: step {step + 1}/{self.total} loss {loss:.4g}", file=sys.stderr, flush=True
+            )
 
     def close(self) -> None:
         if self.bar is not None:
@@ -228,8 +232,14 @@ def adapt(
     if config is None:
         config = AdaptConfig() if depth is None else AdaptConfig.supervised()
     if handle_of(model) is not None:
-        raise AlreadyAppliedError("adapt needs an unpatched model; remove the existing raytun3r patch first")
-    adapter = Adapter.for_model(model, None, components=config.components) if adapter is None else copy.deepcopy(adapter)
+        raise AlreadyAppliedError(
+            "adapt needs an unpatched model; remove the existing raytun3r patch first"
+        )
+    adapter = (
+        Adapter.for_model(model, None, components=config.components)
+        if adapter is None
+        else copy.deepcopy(adapter)
+    )
     problem = prepare_problem(camera, frames, config, adapter.patch_size, mask=mask, depth=depth)
     if config.pe_regulariser == "relative":
         spec, root = spec_for(model)
@@ -253,18 +263,32 @@ def adapt(
             paths["log"].write_text("", encoding="utf-8")
         else:
             _rewrite_log(paths["log"], start)
-    metadata = {**identity, "config_json": json.dumps(config.to_dict(), sort_keys=True, default=str)}
+    metadata = {
+        **identity,
+        "config_json": json.dumps(config.to_dict(), sort_keys=True, default=str),
+    }
 
     history: list[dict[str, Any]] = []
     # The thresholds are read here, at call time, so patching this module's constants takes effect.
-    guard = _CollapseGuard(problem, config, GUARD_MIN_CORRELATION, GUARD_SPREAD_RANGE) if config.guard else None
+    guard = (
+        _CollapseGuard(problem, config, GUARD_MIN_CORRELATION, GUARD_SPREAD_RANGE)
+        if config.guard
+        else None
+    )
     completed, interrupted, began = start, False, time.perf_counter()
     bar = _Progress(config.steps, start, progress)
     log = open(paths["log"], "a", encoding="utf-8") if paths is not None else None  # noqa: SIM115
     try:
         with _frozen(model), torch.random.fork_rng(devices=[]):
             torch.manual_seed(config.seed)
-            handle = apply(model, problem.layout.native_camera, adapter, components=config.components, strict=False, mask=problem.mask)
+            handle = apply(
+                model,
+                problem.layout.native_camera,
+                adapter,
+                components=config.components,
+                strict=False,
+                mask=problem.mask,
+            )
             try:
                 if guard is not None:
                     guard.check(model, adapter, start)
@@ -276,10 +300,21 @@ def adapt(
                         log.write(json.dumps(record) + "\n")
                         log.flush()
                     bar.update(step, record["loss"])
-                    if guard is not None and (completed % config.guard_every == 0 or completed == config.steps) and not guard.check(model, adapter, completed):
+                    if (
+                        guard is not None
+                        and (completed % config.guard_every == 0 or completed == config.steps)
+                        and not guard.check(model, adapter, completed)
+                    ):
                         break
-                    if paths is not None and config.checkpoint_every and completed % config.checkpoint_every == 0 and completed < config.steps:
-                        _save_checkpoint(paths["checkpoint"], adapter, optimizer, completed, metadata)
+                    if (
+                        paths is not None
+                        and config.checkpoint_every
+                        and completed % config.checkpoint_every == 0
+                        and completed < config.steps
+                    ):
+                        _save_checkpoint(
+                            paths["checkpoint"], adapter, optimizer, completed, metadata
+                        )
             except KeyboardInterrupt:
                 interrupted = True
             finally:
@@ -289,7 +324,9 @@ def adapt(
         if log is not None:
             log.close()
 
-    adapter.training_info = _training_info(config, problem, completed, history, interrupted, time.perf_counter() - began, start)
+    adapter.training_info = _training_info(
+        config, problem, completed, history, interrupted, time.perf_counter() - began, start
+    )
     if guard is not None:
         adapter.training_info["guard"] = guard.report()
     adapter.training_info["verdict"] = fit_verdict(adapter, history, problem, guard)
@@ -298,20 +335,33 @@ def adapt(
     if paths is not None:
         _save_checkpoint(paths["checkpoint"], adapter, optimizer, completed, metadata)
         adapter.save(paths["adapter"])
-        write_loss_artifacts(paths, read_loss_log(paths["log"]) if paths["log"].is_file() else history)
+        write_loss_artifacts(
+            paths, read_loss_log(paths["log"]) if paths["log"].is_file() else history
+        )
     return adapter
 
 
 def _training_info(
-    config: AdaptConfig, problem: AdaptationProblem, steps_done: int, history: list[dict[str, Any]],
-    interrupted: bool, seconds: float, start: int,
+    config: AdaptConfig,
+    problem: AdaptationProblem,
+    steps_done: int,
+    history: list[dict[str, Any]],
+    interrupted: bool,
+    seconds: float,
+    start: int,
 ) -> dict[str, Any]:
     """What an adapter file records about its fitting (metadata ``training``)."""
     tail = history[-len(problem.windows) :]
-    final = {name: float(np.mean([r[name] for r in tail])) for name in ("loss", *TERMS) if tail and name in tail[0]}
+    final = {
+        name: float(np.mean([r[name] for r in tail]))
+        for name in ("loss", *TERMS)
+        if tail and name in tail[0]
+    }
     adaptation, layout = problem.adaptation, problem.layout
     return {
-        "method": "raytun3r online adaptation" if problem.supervision is None else "raytun3r supervised adaptation",
+        "method": "raytun3r online adaptation"
+        if problem.supervision is None
+        else "raytun3r supervised adaptation",
         "supervision": problem.supervision or {"kind": "self-supervised"},
         "steps": steps_done,
         "requested_steps": config.steps,
@@ -319,7 +369,11 @@ def _training_info(
         "interrupted": interrupted,
         "final_losses": final,
         "final_losses_over_steps": len(tail),
-        "segment": {**problem.segment, "windows": [list(w.frames) for w in adaptation.windows], "skipped_static": adaptation.skipped_static},
+        "segment": {
+            **problem.segment,
+            "windows": [list(w.frames) for w in adaptation.windows],
+            "skipped_static": adaptation.skipped_static,
+        },
         "input": layout.record(),
         "adaptation_set": adaptation.cache_key,
         "config": config.to_dict(),

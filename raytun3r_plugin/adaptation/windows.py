@@ -279,12 +279,18 @@ def _load(path: Path, payload: str, window_size: int) -> tuple[list[Window], lis
         s, e = int(offsets[p]), int(offsets[p + 1])
         m = Matches(d["uv_i"][s:e], d["uv_j"][s:e], d["confidence"][s:e])
         tgt = PoseTarget(
-            d["R"][p], d["t"][p], d["inlier"][s:e], int(d["n_inliers"][p]), bool(d["ok"][p]),
+            d["R"][p],
+            d["t"][p],
+            d["inlier"][s:e],
+            int(d["n_inliers"][p]),
+            bool(d["ok"][p]),
             str(d["reason"][p]),
         )
         pairs[(gi, gj)] = (m, tgt)
     windows = []
-    for frames, motion in zip(d["window_frames"].tolist(), d["window_motion"].tolist(), strict=True):
+    for frames, motion in zip(
+        d["window_frames"].tolist(), d["window_motion"].tolist(), strict=True
+    ):
         w = Window(tuple(int(f) for f in frames), motion_px=float(motion))
         for a, b in window_pairs(window_size):
             m, tgt = pairs[w.global_pair(a, b)]
@@ -360,13 +366,26 @@ def prepare_adaptation_set(
         "image_shape": list(images.shape),
         "camera": _camera_json(camera),
         "valid_mask": hashlib.sha256(np.packbits(mask).tobytes()).hexdigest(),
-        "matcher": {"name": str(getattr(matcher, "name", type(matcher).__name__)),
-                    "settings": matcher.settings()},
-        "windows": {"n_windows": n_windows, "window_size": window_size, "stride": stride,
-                    "start": start, "stop": stop, "min_motion_px": float(min_motion_px)},
-        "pose": {"max_angle_deg": float(max_angle_deg), "threshold_px": float(threshold_px),
-                 "seed": int(seed), "min_inliers": int(min_inliers), "refine": bool(refine),
-                 "method": "USAC_MAGSAC"},
+        "matcher": {
+            "name": str(getattr(matcher, "name", type(matcher).__name__)),
+            "settings": matcher.settings(),
+        },
+        "windows": {
+            "n_windows": n_windows,
+            "window_size": window_size,
+            "stride": stride,
+            "start": start,
+            "stop": stop,
+            "min_motion_px": float(min_motion_px),
+        },
+        "pose": {
+            "max_angle_deg": float(max_angle_deg),
+            "threshold_px": float(threshold_px),
+            "seed": int(seed),
+            "min_inliers": int(min_inliers),
+            "refine": bool(refine),
+            "method": "USAC_MAGSAC",
+        },
     }
     payload = json.dumps(settings, sort_keys=True, default=str)
     key = hashlib.sha256(payload.encode()).hexdigest()
@@ -393,8 +412,13 @@ def prepare_adaptation_set(
     def target_for(gi: int, gj: int) -> PoseTarget:
         if (gi, gj) not in target_memo:
             target_memo[(gi, gj)] = estimate_relative_pose(
-                matches_for(gi, gj), camera, max_angle_deg=max_angle_deg,
-                threshold_px=threshold_px, seed=seed, min_inliers=min_inliers, refine=refine,
+                matches_for(gi, gj),
+                camera,
+                max_angle_deg=max_angle_deg,
+                threshold_px=threshold_px,
+                seed=seed,
+                min_inliers=min_inliers,
+                refine=refine,
             )
         return target_memo[(gi, gj)]
 
@@ -417,7 +441,9 @@ def prepare_adaptation_set(
         windows.append(win)
     logger.info(
         "adaptation set: %d windows, %d static skipped, %d matcher calls",
-        len(windows), len(static), len(match_memo),
+        len(windows),
+        len(static),
+        len(match_memo),
     )
     if path is not None:
         _save(path, payload, windows, static, window_size)

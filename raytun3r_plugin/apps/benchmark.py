@@ -42,7 +42,18 @@ SUPERVISED = "raytun3r, supervised"
 #: that sequence (on 30 development sequences the no-adapter patch lost to vanilla in d_reproj on
 #: 2 and in AbsRel on 2; README, component table).
 SEQUENCES_PER_CELL = 5
-COLUMNS = ["camera", "scene", "method", "rot_deg", "trans_deg", "d_reproj_px", "abs_rel", "delta_1.25", "coverage", "adapt_s"]
+COLUMNS = [
+    "camera",
+    "scene",
+    "method",
+    "rot_deg",
+    "trans_deg",
+    "d_reproj_px",
+    "abs_rel",
+    "delta_1.25",
+    "coverage",
+    "adapt_s",
+]
 
 
 def ground_truth_depth(seq, frames: int):
@@ -57,17 +68,29 @@ def ground_truth_depth(seq, frames: int):
     return depth
 
 
-def gap_closed(summary: list[dict], method: str = "raytun3r", lower: str = ZERO_ADAPTER, upper: str = SUPERVISED, key: str = "abs_rel") -> dict[tuple[str, str], float]:
+def gap_closed(
+    summary: list[dict],
+    method: str = "raytun3r",
+    lower: str = ZERO_ADAPTER,
+    upper: str = SUPERVISED,
+    key: str = "abs_rel",
+) -> dict[tuple[str, str], float]:
     """Per (camera, scene): the fraction of the mean-``key`` gap between ``lower`` (the zero
     adapter) and ``upper`` (the supervised fit) that ``method`` closes (1 = as good as the
     supervised fit, 0 = no better than the zero adapter, negative = worse)."""
     means = {(r["camera"], r["scene"], r["method"]): r[key] for r in summary}
     out = {}
     for (camera, scene, name), value in means.items():
-        if name != method or (camera, scene, lower) not in means or (camera, scene, upper) not in means:
+        if (
+            name != method
+            or (camera, scene, lower) not in means
+            or (camera, scene, upper) not in means
+        ):
             continue
         gap = means[(camera, scene, lower)] - means[(camera, scene, upper)]
-        out[(camera, scene)] = (means[(camera, scene, lower)] - value) / gap if abs(gap) > 1e-12 else math.nan
+        out[(camera, scene)] = (
+            (means[(camera, scene, lower)] - value) / gap if abs(gap) > 1e-12 else math.nan
+        )
     return out
 
 
@@ -86,7 +109,11 @@ def sequence_seed(camera_index: int, scene_index: int, k: int, base: int = HELD_
     return base + 100 * k + 10 * camera_index + scene_index
 
 
-def summarise(rows: list[dict], reference: str = "vanilla", metrics: tuple[str, ...] = ("d_reproj_px", "abs_rel")) -> list[dict]:
+def summarise(
+    rows: list[dict],
+    reference: str = "vanilla",
+    metrics: tuple[str, ...] = ("d_reproj_px", "abs_rel"),
+) -> list[dict]:
     """Per-sequence rows -> one row per (camera, scene, method): means over the sequences.
 
     Rows of a method other than ``reference`` also get ``lower_than_<reference>``: on how many of
@@ -107,13 +134,19 @@ def summarise(rows: list[dict], reference: str = "vanilla", metrics: tuple[str, 
             by_seed = {m["seed"]: m for m in cells.get((camera, scene, reference), [])}
             paired = [(m, by_seed[m["seed"]]) for m in members if m["seed"] in by_seed]
             summary[f"lower_than_{reference}"] = ", ".join(
-                f"{key} {sum(float(m[key]) < float(r[key]) for m, r in paired)}/{len(paired)}" for key in metrics
+                f"{key} {sum(float(m[key]) < float(r[key]) for m, r in paired)}/{len(paired)}"
+                for key in metrics
             )
         out.append(summary)
     return out
 
 
-def targets_met(summary: list[dict], method: str = "raytun3r", reference: str = "vanilla", metrics: tuple[str, ...] = ("d_reproj_px", "abs_rel")) -> list[str]:
+def targets_met(
+    summary: list[dict],
+    method: str = "raytun3r",
+    reference: str = "vanilla",
+    metrics: tuple[str, ...] = ("d_reproj_px", "abs_rel"),
+) -> list[str]:
     """The (camera, scene) cells where ``method``'s mean is lower than ``reference``'s on every metric."""
     means = {(r["camera"], r["scene"], r["method"]): r for r in summary}
     met = []
@@ -124,7 +157,20 @@ def targets_met(summary: list[dict], method: str = "raytun3r", reference: str = 
     return met
 
 
-def sequence_rows(model, camera, label: str, scene: str, seed: int, *, size: int, n_adapt: int, n_eval: int, steps: int, out: Path, progress: bool = False) -> list[dict]:
+def sequence_rows(
+    model,
+    camera,
+    label: str,
+    scene: str,
+    seed: int,
+    *,
+    size: int,
+    n_adapt: int,
+    n_eval: int,
+    steps: int,
+    out: Path,
+    progress: bool = False,
+) -> list[dict]:
     """The rows of one held-out sequence: vanilla, Center-PH, the zero adapter, an adapter
     fitted self-supervised on its first ``n_adapt`` frames and one fitted to their ground-truth
     depth (the upper bound; both written to ``out``); all scored on the rest."""
@@ -136,27 +182,80 @@ def sequence_rows(model, camera, label: str, scene: str, seed: int, *, size: int
     cell = {"camera": label, "scene": scene, "seed": seed}
     rows = []
     for method in ("vanilla", "center-ph"):
-        rows.append({**cell, "method": method, **headline(score(seq, run_method(model, seq, method, frames=held_out))), "adapt_s": math.nan})
+        rows.append(
+            {
+                **cell,
+                "method": method,
+                **headline(score(seq, run_method(model, seq, method, frames=held_out))),
+                "adapt_s": math.nan,
+            }
+        )
     # The patch with a zero adapter: the parameter-free corrections alone, so the table shows
     # what the fitted tables add on top of them.
     zero = headline(score(seq, run_method(model, seq, "raytun3r", frames=held_out)))
     rows.append({**cell, "method": ZERO_ADAPTER, **zero, "adapt_s": math.nan})
     start = time.perf_counter()
     path = out / f"{label.replace(' ', '_')}_{scene}_{seed}.safetensors"
-    adapter = adapt(model, camera, seq.images[:n_adapt], adapt_config(size, steps, seed=0), out_path=path, resume=False, progress=progress)
-    seconds = time.perf_counter() - start
-    rows.append({**cell, "method": "raytun3r", **headline(score(seq, run_method(model, seq, "raytun3r", adapter=adapter, frames=held_out))), "adapt_s": seconds})
-    start = time.perf_counter()
-    supervised = adapt(
-        model, camera, seq.images[:n_adapt], supervised_config(size, steps), out_path=path.with_name(path.stem + "_supervised.safetensors"),
-        resume=False, progress=progress, depth=ground_truth_depth(seq, n_adapt),
+    adapter = adapt(
+        model,
+        camera,
+        seq.images[:n_adapt],
+        adapt_config(size, steps, seed=0),
+        out_path=path,
+        resume=False,
+        progress=progress,
     )
     seconds = time.perf_counter() - start
-    rows.append({**cell, "method": SUPERVISED, **headline(score(seq, run_method(model, seq, "raytun3r", adapter=supervised, frames=held_out))), "adapt_s": seconds})
+    rows.append(
+        {
+            **cell,
+            "method": "raytun3r",
+            **headline(
+                score(seq, run_method(model, seq, "raytun3r", adapter=adapter, frames=held_out))
+            ),
+            "adapt_s": seconds,
+        }
+    )
+    start = time.perf_counter()
+    supervised = adapt(
+        model,
+        camera,
+        seq.images[:n_adapt],
+        supervised_config(size, steps),
+        out_path=path.with_name(path.stem + "_supervised.safetensors"),
+        resume=False,
+        progress=progress,
+        depth=ground_truth_depth(seq, n_adapt),
+    )
+    seconds = time.perf_counter() - start
+    rows.append(
+        {
+            **cell,
+            "method": SUPERVISED,
+            **headline(
+                score(seq, run_method(model, seq, "raytun3r", adapter=supervised, frames=held_out))
+            ),
+            "adapt_s": seconds,
+        }
+    )
     return rows
 
 
-def run_benchmark(model, out_dir: str | Path, *, size: int = 112, n_adapt: int = 24, n_eval: int = 12, steps: int = 300, sequences: int = SEQUENCES_PER_CELL, cameras=CAMERAS, scenes=SCENES, network: str = "", progress: bool = False, base_seed: int = HELD_OUT_SEED) -> str:
+def run_benchmark(
+    model,
+    out_dir: str | Path,
+    *,
+    size: int = 112,
+    n_adapt: int = 24,
+    n_eval: int = 12,
+    steps: int = 300,
+    sequences: int = SEQUENCES_PER_CELL,
+    cameras=CAMERAS,
+    scenes=SCENES,
+    network: str = "",
+    progress: bool = False,
+    base_seed: int = HELD_OUT_SEED,
+) -> str:
     """Run every (camera, scene) on ``sequences`` held-out sequences; return the markdown table.
 
     The table shows means over each cell's sequences; ``out_dir`` also gets every per-sequence
@@ -170,12 +269,32 @@ def run_benchmark(model, out_dir: str | Path, *, size: int = 112, n_adapt: int =
         for scene_index, scene in enumerate(scenes):
             for k in range(sequences):
                 seed = sequence_seed(camera_index, scene_index, k, base_seed)
-                rows += sequence_rows(model, camera, spec.label, scene, seed, size=size, n_adapt=n_adapt, n_eval=n_eval, steps=steps, out=out, progress=progress)
-                print(f"[{time.perf_counter() - began:6.0f} s] {spec.label} {scene} seed {seed}: done", flush=True)
+                rows += sequence_rows(
+                    model,
+                    camera,
+                    spec.label,
+                    scene,
+                    seed,
+                    size=size,
+                    n_adapt=n_adapt,
+                    n_eval=n_eval,
+                    steps=steps,
+                    out=out,
+                    progress=progress,
+                )
+                print(
+                    f"[{time.perf_counter() - began:6.0f} s] {spec.label} {scene} seed {seed}: done",
+                    flush=True,
+                )
     summary = summarise(rows)
     for row in summarise(rows, reference=ZERO_ADAPTER):
         if row["method"] in ("raytun3r", SUPERVISED):
-            match = next(r for r in summary if (r["camera"], r["scene"], r["method"]) == (row["camera"], row["scene"], row["method"]))
+            match = next(
+                r
+                for r in summary
+                if (r["camera"], r["scene"], r["method"])
+                == (row["camera"], row["scene"], row["method"])
+            )
             match[f"lower_than_{ZERO_ADAPTER}"] = row[f"lower_than_{ZERO_ADAPTER}"]
     closed = gap_closed(summary)
     for row in summary:
@@ -183,9 +302,21 @@ def run_benchmark(model, out_dir: str | Path, *, size: int = 112, n_adapt: int =
             row["gap_closed"] = closed.get((row["camera"], row["scene"]), math.nan)
     met = targets_met(summary)
     met_zero = targets_met(summary, reference=ZERO_ADAPTER)
-    missed = [f"{spec.label} {scene}" for spec in cameras for scene in scenes if f"{spec.label} {scene}" not in met]
-    missed_zero = [f"{spec.label} {scene}" for spec in cameras for scene in scenes if f"{spec.label} {scene}" not in met_zero]
-    table = format_table(summary, COLUMNS + ["gap_closed", "lower_than_vanilla", f"lower_than_{ZERO_ADAPTER}"])
+    missed = [
+        f"{spec.label} {scene}"
+        for spec in cameras
+        for scene in scenes
+        if f"{spec.label} {scene}" not in met
+    ]
+    missed_zero = [
+        f"{spec.label} {scene}"
+        for spec in cameras
+        for scene in scenes
+        if f"{spec.label} {scene}" not in met_zero
+    ]
+    table = format_table(
+        summary, COLUMNS + ["gap_closed", "lower_than_vanilla", f"lower_than_{ZERO_ADAPTER}"]
+    )
     header = (
         f"Network: {network or 'see model card'}; input {size}x{size} px; {sequences} {'held-out' if base_seed == HELD_OUT_SEED else 'development'} sequences per camera and scene "
         f"(seeds {base_seed} + 100 k + 10 camera + scene); per sequence {n_adapt} adaptation frames "
@@ -203,5 +334,16 @@ def run_benchmark(model, out_dir: str | Path, *, size: int = 112, n_adapt: int =
         + ".\n"
     )
     (out / "results.md").write_text(header + "\n" + table + "\n")
-    (out / "results.json").write_text(json.dumps({"sequences": rows, "summary": summary, "target_met_cells": met, "target_met_cells_vs_zero_adapter": met_zero}, indent=2, default=float))
+    (out / "results.json").write_text(
+        json.dumps(
+            {
+                "sequences": rows,
+                "summary": summary,
+                "target_met_cells": met,
+                "target_met_cells_vs_zero_adapter": met_zero,
+            },
+            indent=2,
+            default=float,
+        )
+    )
     return header + "\n" + table

@@ -48,15 +48,29 @@ def cmd_infer(args: argparse.Namespace) -> int:
     frames, names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
     # The layout adapt used (its rule and long side come from the adapter when --size is not
     # given); frames of another size than the camera rescale the camera, a pure resize.
-    layout = layout_for_inference(camera, (frames.shape[2], frames.shape[1]), adapter, long_side=args.size, strict=not args.no_strict)
-    mask = layout.native_mask(read_mask(args.mask, frames.shape[2], frames.shape[1])) if args.mask else None
+    layout = layout_for_inference(
+        camera,
+        (frames.shape[2], frames.shape[1]),
+        adapter,
+        long_side=args.size,
+        strict=not args.no_strict,
+    )
+    mask = (
+        layout.native_mask(read_mask(args.mask, frames.shape[2], frames.shape[1]))
+        if args.mask
+        else None
+    )
     model = _load_model(args.backbone, args.weights)
     images = layout.frames(frames)[None]
     # Patched with the (cropped) native camera, as adapt patched the model: the adapter's camera
     # check compares like with like, and the patch rescales it to the input as during the fit.
-    prediction = predict_with_camera(model, layout.native_camera, adapter, images, strict=not args.no_strict, mask=mask)
+    prediction = predict_with_camera(
+        model, layout.native_camera, adapter, images, strict=not args.no_strict, mask=mask
+    )
     summary = write_outputs(args.out, prediction, images, layout.camera, names)
-    print(f"wrote depth for {summary['frames']} frames, trajectory.txt and points.ply ({summary['points']:,} points) to {args.out}")
+    print(
+        f"wrote depth for {summary['frames']} frames, trajectory.txt and points.ply ({summary['points']:,} points) to {args.out}"
+    )
     return 0
 
 
@@ -69,13 +83,27 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     camera = load_camera(args.camera, camera=args.camera_id)
     frames, names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
     mask = read_mask(args.mask, frames.shape[2], frames.shape[1]) if args.mask else None
-    depth = read_depth_maps(args.depth, names, frames.shape[2], frames.shape[1], args.depth_png_scale) if args.depth else None
+    depth = (
+        read_depth_maps(args.depth, names, frames.shape[2], frames.shape[1], args.depth_png_scale)
+        if args.depth
+        else None
+    )
     model = _load_model(args.backbone, args.weights)
-    settings = dict(steps=args.steps, input_size=args.size or DEFAULT_LONG_SIDE, n_windows=args.windows, matcher=args.matcher, seed=args.seed, pose_source=args.pose_source, cache_dir=args.cache_dir)
+    settings = dict(
+        steps=args.steps,
+        input_size=args.size or DEFAULT_LONG_SIDE,
+        n_windows=args.windows,
+        matcher=args.matcher,
+        seed=args.seed,
+        pose_source=args.pose_source,
+        cache_dir=args.cache_dir,
+    )
     config = AdaptConfig(**settings) if depth is None else AdaptConfig.supervised(**settings)
     adapter = adapt(model, camera, frames, config, out_path=args.out, mask=mask, depth=depth)
     paths = artifact_paths(args.out)
-    print(f"saved adapter to {args.out} ({adapter.num_parameters()['total']:,} parameters); losses: {paths['csv']}, {paths['curve']}")
+    print(
+        f"saved adapter to {args.out} ({adapter.num_parameters()['total']:,} parameters); losses: {paths['csv']}, {paths['curve']}"
+    )
     print(adapter.training_info["verdict"]["summary"])
     return 0
 
@@ -97,13 +125,25 @@ def cmd_eval(args: argparse.Namespace) -> int:
     # Scored at the long side the adapter was fitted at unless --size says otherwise.
     recorded = ((adapter.training_info or {}).get("input") or {}) if adapter is not None else {}
     long_side = args.size or int(recorded.get("long_side") or DEFAULT_LONG_SIDE)
-    seq = fit_sequence(load_sequence(args.dataset, kind=args.kind), long_side, max_frames=args.max_frames)
+    seq = fit_sequence(
+        load_sequence(args.dataset, kind=args.kind), long_side, max_frames=args.max_frames
+    )
     if seq.cam_from_world is None:
         raise InputError(f"{args.dataset}: the sequence has no ground-truth poses to score against")
     methods = args.method.split(",")
-    rows = [{"method": method, **headline(score(seq, run_method(model, seq, method, adapter=adapter)))} for method in methods]
-    print(f"{seq.name}: {len(seq)} frames at {seq.camera.width}x{seq.camera.height} px, camera {seq.camera!r}")
-    print(format_table(rows, ["method", "rot_deg", "trans_deg", "d_reproj_px", "abs_rel", "delta_1.25", "coverage"]))
+    rows = [
+        {"method": method, **headline(score(seq, run_method(model, seq, method, adapter=adapter)))}
+        for method in methods
+    ]
+    print(
+        f"{seq.name}: {len(seq)} frames at {seq.camera.width}x{seq.camera.height} px, camera {seq.camera!r}"
+    )
+    print(
+        format_table(
+            rows,
+            ["method", "rot_deg", "trans_deg", "d_reproj_px", "abs_rel", "delta_1.25", "coverage"],
+        )
+    )
     return 0
 
 
@@ -119,50 +159,110 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
     model, description = default_network()
     if args.quick:
-        table = run_benchmark(model, args.out, size=84, n_adapt=6, n_eval=4, steps=3, sequences=1, cameras=CAMERAS[-1:], scenes=("indoor",), network=description)
+        table = run_benchmark(
+            model,
+            args.out,
+            size=84,
+            n_adapt=6,
+            n_eval=4,
+            steps=3,
+            sequences=1,
+            cameras=CAMERAS[-1:],
+            scenes=("indoor",),
+            network=description,
+        )
     else:
-        table = run_benchmark(model, args.out, sequences=args.sequences or SEQUENCES_PER_CELL, network=description, progress=True)
+        table = run_benchmark(
+            model,
+            args.out,
+            sequences=args.sequences or SEQUENCES_PER_CELL,
+            network=description,
+            progress=True,
+        )
     print(table)
     return 0
 
 
 def _add_model_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--backbone", required=True, help="model name, e.g. da3-small (see `raytun3r backbones`)")
-    parser.add_argument("--weights", help="local weight file (.safetensors or .pt); never downloaded")
+    parser.add_argument(
+        "--backbone", required=True, help="model name, e.g. da3-small (see `raytun3r backbones`)"
+    )
+    parser.add_argument(
+        "--weights", help="local weight file (.safetensors or .pt); never downloaded"
+    )
 
 
 def _add_frame_arguments(parser: argparse.ArgumentParser, size_help: str) -> None:
-    parser.add_argument("--frames", required=True, help="image folder (sorted by name) or video file")
+    parser.add_argument(
+        "--frames", required=True, help="image folder (sorted by name) or video file"
+    )
     parser.add_argument("--stride", type=int, default=1, help="use every n-th frame")
     parser.add_argument("--max-frames", type=int, default=None)
     parser.add_argument("--size", type=int, default=None, help=size_help)
-    parser.add_argument("--mask", default=None, help="scene mask image at the frames' size: 255 = scene, 0 = excluded (vehicle body, mount)")
+    parser.add_argument(
+        "--mask",
+        default=None,
+        help="scene mask image at the frames' size: 255 = scene, 0 = excluded (vehicle body, mount)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="raytun3r", description="Run frozen pinhole-trained 3D foundation models on fisheye cameras.")
+    parser = argparse.ArgumentParser(
+        prog="raytun3r",
+        description="Run frozen pinhole-trained 3D foundation models on fisheye cameras.",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("inspect", help="print an adapter file's metadata, camera and parameter count")
+    p = sub.add_parser(
+        "inspect", help="print an adapter file's metadata, camera and parameter count"
+    )
     p.add_argument("adapter")
-    p.add_argument("--json", action="store_true", help="print the whole metadata record (training included) as JSON")
-    p.add_argument("--picture", default=None, help="write the PE correction's size over the image (PNG) to this path")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print the whole metadata record (training included) as JSON",
+    )
+    p.add_argument(
+        "--picture",
+        default=None,
+        help="write the PE correction's size over the image (PNG) to this path",
+    )
     p.set_defaults(func=cmd_inspect)
 
     rule = "each side rounded to multiples of the patch size, centre-cropped only beyond a 1%% aspect change (raytun3r_plugin.preprocess)"
-    p = sub.add_parser("infer", help="apply an adapter and write depth (.npy, .png), poses (TUM) and a point cloud (.ply)")
+    p = sub.add_parser(
+        "infer",
+        help="apply an adapter and write depth (.npy, .png), poses (TUM) and a point cloud (.ply)",
+    )
     _add_model_arguments(p)
-    _add_frame_arguments(p, f"network input long side in pixels (default: the adapter's, else 504); {rule}")
-    p.add_argument("--camera", help="calibration file (Kalibr, basalt, COLMAP, KITTI-360, raytun3r JSON)")
-    p.add_argument("--camera-id", default=None, help="which camera in the file (cam1, index, COLMAP id)")
-    p.add_argument("--adapter", help="adapter .safetensors (optional: parameter-free corrections only)")
-    p.add_argument("--no-strict", action="store_true", help="apply an adapter fitted on other weights or another camera")
+    _add_frame_arguments(
+        p, f"network input long side in pixels (default: the adapter's, else 504); {rule}"
+    )
+    p.add_argument(
+        "--camera", help="calibration file (Kalibr, basalt, COLMAP, KITTI-360, raytun3r JSON)"
+    )
+    p.add_argument(
+        "--camera-id", default=None, help="which camera in the file (cam1, index, COLMAP id)"
+    )
+    p.add_argument(
+        "--adapter", help="adapter .safetensors (optional: parameter-free corrections only)"
+    )
+    p.add_argument(
+        "--no-strict",
+        action="store_true",
+        help="apply an adapter fitted on other weights or another camera",
+    )
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_infer)
 
-    p = sub.add_parser("adapt", help="fit an adapter on a short fisheye segment (self-supervised, or from depth with --depth)")
+    p = sub.add_parser(
+        "adapt",
+        help="fit an adapter on a short fisheye segment (self-supervised, or from depth with --depth)",
+    )
     _add_model_arguments(p)
-    _add_frame_arguments(p, f"network input long side in pixels (default 504; recorded in the adapter); {rule}")
+    _add_frame_arguments(
+        p, f"network input long side in pixels (default 504; recorded in the adapter); {rule}"
+    )
     p.add_argument("--camera", required=True)
     p.add_argument("--camera-id", default=None)
     p.add_argument("--steps", type=int, default=300)
@@ -171,37 +271,75 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pose-source", default="model", choices=("model", "targets"))
     p.add_argument("--cache-dir", default=None)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--depth", default=None, help="folder of ground-truth depth per frame (NAME.npy, or 16-bit NAME.png): supervised fit")
-    p.add_argument("--depth-png-scale", type=float, default=1000.0, help="16-bit depth PNG values per depth unit (1000 = millimetres)")
+    p.add_argument(
+        "--depth",
+        default=None,
+        help="folder of ground-truth depth per frame (NAME.npy, or 16-bit NAME.png): supervised fit",
+    )
+    p.add_argument(
+        "--depth-png-scale",
+        type=float,
+        default=1000.0,
+        help="16-bit depth PNG values per depth unit (1000 = millimetres)",
+    )
     p.add_argument("--out", required=True, help="output adapter .safetensors")
     p.set_defaults(func=cmd_adapt)
 
-    p = sub.add_parser("eval", help="run a method on a dataset sequence and print the metrics table")
+    p = sub.add_parser(
+        "eval", help="run a method on a dataset sequence and print the metrics table"
+    )
     _add_model_arguments(p)
-    p.add_argument("--dataset", required=True, help="sequence folder or file (synthetic, colmap, scannetpp, tumvi, kitti360)")
+    p.add_argument(
+        "--dataset",
+        required=True,
+        help="sequence folder or file (synthetic, colmap, scannetpp, tumvi, kitti360)",
+    )
     p.add_argument("--kind", default=None, help="reader to use (default: detect)")
-    p.add_argument("--method", default="vanilla,center-ph,raytun3r", help="comma-separated: vanilla, center-ph, raytun3r")
+    p.add_argument(
+        "--method",
+        default="vanilla,center-ph,raytun3r",
+        help="comma-separated: vanilla, center-ph, raytun3r",
+    )
     p.add_argument("--adapter", default=None)
-    p.add_argument("--size", type=int, default=None, help=f"network input long side in pixels (default: the adapter's, else 504); {rule}")
+    p.add_argument(
+        "--size",
+        type=int,
+        default=None,
+        help=f"network input long side in pixels (default: the adapter's, else 504); {rule}",
+    )
     p.add_argument("--max-frames", type=int, default=None)
     p.set_defaults(func=cmd_eval)
 
-    p = sub.add_parser("demo", help="the main job on a built-in default: synthetic fisheye, adapt, metrics before/after")
+    p = sub.add_parser(
+        "demo",
+        help="the main job on a built-in default: synthetic fisheye, adapt, metrics before/after",
+    )
     p.add_argument("--out", default="runs/demo")
-    p.add_argument("--steps", type=int, default=None, help="adaptation steps (default: the demo's budget)")
+    p.add_argument(
+        "--steps", type=int, default=None, help="adaptation steps (default: the demo's budget)"
+    )
     p.add_argument("--size", type=int, default=None)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sequences", type=int, default=None, help="sequences to score (default 4)")
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("bench", help="the synthetic fisheye benchmark (vanilla vs Center-PH vs raytun3r)")
+    p = sub.add_parser(
+        "bench", help="the synthetic fisheye benchmark (vanilla vs Center-PH vs raytun3r)"
+    )
     p.add_argument("--out", default="runs/bench")
-    p.add_argument("--sequences", type=int, default=None, help="held-out sequences per camera and scene (default 5)")
+    p.add_argument(
+        "--sequences",
+        type=int,
+        default=None,
+        help="held-out sequences per camera and scene (default 5)",
+    )
     p.add_argument("--quick", action="store_true")
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("backbones", help="list the backbone names load_backbone accepts")
-    p.set_defaults(func=lambda args: print("\n".join(__import__("raytun3r_plugin").available_backbones())) or 0)
+    p.set_defaults(
+        func=lambda args: print("\n".join(__import__("raytun3r_plugin").available_backbones())) or 0
+    )
     return parser
 
 

@@ -39,7 +39,15 @@ def adapt_config(size: int, steps: int, **changes):
     """
     from raytun3r_plugin.adaptation.train import AdaptConfig
 
-    return AdaptConfig(**{"steps": steps, "input_size": size, "checkpoint_every": 0, "pose_source": POSE_SOURCE, **changes})
+    return AdaptConfig(
+        **{
+            "steps": steps,
+            "input_size": size,
+            "checkpoint_every": 0,
+            "pose_source": POSE_SOURCE,
+            **changes,
+        }
+    )
 
 
 def supervised_config(size: int, steps: int, **changes):
@@ -48,7 +56,15 @@ def supervised_config(size: int, steps: int, **changes):
     :func:`adapt_config`."""
     from raytun3r_plugin.adaptation.train import AdaptConfig
 
-    return AdaptConfig.supervised(**{"steps": steps, "input_size": size, "checkpoint_every": 0, "pose_source": POSE_SOURCE, **changes})
+    return AdaptConfig.supervised(
+        **{
+            "steps": steps,
+            "input_size": size,
+            "checkpoint_every": 0,
+            "pose_source": POSE_SOURCE,
+            **changes,
+        }
+    )
 
 
 def default_network():
@@ -57,7 +73,10 @@ def default_network():
     from raytun3r_plugin.weights import load_backbone
 
     try:
-        return load_backbone(DEFAULT_NETWORK), f"{DEFAULT_NETWORK}: a small Depth Anything 3 network trained by raytun3r on pinhole renders only (docs/model_card_raytun3r_da3_tiny.md)"
+        return (
+            load_backbone(DEFAULT_NETWORK),
+            f"{DEFAULT_NETWORK}: a small Depth Anything 3 network trained by raytun3r on pinhole renders only (docs/model_card_raytun3r_da3_tiny.md)",
+        )
     except WeightsError:
         from raytun3r_plugin.patches.da3 import build_tiny_network
 
@@ -93,8 +112,11 @@ def run_demo(args: argparse.Namespace) -> int:
     print(f"camera:  {camera!r}, field of view {camera.fov_deg:.0f} deg")
     n_adapt, n_eval = 24, 12
     labels = {
-        "vanilla": "vanilla (unpatched)", "center-ph": "Center-PH (110 deg pinhole)", "zero": "raytun3r, no adapter",
-        "adapted": f"raytun3r, adapted ({steps} steps)", "supervised": f"raytun3r, supervised ({steps} steps, GT depth)",
+        "vanilla": "vanilla (unpatched)",
+        "center-ph": "Center-PH (110 deg pinhole)",
+        "zero": "raytun3r, no adapter",
+        "adapted": f"raytun3r, adapted ({steps} steps)",
+        "supervised": f"raytun3r, supervised ({steps} steps, GT depth)",
     }
     rows, seconds = [], {"adapted": [], "supervised": []}
     for k in range(count):
@@ -102,36 +124,108 @@ def run_demo(args: argparse.Namespace) -> int:
         seq = synthetic.render_sequence("indoor", camera, n_frames=n_adapt + n_eval, seed=seed)
         held_out = list(range(n_adapt, len(seq)))
         cell = {"camera": "KB4 190", "scene": "indoor", "seed": seed}
-        for method, key in (("vanilla", "vanilla"), ("center-ph", "center-ph"), ("raytun3r", "zero")):
-            rows.append({**cell, "method": labels[key], **headline(score(seq, run_method(model, seq, method, frames=held_out)))})
+        for method, key in (
+            ("vanilla", "vanilla"),
+            ("center-ph", "center-ph"),
+            ("raytun3r", "zero"),
+        ):
+            rows.append(
+                {
+                    **cell,
+                    "method": labels[key],
+                    **headline(score(seq, run_method(model, seq, method, frames=held_out))),
+                }
+            )
         # The default network's pose head is at chance (model card), so adaptation takes relative
         # poses from the MAGSAC++ targets (AdaptConfig.pose_source); the depth path is what it adapts.
         fits = {
-            "adapted": (adapt_config(size, steps, lr=DEMO_LR, seed=args.seed, cache_dir=str(out / "cache")), None),
-            "supervised": (supervised_config(size, steps, seed=args.seed, cache_dir=str(out / "cache")), ground_truth_depth(seq, n_adapt)),
+            "adapted": (
+                adapt_config(size, steps, lr=DEMO_LR, seed=args.seed, cache_dir=str(out / "cache")),
+                None,
+            ),
+            "supervised": (
+                supervised_config(size, steps, seed=args.seed, cache_dir=str(out / "cache")),
+                ground_truth_depth(seq, n_adapt),
+            ),
         }
         for key, (config, depth) in fits.items():
             began = time.perf_counter()
             name = "adapter.safetensors" if key == "adapted" else "adapter_supervised.safetensors"
-            adapter = adapt(model, camera, seq.images[:n_adapt], config, out_path=out / f"seq{k}" / name, resume=False, progress=False, depth=depth)
+            adapter = adapt(
+                model,
+                camera,
+                seq.images[:n_adapt],
+                config,
+                out_path=out / f"seq{k}" / name,
+                resume=False,
+                progress=False,
+                depth=depth,
+            )
             seconds[key].append(time.perf_counter() - began)
-            rows.append({**cell, "method": labels[key], **headline(score(seq, run_method(model, seq, "raytun3r", adapter=adapter, frames=held_out)))})
-        print(f"[{time.perf_counter() - started:4.0f} s] sequence {k + 1}/{count} (seed {seed}) done", flush=True)
+            rows.append(
+                {
+                    **cell,
+                    "method": labels[key],
+                    **headline(
+                        score(
+                            seq,
+                            run_method(model, seq, "raytun3r", adapter=adapter, frames=held_out),
+                        )
+                    ),
+                }
+            )
+        print(
+            f"[{time.perf_counter() - started:4.0f} s] sequence {k + 1}/{count} (seed {seed}) done",
+            flush=True,
+        )
 
     table_rows = summarise(rows, reference=labels["zero"])
     for row in table_rows:
         row["lower_than_no_adapter"] = row.pop(f"lower_than_{labels['zero']}", "")
-    columns = ["method", "rot_deg", "trans_deg", "d_reproj_px", "abs_rel", "delta_1.25", "coverage", "lower_than_no_adapter"]
+    columns = [
+        "method",
+        "rot_deg",
+        "trans_deg",
+        "d_reproj_px",
+        "abs_rel",
+        "delta_1.25",
+        "coverage",
+        "lower_than_no_adapter",
+    ]
     table = format_table(table_rows, columns)
     print()
-    print(f"Mean over {count} held-out sequences (seeds {1000 + args.seed}-{1000 + args.seed + count - 1}; frames 0-{n_adapt - 1} fitted, {n_adapt}-{n_adapt + n_eval - 1} scored):")
+    print(
+        f"Mean over {count} held-out sequences (seeds {1000 + args.seed}-{1000 + args.seed + count - 1}; frames 0-{n_adapt - 1} fitted, {n_adapt}-{n_adapt + n_eval - 1} scored):"
+    )
     print(table)
     print()
-    print("rot/trans: relative-pose errors (deg) on consecutive held-out pairs; d_reproj: px, GT pose;")
-    print("AbsRel, delta<1.25: per-image median scale, range depth; coverage: fraction of fisheye pixels with depth;")
-    print("lower_than_no_adapter: on how many sequences the metric is below the zero adapter's (the parameter-free corrections alone).")
-    print("The supervised row is the upper bound of the same tables. `raytun3r bench` scores 5 sequences per camera and scene.")
-    (out / "metrics.json").write_text(json.dumps({"network": description, "camera": json.loads(camera.to_json()), "rows": rows, "summary": table_rows, "adapt_seconds": seconds}, indent=2, default=float))
+    print(
+        "rot/trans: relative-pose errors (deg) on consecutive held-out pairs; d_reproj: px, GT pose;"
+    )
+    print(
+        "AbsRel, delta<1.25: per-image median scale, range depth; coverage: fraction of fisheye pixels with depth;"
+    )
+    print(
+        "lower_than_no_adapter: on how many sequences the metric is below the zero adapter's (the parameter-free corrections alone)."
+    )
+    print(
+        "The supervised row is the upper bound of the same tables. `raytun3r bench` scores 5 sequences per camera and scene."
+    )
+    (out / "metrics.json").write_text(
+        json.dumps(
+            {
+                "network": description,
+                "camera": json.loads(camera.to_json()),
+                "rows": rows,
+                "summary": table_rows,
+                "adapt_seconds": seconds,
+            },
+            indent=2,
+            default=float,
+        )
+    )
     (out / "metrics.md").write_text(table + "\n")
-    print(f"\nadapters and loss curves: {out}/seq*/ (adapted: {np.mean(seconds['adapted']):.0f} s per fit); total {time.perf_counter() - started:.0f} s")
+    print(
+        f"\nadapters and loss curves: {out}/seq*/ (adapted: {np.mean(seconds['adapted']):.0f} s per fit); total {time.perf_counter() - started:.0f} s"
+    )
     return 0

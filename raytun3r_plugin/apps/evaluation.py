@@ -62,38 +62,72 @@ def center_pinhole(camera, fov_deg: float = CENTER_PH_FOV_DEG):
     from raytun3r_plugin.cameras import Pinhole
 
     focal = (camera.width / 2) / math.tan(math.radians(fov_deg) / 2)
-    return Pinhole(camera.width, camera.height, {"fx": focal, "fy": focal, "cx": (camera.width - 1) / 2, "cy": (camera.height - 1) / 2})
+    return Pinhole(
+        camera.width,
+        camera.height,
+        {"fx": focal, "fy": focal, "cx": (camera.width - 1) / 2, "cy": (camera.height - 1) / 2},
+    )
 
 
 def fisheye_to_center_pinhole(images: torch.Tensor, camera, pinhole) -> torch.Tensor:
     """Resample fisheye images (..., 3, H, W) into the virtual pinhole view (bilinear)."""
     rays, _ = pinhole.ray_table(dtype=torch.float64)
     uv, valid = camera.project(rays)
-    grid = torch.stack(((2 * uv[..., 0] + 1) / camera.width - 1, (2 * uv[..., 1] + 1) / camera.height - 1), -1)
+    grid = torch.stack(
+        ((2 * uv[..., 0] + 1) / camera.width - 1, (2 * uv[..., 1] + 1) / camera.height - 1), -1
+    )
     grid = torch.where(valid[..., None], grid, torch.full_like(grid, 2.0)).float()
     flat = images.reshape(-1, *images.shape[-3:])
-    out = F.grid_sample(flat, grid[None].expand(flat.shape[0], -1, -1, -1), mode="bilinear", padding_mode="zeros", align_corners=False)
+    out = F.grid_sample(
+        flat,
+        grid[None].expand(flat.shape[0], -1, -1, -1),
+        mode="bilinear",
+        padding_mode="zeros",
+        align_corners=False,
+    )
     return out.reshape(images.shape)
 
 
-def center_pinhole_depth_to_fisheye(depth_z: torch.Tensor, camera, pinhole) -> tuple[torch.Tensor, torch.Tensor]:
+def center_pinhole_depth_to_fisheye(
+    depth_z: torch.Tensor, camera, pinhole
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Map pinhole z-depth (..., h, w) back to the fisheye pixels it covers, as range.
 
     Returns range depth (..., H, W) (0 where uncovered) and the coverage mask (H, W).
     """
     rays, valid = camera.ray_table(dtype=torch.float64)
     uv, in_front = pinhole.project(rays)
-    inside = valid & in_front & (rays[..., 2] > 1e-6) & (uv[..., 0] >= 0) & (uv[..., 0] <= pinhole.width - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= pinhole.height - 1)
-    grid = torch.stack(((2 * uv[..., 0] + 1) / pinhole.width - 1, (2 * uv[..., 1] + 1) / pinhole.height - 1), -1)
+    inside = (
+        valid
+        & in_front
+        & (rays[..., 2] > 1e-6)
+        & (uv[..., 0] >= 0)
+        & (uv[..., 0] <= pinhole.width - 1)
+        & (uv[..., 1] >= 0)
+        & (uv[..., 1] <= pinhole.height - 1)
+    )
+    grid = torch.stack(
+        ((2 * uv[..., 0] + 1) / pinhole.width - 1, (2 * uv[..., 1] + 1) / pinhole.height - 1), -1
+    )
     grid = torch.where(inside[..., None], grid, torch.zeros_like(grid)).float()
     flat = depth_z.reshape(-1, 1, *depth_z.shape[-2:]).float()
-    sampled = F.grid_sample(flat, grid[None].expand(flat.shape[0], -1, -1, -1), mode="bilinear", align_corners=False)[:, 0]
+    sampled = F.grid_sample(
+        flat, grid[None].expand(flat.shape[0], -1, -1, -1), mode="bilinear", align_corners=False
+    )[:, 0]
     range_depth = sampled / rays[..., 2].clamp_min(1e-6).float()
     range_depth = torch.where(inside, range_depth, torch.zeros_like(range_depth))
     return range_depth.reshape(*depth_z.shape[:-2], *range_depth.shape[-2:]), inside
 
 
-def run_method(model, seq, method: str, adapter=None, frames: list[int] | None = None, window: int = 3, components=None) -> MethodOutput:
+def run_method(
+    model,
+    seq,
+    method: str,
+    adapter=None,
+    frames: list[int] | None = None,
+    window: int = 3,
+    components=None,
+) -> MethodOutput:
     """Run ``method`` on ``frames`` of ``seq`` (images already at the network input size)."""
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; choose from {METHODS}")
@@ -104,14 +138,20 @@ def run_method(model, seq, method: str, adapter=None, frames: list[int] | None =
     coverage = 1.0
     pinhole = center_pinhole(camera) if method == "center-ph" else None
     start = time.perf_counter()
-    handle = apply(model, camera, adapter, components=components, strict=False) if method == "raytun3r" else None
+    handle = (
+        apply(model, camera, adapter, components=components, strict=False)
+        if method == "raytun3r"
+        else None
+    )
     try:
         with torch.no_grad():
             for group in frame_windows(frames, window):
                 images = _input_images(seq, group)
                 if method == "center-ph":
                     prediction = predict(model, fisheye_to_center_pinhole(images, camera, pinhole))
-                    window_depth, covered = center_pinhole_depth_to_fisheye(prediction.depth[0], camera, pinhole)
+                    window_depth, covered = center_pinhole_depth_to_fisheye(
+                        prediction.depth[0], camera, pinhole
+                    )
                     coverage = float(covered.sum() / camera.valid_mask().sum())
                 else:
                     prediction = predict(model, images)
@@ -121,10 +161,14 @@ def run_method(model, seq, method: str, adapter=None, frames: list[int] | None =
     finally:
         if handle is not None:
             handle.remove()
-    return MethodOutput(depth=depth, window_poses=poses, coverage=coverage, seconds=time.perf_counter() - start)
+    return MethodOutput(
+        depth=depth, window_poses=poses, coverage=coverage, seconds=time.perf_counter() - start
+    )
 
 
-def score(seq, output: MethodOutput, min_translation: float = 1e-3, correspondence_stride: int = 4) -> dict[str, Any]:
+def score(
+    seq, output: MethodOutput, min_translation: float = 1e-3, correspondence_stride: int = 4
+) -> dict[str, Any]:
     """Metrics of one method's output against the sequence's ground truth."""
     from raytun3r_plugin.synthetic import correspondences
 
@@ -133,12 +177,21 @@ def score(seq, output: MethodOutput, min_translation: float = 1e-3, corresponden
     n_skipped = 0
     for group, predicted in output.window_poses:
         local_pairs = [(a, a + 1) for a in range(len(group) - 1)]
-        errors = metrics.relative_pose_errors(predicted, gt_poses[group], local_pairs, min_translation=min_translation)
+        errors = metrics.relative_pose_errors(
+            predicted, gt_poses[group], local_pairs, min_translation=min_translation
+        )
         rotation.extend(errors["rotation_deg"].tolist())
         translation.extend(errors["translation_deg"].tolist())
         pairs.extend((group[a], group[b]) for a, b in errors["pairs"])
         n_skipped += errors["n_skipped"]
-    pose_errors = {"rotation_deg": np.array(rotation), "translation_deg": np.array(translation), "pairs": np.array(pairs).reshape(-1, 2), "n_pairs": len(pairs), "n_skipped": n_skipped, "folded": False}
+    pose_errors = {
+        "rotation_deg": np.array(rotation),
+        "translation_deg": np.array(translation),
+        "pairs": np.array(pairs).reshape(-1, 2),
+        "n_pairs": len(pairs),
+        "n_skipped": n_skipped,
+        "folded": False,
+    }
     d_values = []
     sky = (getattr(seq, "meta", None) or {}).get("per_frame", {}).get("sky")
     if seq.depth is not None:
@@ -149,7 +202,9 @@ def score(seq, output: MethodOutput, min_translation: float = 1e-3, corresponden
                 rows, cols = np.round(uv_i[:, 1]).astype(int), np.round(uv_i[:, 0]).astype(int)
                 keep &= ~np.asarray(sky, bool)[i][rows, cols]
             relative = relative_pose(gt_poses, i, j)
-            d_values.append(metrics.d_reproj(output.depth[i], seq.camera, uv_i[keep], uv_j[keep], relative))
+            d_values.append(
+                metrics.d_reproj(output.depth[i], seq.camera, uv_i[keep], uv_j[keep], relative)
+            )
     abs_rel = delta = None
     if seq.depth is not None:
         scored = sorted({k for group, _ in output.window_poses for k in group})
@@ -161,7 +216,9 @@ def score(seq, output: MethodOutput, min_translation: float = 1e-3, corresponden
             valid &= ~np.asarray(sky, bool)[scored]
         abs_rel = metrics.abs_rel(output.depth[scored], seq.depth[scored], valid)
         delta = metrics.delta_125(output.depth[scored], seq.depth[scored], valid)
-    summary = metrics.summarize(pose_errors=pose_errors, d_reproj=d_values, abs_rel=abs_rel, delta_125=delta, name=seq.name)
+    summary = metrics.summarize(
+        pose_errors=pose_errors, d_reproj=d_values, abs_rel=abs_rel, delta_125=delta, name=seq.name
+    )
     summary["coverage"] = output.coverage
     summary["seconds"] = output.seconds
     return summary
@@ -214,11 +271,30 @@ def fit_sequence(seq, long_side: int, patch: int = 14, max_frames: int | None = 
     count = len(seq) if max_frames is None else min(len(seq), max_frames)
     layout = InputLayout.for_camera(seq.camera, long_side, patch)
     # One frame at a time: a dataset sequence may be long and its native frames large.
-    images = np.stack([layout.frames(seq.image(k)[None])[0].permute(1, 2, 0).numpy() for k in range(count)])
-    depth = None if seq.depth is None else layout.depth(np.asarray(seq.depth[:count], dtype=np.float32)).numpy()
+    images = np.stack(
+        [layout.frames(seq.image(k)[None])[0].permute(1, 2, 0).numpy() for k in range(count)]
+    )
+    depth = (
+        None
+        if seq.depth is None
+        else layout.depth(np.asarray(seq.depth[:count], dtype=np.float32)).numpy()
+    )
     mask = None
     if seq.mask is not None:
         native = np.asarray(seq.mask, dtype=bool)
-        mask = layout.mask(native[:count]).numpy() if native.ndim == 3 else np.repeat(layout.mask(native).numpy()[None], count, axis=0)
+        mask = (
+            layout.mask(native[:count]).numpy()
+            if native.ndim == 3
+            else np.repeat(layout.mask(native).numpy()[None], count, axis=0)
+        )
     poses = None if seq.cam_from_world is None else np.asarray(seq.cam_from_world)[:count]
-    return Sequence(name=seq.name, camera=layout.camera, timestamps=np.asarray(seq.timestamps)[:count], cam_from_world=poses, images=images, depth=depth, depth_kind=seq.depth_kind, mask=mask)
+    return Sequence(
+        name=seq.name,
+        camera=layout.camera,
+        timestamps=np.asarray(seq.timestamps)[:count],
+        cam_from_world=poses,
+        images=images,
+        depth=depth,
+        depth_kind=seq.depth_kind,
+        mask=mask,
+    )

@@ -14,7 +14,11 @@ def colourise_depth(depth: np.ndarray, valid: np.ndarray | None = None) -> np.nd
     """(H, W) depth -> (H, W, 3) uint8 BGR (OpenCV turbo map on inverse depth, 2-98% range)."""
     import cv2
 
-    valid = np.isfinite(depth) & (depth > 0) if valid is None else valid & np.isfinite(depth) & (depth > 0)
+    valid = (
+        np.isfinite(depth) & (depth > 0)
+        if valid is None
+        else valid & np.isfinite(depth) & (depth > 0)
+    )
     inverse = np.zeros_like(depth, dtype=np.float32)
     inverse[valid] = 1.0 / depth[valid]
     if valid.any():
@@ -95,7 +99,7 @@ def depth_panel(
     strip = np.linspace(1.0, 0.0, panel_h - top - bottom, dtype=np.float32)[:, None]
     bar_colours = cv2.applyColorMap((strip * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
     bar = np.full((panel_h, bar_w + text_w, 3), 255, np.uint8)
-    bar[top : panel_h - bottom, 4 : bar_w] = bar_colours
+    bar[top : panel_h - bottom, 4:bar_w] = bar_colours
     font, font_scale, thick = cv2.FONT_HERSHEY_SIMPLEX, 0.4, 1
     cv2.putText(bar, f"depth [{unit}]", (4, 14), font, font_scale, (0, 0, 0), thick, cv2.LINE_AA)
     if usable.any():
@@ -104,9 +108,27 @@ def depth_panel(
             fraction = (1.0 / tick - low) / (high - low)  # 1 at the top
             y = int(round(top + (1.0 - np.clip(fraction, 0.0, 1.0)) * (panel_h - top - bottom - 1)))
             cv2.line(bar, (bar_w, y), (bar_w + 4, y), (0, 0, 0), 1)
-            cv2.putText(bar, _label(tick), (bar_w + 7, y + 4), font, font_scale, (0, 0, 0), thick, cv2.LINE_AA)
+            cv2.putText(
+                bar,
+                _label(tick),
+                (bar_w + 7, y + 4),
+                font,
+                font_scale,
+                (0, 0, 0),
+                thick,
+                cv2.LINE_AA,
+            )
     else:
-        cv2.putText(bar, "no valid", (bar_w + 2, panel_h // 2), font, font_scale, (0, 0, 0), thick, cv2.LINE_AA)
+        cv2.putText(
+            bar,
+            "no valid",
+            (bar_w + 2, panel_h // 2),
+            font,
+            font_scale,
+            (0, 0, 0),
+            thick,
+            cv2.LINE_AA,
+        )
     return np.concatenate([frame, coloured, bar], axis=1)
 
 
@@ -126,7 +148,17 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colours: np.ndarray) 
     """Binary little-endian PLY with float32 xyz and uint8 rgb; points (N, 3), colours (N, 3) in [0, 1]."""
     points = np.asarray(points, dtype="<f4")
     colours = (np.clip(np.asarray(colours), 0, 1) * 255 + 0.5).astype(np.uint8)
-    record = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    record = np.empty(
+        len(points),
+        dtype=[
+            ("x", "<f4"),
+            ("y", "<f4"),
+            ("z", "<f4"),
+            ("red", "u1"),
+            ("green", "u1"),
+            ("blue", "u1"),
+        ],
+    )
     record["x"], record["y"], record["z"] = points.T
     record["red"], record["green"], record["blue"] = colours.T
     header = (
@@ -144,6 +176,23 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Read back what :func:`write_ply` writes: (N, 3) float32 points and (N, 3) uint8 colours."""
     data = Path(path).read_bytes()
     end = data.index(b"end_header\n") + len(b"end_header\n")
-    count = int(next(line for line in data[:end].decode().splitlines() if line.startswith("element vertex")).split()[-1])
-    record = np.frombuffer(data[end:], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")], count=count)
-    return np.stack([record["x"], record["y"], record["z"]], -1), np.stack([record["red"], record["green"], record["blue"]], -1)
+    count = int(
+        next(
+            line for line in data[:end].decode().splitlines() if line.startswith("element vertex")
+        ).split()[-1]
+    )
+    record = np.frombuffer(
+        data[end:],
+        dtype=[
+            ("x", "<f4"),
+            ("y", "<f4"),
+            ("z", "<f4"),
+            ("red", "u1"),
+            ("green", "u1"),
+            ("blue", "u1"),
+        ],
+        count=count,
+    )
+    return np.stack([record["x"], record["y"], record["z"]], -1), np.stack(
+        [record["red"], record["green"], record["blue"]], -1
+    )

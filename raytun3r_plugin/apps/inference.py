@@ -18,10 +18,21 @@ from raytun3r_plugin.prediction import Prediction, predict
 points_from_depth = backproject
 
 
-def predict_with_camera(model, camera, adapter, images: torch.Tensor, components=None, strict: bool = True, mask: torch.Tensor | None = None) -> Prediction:
+def predict_with_camera(
+    model,
+    camera,
+    adapter,
+    images: torch.Tensor,
+    components=None,
+    strict: bool = True,
+    mask: torch.Tensor | None = None,
+) -> Prediction:
     """Apply raytun3r for ``camera`` (+ ``adapter``, + an optional (h, w) scene ``mask``), predict,
     remove again."""
-    with apply(model, camera, adapter, components=components, strict=strict, mask=mask), torch.no_grad():
+    with (
+        apply(model, camera, adapter, components=components, strict=strict, mask=mask),
+        torch.no_grad(),
+    ):
         return predict(model, images)
 
 
@@ -52,8 +63,15 @@ def write_outputs(
     frames = images[0].permute(0, 2, 3, 1).detach().float().cpu().numpy()
     for name, frame_depth, frame in zip(names, depth, frames, strict=True):
         np.save(out / "depth" / f"{name}.npy", frame_depth.astype(np.float32))
-        cv2.imwrite(str(out / "depth" / f"{name}.png"), depth_panel(frame, frame_depth, valid_np, unit=depth_unit))
-    stamps = np.arange(len(names), dtype=np.float64) if timestamps is None else np.asarray(timestamps, dtype=np.float64)
+        cv2.imwrite(
+            str(out / "depth" / f"{name}.png"),
+            depth_panel(frame, frame_depth, valid_np, unit=depth_unit),
+        )
+    stamps = (
+        np.arange(len(names), dtype=np.float64)
+        if timestamps is None
+        else np.asarray(timestamps, dtype=np.float64)
+    )
     write_tum(out / "trajectory.txt", stamps, cam_from_world)
     points_cam = points_from_depth(torch.from_numpy(depth), rays.cpu()).numpy()  # (S, h, w, 3)
     colours = images[0].permute(0, 2, 3, 1).cpu().numpy()
@@ -68,6 +86,11 @@ def write_outputs(
         pick = np.random.default_rng(0).choice(len(all_points), max_points, replace=False)
         all_points, all_colours = all_points[pick], all_colours[pick]
     write_ply(out / "points.ply", all_points, all_colours)
-    summary = {"frames": len(names), "points": int(len(all_points)), "input_size": [camera.width, camera.height], "camera": json.loads(camera.to_json())}
+    summary = {
+        "frames": len(names),
+        "points": int(len(all_points)),
+        "input_size": [camera.width, camera.height],
+        "camera": json.loads(camera.to_json()),
+    }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

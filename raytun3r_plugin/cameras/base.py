@@ -117,7 +117,9 @@ class Camera:
         super().__init_subclass__(**kwargs)
         if cls.model:
             if cls.param_names[:4] != _INTRINSIC_NAMES:
-                raise CameraModelError(f"{cls.__name__}.param_names must start with {_INTRINSIC_NAMES}")
+                raise CameraModelError(
+                    f"{cls.__name__}.param_names must start with {_INTRINSIC_NAMES}"
+                )
             CAMERA_MODELS[cls.model] = cls
 
     def __init__(
@@ -130,7 +132,9 @@ class Camera:
     ) -> None:
         cls = type(self)
         if not cls.model:
-            raise CameraModelError("Camera is abstract: use a model such as Pinhole or KannalaBrandt4")
+            raise CameraModelError(
+                "Camera is abstract: use a model such as Pinhole or KannalaBrandt4"
+            )
         width = _check_size("width", width)
         height = _check_size("height", height)
         p = self._params_tensor(params)

@@ -83,11 +83,23 @@ def fisheye(
     cx, cy = (width - 1) / 2, (height - 1) / 2
     if model == "kb4":
         if len(k) != 4:
-            raise CameraError(f"fisheye: k must hold the four KB4 coefficients (k1, k2, k3, k4), got {tuple(k)!r}")
+            raise CameraError(
+                f"fisheye: k must hold the four KB4 coefficients (k1, k2, k3, k4), got {tuple(k)!r}"
+            )
         focal = radius / _kb4_theta_d(half, k)
         k1, k2, k3, k4 = (float(value) for value in k)
-        return KannalaBrandt4(width, height, {"fx": focal, "fy": focal, "cx": cx, "cy": cy, "k1": k1, "k2": k2, "k3": k3, "k4": k4}, max_fov_deg=fov_deg)
+        return KannalaBrandt4(
+            width,
+            height,
+            {"fx": focal, "fy": focal, "cx": cx, "cy": cy, "k1": k1, "k2": k2, "k3": k3, "k4": k4},
+            max_fov_deg=fov_deg,
+        )
     if model == "ds":
         focal = radius / _ds_boundary_radius(half, xi, alpha)
-        return DoubleSphere(width, height, {"fx": focal, "fy": focal, "cx": cx, "cy": cy, "xi": xi, "alpha": alpha}, max_fov_deg=fov_deg)
+        return DoubleSphere(
+            width,
+            height,
+            {"fx": focal, "fy": focal, "cx": cx, "cy": cy, "xi": xi, "alpha": alpha},
+            max_fov_deg=fov_deg,
+        )
     raise CameraError(f"fisheye: model must be one of {FISHEYE_MODELS}, got {model!r}")

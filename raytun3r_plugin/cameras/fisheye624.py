@@ -46,7 +46,9 @@ class _TangentialPrism:
         yd = y + self.p0 * xy2 + self.p1 * (r2 + 2.0 * y * y) + self.s2 * r2 + self.s3 * r4
         return xd, yd
 
-    def with_jacobian(self, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    def with_jacobian(
+        self, x: Tensor, y: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
         """Distorted (x', y') and d(x', y')/d(x, y) = [[a, b], [c, d]]."""
         xd, yd = self(x, y)
         r2 = x * x + y * y
@@ -88,7 +90,24 @@ class Fisheye624(Camera):
     _fold: float
     _table: RadialTable
     _prism_table: RadialTable
-    param_names = ("fx", "fy", "cx", "cy", "k0", "k1", "k2", "k3", "k4", "k5", "p0", "p1", "s0", "s1", "s2", "s3")
+    param_names = (
+        "fx",
+        "fy",
+        "cx",
+        "cy",
+        "k0",
+        "k1",
+        "k2",
+        "k3",
+        "k4",
+        "k5",
+        "p0",
+        "p1",
+        "s0",
+        "s1",
+        "s2",
+        "s3",
+    )
     newton_steps = 2
 
     def _natural_max_angle(self, p: dict[str, float]) -> float:
@@ -117,7 +136,9 @@ class Fisheye624(Camera):
     def _unproject(self, uv: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
         mx = (uv[..., 0] - p[2]) / p[0]
         my = (uv[..., 1] - p[3]) / p[1]
-        xr, yr, ok = undistort(self._prism(p), self._prism(self._values), mx, my, self._prism_table, self.newton_steps)
+        xr, yr, ok = undistort(
+            self._prism(p), self._prism(self._values), mx, my, self._prism_table, self.newton_steps
+        )
         rho2 = xr * xr + yr * yr
         small = rho2 < small_threshold(uv.dtype)
         rho = safe_sqrt(rho2)

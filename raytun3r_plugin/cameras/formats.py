@@ -505,14 +505,29 @@ _COLMAP: dict[
     # KB4 camera exports as OPENCV_FISHEYE).
     "SIMPLE_FISHEYE": (KannalaBrandt4, ("f", "cx", "cy"), lambda p: _kb4(p[0], p[0], p[1], p[2])),
     "FISHEYE": (KannalaBrandt4, ("fx", "fy", "cx", "cy"), lambda p: _kb4(*p)),
-    "SIMPLE_RADIAL_FISHEYE": (KannalaBrandt4, ("f", "cx", "cy", "k"), lambda p: _kb4(p[0], p[0], p[1], p[2], p[3])),
-    "RADIAL_FISHEYE": (KannalaBrandt4, ("f", "cx", "cy", "k1", "k2"), lambda p: _kb4(p[0], p[0], p[1], p[2], p[3], p[4])),
+    "SIMPLE_RADIAL_FISHEYE": (
+        KannalaBrandt4,
+        ("f", "cx", "cy", "k"),
+        lambda p: _kb4(p[0], p[0], p[1], p[2], p[3]),
+    ),
+    "RADIAL_FISHEYE": (
+        KannalaBrandt4,
+        ("f", "cx", "cy", "k1", "k2"),
+        lambda p: _kb4(p[0], p[0], p[1], p[2], p[3], p[4]),
+    ),
 }
+
 
 def _kb4(fx: float, fy: float, cx: float, cy: float, *ks: float) -> dict[str, float]:
     """KannalaBrandt4 parameters from leading coefficients (the missing ones are zero)."""
     coefficients = [*ks, 0.0, 0.0, 0.0, 0.0][:4]
-    return {"fx": fx, "fy": fy, "cx": cx, "cy": cy, **dict(zip(("k1", "k2", "k3", "k4"), coefficients, strict=True))}
+    return {
+        "fx": fx,
+        "fy": fy,
+        "cx": cx,
+        "cy": cy,
+        **dict(zip(("k1", "k2", "k3", "k4"), coefficients, strict=True)),
+    }
 
 
 # Our model -> the COLMAP model used on export (parameters in our order = COLMAP order).

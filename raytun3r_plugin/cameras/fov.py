@@ -34,7 +34,9 @@ class FOV(Camera):
         # omega = 0 is the pinhole limit, where COLMAP itself warns the optimisation stalls;
         # omega >= pi has no lens (tan(omega / 2) is infinite or negative).
         if not 0.0 < p["omega"] < math.pi:
-            raise param_error(type(self).__name__, "omega", f"must be in (0, pi) radians, got {p['omega']!r}")
+            raise param_error(
+                type(self).__name__, "omega", f"must be in (0, pi) radians, got {p['omega']!r}"
+            )
 
     def _natural_max_angle(self, p: dict[str, float]) -> float:
         return math.pi

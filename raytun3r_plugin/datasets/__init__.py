@@ -89,7 +89,9 @@ def load_sequence(path: str | Path, kind: str | None = None, **kw: Any) -> Seque
         if "sequence" not in kw:
             seqs = sorted(d.name for d in (p / "data_poses").iterdir() if d.is_dir())
             if len(seqs) != 1:
-                raise DatasetError(f"{p / 'data_poses'}: {len(seqs)} sequences {seqs[:5]}; pass sequence=")
+                raise DatasetError(
+                    f"{p / 'data_poses'}: {len(seqs)} sequences {seqs[:5]}; pass sequence="
+                )
             kw["sequence"] = seqs[0]
         return load_kitti360(p, **kw)
     raise DatasetError(f"unknown dataset kind {kind!r}; expected one of {KINDS}")

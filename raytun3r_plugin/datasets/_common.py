@@ -31,7 +31,9 @@ def fail(path: str | Path, line: int | None, problem: str) -> DatasetError:
     return DatasetError(f"{where}: {problem}")
 
 
-def parse_floats(path: str | Path, line: int, tokens: list[str], count: int | None, what: str) -> np.ndarray:
+def parse_floats(
+    path: str | Path, line: int, tokens: list[str], count: int | None, what: str
+) -> np.ndarray:
     """Parse ``tokens`` as finite floats (exactly ``count`` of them unless None) or fail naming
     the file, the line and ``what`` the numbers are."""
     if count is not None and len(tokens) != count:
@@ -86,11 +88,15 @@ def slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
-def check_rigid(path: str | Path, line: int | None, T: np.ndarray, what: str, tol: float = 1e-3) -> None:
+def check_rigid(
+    path: str | Path, line: int | None, T: np.ndarray, what: str, tol: float = 1e-3
+) -> None:
     """Fail unless the 3x3 block of ``T`` is a rotation within ``tol`` (orthonormal, det +1)."""
     R = T[:3, :3]
     err = np.abs(R @ R.T - np.eye(3)).max()
     if not np.isfinite(T).all():
         raise fail(path, line, f"{what}: non-finite value")
     if err > tol or np.linalg.det(R) <= 0:
-        raise fail(path, line, f"{what}: rotation block is not a rotation (max |R R^T - I| = {err:.3g})")
+        raise fail(
+            path, line, f"{what}: rotation block is not a rotation (max |R R^T - I| = {err:.3g})"
+        )

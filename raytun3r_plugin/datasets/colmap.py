@@ -44,12 +44,18 @@ def read_images_txt(path: str | Path) -> list[dict]:
             continue
         tok = s.split(maxsplit=9)
         if len(tok) < 10:
-            raise fail(p, lineno, f"expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', got {len(tok)} fields")
+            raise fail(
+                p,
+                lineno,
+                f"expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', got {len(tok)} fields",
+            )
         try:
             image_id = int(tok[0])
             camera_id = int(tok[8])
         except ValueError:
-            raise fail(p, lineno, f"IMAGE_ID and CAMERA_ID must be integers, got {tok[0]!r}, {tok[8]!r}") from None
+            raise fail(
+                p, lineno, f"IMAGE_ID and CAMERA_ID must be integers, got {tok[0]!r}, {tok[8]!r}"
+            ) from None
         vals = parse_floats(p, lineno, tok[1:8], 7, "QW QX QY QZ TX TY TZ")
         q, t = vals[:4], vals[4:]
         if np.linalg.norm(q) < 1e-8:
@@ -62,22 +68,44 @@ def read_images_txt(path: str | Path) -> list[dict]:
         T = np.eye(4)
         T[:3, :3] = quat_to_rot(q)
         T[:3, 3] = t
-        out.append({"image_id": image_id, "camera_id": camera_id, "name": tok[9].strip(), "cam_from_world": T, "line": lineno})
+        out.append(
+            {
+                "image_id": image_id,
+                "camera_id": camera_id,
+                "name": tok[9].strip(),
+                "cam_from_world": T,
+                "line": lineno,
+            }
+        )
         # The POINTS2D line follows unconditionally (it is empty for images without points).
         if k < len(lines):
             pts = lines[k].split()
             if pts and (len(pts) % 3 != 0 or lines[k].lstrip().startswith("#")):
-                raise fail(p, k + 1, f"expected the POINTS2D line of image {image_id} (X Y POINT3D_ID triples), got {len(pts)} fields")
+                raise fail(
+                    p,
+                    k + 1,
+                    f"expected the POINTS2D line of image {image_id} (X Y POINT3D_ID triples), got {len(pts)} fields",
+                )
             k += 1
     return out
 
 
 def _find_colmap_dir(folder: Path) -> Path:
-    for cand in (folder, folder / "sparse" / "0", folder / "sparse", folder / "colmap", folder / "dslr_calibration_jpg"):
+    for cand in (
+        folder,
+        folder / "sparse" / "0",
+        folder / "sparse",
+        folder / "colmap",
+        folder / "dslr_calibration_jpg",
+    ):
         if (cand / "cameras.txt").is_file() and (cand / "images.txt").is_file():
             return cand
     missing = "cameras.txt" if not (folder / "cameras.txt").is_file() else "images.txt"
-    raise fail(folder / missing, None, "file not found (looked in ., sparse/0, sparse, colmap, dslr_calibration_jpg)")
+    raise fail(
+        folder / missing,
+        None,
+        "file not found (looked in ., sparse/0, sparse, colmap, dslr_calibration_jpg)",
+    )
 
 
 def _find_image_root(model_dir: Path, first_name: str, given: str | Path | None) -> Path:
@@ -99,7 +127,11 @@ def _find_image_root(model_dir: Path, first_name: str, given: str | Path | None)
         if (c / first_name).is_file():
             return c
     tried = ", ".join(str(c) for c in cands)
-    raise fail(model_dir / "images.txt", None, f"image {first_name!r} not found under any of: {tried}; pass image_dir=")
+    raise fail(
+        model_dir / "images.txt",
+        None,
+        f"image {first_name!r} not found under any of: {tried}; pass image_dir=",
+    )
 
 
 def load_colmap(
@@ -136,11 +168,17 @@ def load_colmap(
     used = sorted({im["camera_id"] for im in images})
     if camera_id is None:
         if len(used) > 1:
-            raise fail(model / "images.txt", None, f"images use several cameras {used}; pass camera_id=")
+            raise fail(
+                model / "images.txt", None, f"images use several cameras {used}; pass camera_id="
+            )
         camera_id = used[0]
     elif camera_id not in used:
-        raise fail(model / "images.txt", None, f"no image uses camera_id {camera_id} (used: {used})")
-    images = sorted((im for im in images if im["camera_id"] == camera_id), key=lambda im: im["name"])
+        raise fail(
+            model / "images.txt", None, f"no image uses camera_id {camera_id} (used: {used})"
+        )
+    images = sorted(
+        (im for im in images if im["camera_id"] == camera_id), key=lambda im: im["name"]
+    )
     camera = load_camera(model / "cameras.txt", camera=int(camera_id))
     img_root = _find_image_root(model, images[0]["name"], image_dir)
     n = len(images)

@@ -82,7 +82,9 @@ def write_sequence(seq: Sequence, folder: str | Path, depth_format: str = "npy")
         (out / "depth").mkdir(exist_ok=True)
         if depth_format == "png16":
             dmax = float(np.max(seq.depth)) if seq.depth.size else 0.0
-            depth_scale = 1000.0 if dmax * 1000.0 <= 65535.0 else math.floor(65535.0 / dmax * 1e6) / 1e6
+            depth_scale = (
+                1000.0 if dmax * 1000.0 <= 65535.0 else math.floor(65535.0 / dmax * 1e6) / 1e6
+            )
         for k in range(n):
             d = np.asarray(seq.depth[k], dtype=np.float32)
             if depth_format == "npy":
@@ -155,7 +157,11 @@ def load_synthetic(folder: str | Path, load_images: bool = False) -> Sequence:
     n, w, h = meta["n_frames"], meta["width"], meta["height"]
     camera = load_camera(root / "camera.json")
     if (camera.width, camera.height) != (w, h):
-        raise fail(root / "camera.json", None, f"camera is {camera.width}x{camera.height} px, meta.json says {w}x{h}")
+        raise fail(
+            root / "camera.json",
+            None,
+            f"camera is {camera.width}x{camera.height} px, meta.json says {w}x{h}",
+        )
     has_poses = bool(meta.get("has_poses", True))
     ppath = root / "poses.txt"
     if not ppath.is_file():
@@ -168,7 +174,13 @@ def load_synthetic(folder: str | Path, load_images: bool = False) -> Sequence:
         if not s or s.startswith("#"):
             continue
         tok = s.split()
-        vals = parse_floats(ppath, lineno, tok, 14 if has_poses else 2, "index timestamp" + (" + 12 pose numbers" if has_poses else ""))
+        vals = parse_floats(
+            ppath,
+            lineno,
+            tok,
+            14 if has_poses else 2,
+            "index timestamp" + (" + 12 pose numbers" if has_poses else ""),
+        )
         k = int(vals[0])
         if vals[0] != k or not 0 <= k < n:
             raise fail(ppath, lineno, f"frame index {tok[0]!r} is not an integer in [0, {n})")
@@ -204,7 +216,11 @@ def load_synthetic(folder: str | Path, load_images: bool = False) -> Sequence:
                     raise fail(p, None, "missing or not a single-channel 16-bit PNG")
                 scale = meta.get("depth_scale")
                 if not isinstance(scale, (int, float)) or isinstance(scale, bool) or scale <= 0:
-                    raise fail(root / "meta.json", None, f"field 'depth_scale' must be positive, got {scale!r}")
+                    raise fail(
+                        root / "meta.json",
+                        None,
+                        f"field 'depth_scale' must be positive, got {scale!r}",
+                    )
                 d = (q.astype(np.float64) / float(scale)).astype(np.float32)
             else:
                 raise fail(root / "meta.json", None, f"unknown depth_format {fmt!r}")
@@ -216,7 +232,11 @@ def load_synthetic(folder: str | Path, load_images: bool = False) -> Sequence:
     if mk == "static":
         mask = _read_mask(root / "mask.png", h, w)
     elif mk == "per_frame":
-        mask = np.stack([_read_mask(root / "mask" / f"{k:06d}.png", h, w) for k in range(n)]) if n else None
+        mask = (
+            np.stack([_read_mask(root / "mask" / f"{k:06d}.png", h, w) for k in range(n)])
+            if n
+            else None
+        )
     elif mk is not None:
         raise fail(root / "meta.json", None, f"unknown mask kind {mk!r}")
     seq = Sequence(

@@ -50,7 +50,9 @@ def read_cam_to_pose(path: Path) -> dict[str, np.ndarray]:
         key, sep, rest = s.partition(":")
         if not sep:
             raise fail(path, lineno, "expected 'image_0X: <12 numbers>'")
-        T = _rows34(parse_floats(path, lineno, rest.split(), 12, f"{key.strip()} (3x4 camera-to-pose)"))
+        T = _rows34(
+            parse_floats(path, lineno, rest.split(), 12, f"{key.strip()} (3x4 camera-to-pose)")
+        )
         check_rigid(path, lineno, T, key.strip())
         out[key.strip()] = T
     return out
@@ -68,7 +70,9 @@ def read_poses_txt(path: Path) -> tuple[np.ndarray, np.ndarray]:
             continue
         tok = s.split()
         if len(tok) != 13:
-            raise fail(path, lineno, f"expected 'frame' + 12 numbers (3x4 pose), got {len(tok)} fields")
+            raise fail(
+                path, lineno, f"expected 'frame' + 12 numbers (3x4 pose), got {len(tok)} fields"
+            )
         try:
             f = int(tok[0])
         except ValueError:
@@ -96,7 +100,9 @@ def _timestamps(path: Path, frames: np.ndarray) -> np.ndarray | None:
             base = _dt.datetime.strptime(date, "%Y-%m-%d %H:%M:%S").replace(tzinfo=_dt.timezone.utc)
             out[i] = base.timestamp() + (float("0." + frac) if frac else 0.0)
         except ValueError:
-            raise fail(path, int(f) + 1, f"timestamp {s!r} is not 'YYYY-MM-DD HH:MM:SS.fffffffff'") from None
+            raise fail(
+                path, int(f) + 1, f"timestamp {s!r} is not 'YYYY-MM-DD HH:MM:SS.fffffffff'"
+            ) from None
     return out
 
 
@@ -118,7 +124,9 @@ def load_kitti360(
         DatasetError: missing files or folders, malformed lines (file and line named).
     """
     base = Path(root)
-    seq = f"2013_05_28_drive_{int(sequence):04d}_sync" if isinstance(sequence, int) else str(sequence)
+    seq = (
+        f"2013_05_28_drive_{int(sequence):04d}_sync" if isinstance(sequence, int) else str(sequence)
+    )
     cam = load_camera(base / "calibration" / f"{camera}.yaml")
     c2p_path = base / "calibration" / "calib_cam_to_pose.txt"
     c2p = read_cam_to_pose(c2p_path)

@@ -38,7 +38,9 @@ def _number(path: Path, text: str, d: dict, key: str) -> float:
         raise fail(path, None, f"field '{key}' is missing")
     v = d[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-        raise fail(path, _line_of(text, f'"{key}"'), f"field '{key}' must be a finite number, got {v!r}")
+        raise fail(
+            path, _line_of(text, f'"{key}"'), f"field '{key}' must be a finite number, got {v!r}"
+        )
     return float(v)
 
 
@@ -49,7 +51,9 @@ def _camera(path: Path, text: str, d: dict, pixel_offset: float):
     w = _number(path, text, d, "w")
     h = _number(path, text, d, "h")
     if w != int(w) or h != int(h) or w <= 0 or h <= 0:
-        raise fail(path, _line_of(text, '"w"'), f"image size w, h must be positive integers, got {w}, {h}")
+        raise fail(
+            path, _line_of(text, '"w"'), f"image size w, h must be positive integers, got {w}, {h}"
+        )
     p = {
         "fx": _number(path, text, d, "fl_x"),
         "fy": _number(path, text, d, "fl_y"),
@@ -65,7 +69,11 @@ def _camera(path: Path, text: str, d: dict, pixel_offset: float):
             return cameras.Pinhole(int(w), int(h), p)
     except CameraError as e:
         raise fail(path, None, f"invalid camera: {e}") from e
-    raise fail(path, _line_of(text, '"camera_model"'), f"unsupported camera_model {model!r} (OPENCV_FISHEYE or PINHOLE)")
+    raise fail(
+        path,
+        _line_of(text, '"camera_model"'),
+        f"unsupported camera_model {model!r} (OPENCV_FISHEYE or PINHOLE)",
+    )
 
 
 def load_scannetpp_transforms(
@@ -145,7 +153,9 @@ def load_scannetpp_transforms(
             if M.shape == (3, 4):
                 M = np.vstack([M, [0.0, 0.0, 0.0, 1.0]])
             if M.shape != (4, 4):
-                raise fail(p, line, f"{where}.transform_matrix must be 4x4 (or 3x4), got shape {M.shape}")
+                raise fail(
+                    p, line, f"{where}.transform_matrix must be 4x4 (or 3x4), got shape {M.shape}"
+                )
             check_rigid(p, line, M, f"{where}.transform_matrix")
             entries.append((fpath, is_test, M @ _GL_TO_CV))
     if not entries:
@@ -155,7 +165,8 @@ def load_scannetpp_transforms(
     n = len(entries)
     world_from_cam = np.stack([e[2] for e in entries])
     return Sequence(
-        name=name or (p.parent.parent.parent.name if p.parent.name == "nerfstudio" else p.parent.name),
+        name=name
+        or (p.parent.parent.parent.name if p.parent.name == "nerfstudio" else p.parent.name),
         camera=camera,
         timestamps=np.arange(n, dtype=np.float64),
         cam_from_world=invert_pose(world_from_cam),
@@ -177,7 +188,12 @@ def _image_root(p: Path, first: str, given: str | Path | None) -> Path:
         if not (root / first).is_file():
             raise fail(root / first, None, "image file not found (image_dir given)")
         return root
-    cands = [p.parent, p.parent.parent / "resized_images", p.parent.parent / "resized_anon_images", p.parent / "images"]
+    cands = [
+        p.parent,
+        p.parent.parent / "resized_images",
+        p.parent.parent / "resized_anon_images",
+        p.parent / "images",
+    ]
     for c in cands:
         if (c / first).is_file():
             return c

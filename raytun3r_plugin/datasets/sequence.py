@@ -96,17 +96,25 @@ class Sequence:
         if self.image_paths is not None:
             self.image_paths = [Path(p) for p in self.image_paths]
             if len(self.image_paths) != n:
-                raise DatasetError(f"sequence {self.name!r}: {len(self.image_paths)} image paths for {n} frames")
+                raise DatasetError(
+                    f"sequence {self.name!r}: {len(self.image_paths)} image paths for {n} frames"
+                )
         for attr in ("images", "depth"):
             arr = getattr(self, attr)
             if arr is not None and arr.shape[0] != n:
-                raise DatasetError(f"sequence {self.name!r}: {attr} has {arr.shape[0]} frames, expected {n}")
+                raise DatasetError(
+                    f"sequence {self.name!r}: {attr} has {arr.shape[0]} frames, expected {n}"
+                )
         if self.mask is not None:
             self.mask = np.asarray(self.mask, dtype=bool)
             if self.mask.ndim == 3 and self.mask.shape[0] != n:
-                raise DatasetError(f"sequence {self.name!r}: mask has {self.mask.shape[0]} frames, expected {n}")
+                raise DatasetError(
+                    f"sequence {self.name!r}: mask has {self.mask.shape[0]} frames, expected {n}"
+                )
         if self.depth_kind not in ("range", "z"):
-            raise DatasetError(f"sequence {self.name!r}: depth_kind must be 'range' or 'z', got {self.depth_kind!r}")
+            raise DatasetError(
+                f"sequence {self.name!r}: depth_kind must be 'range' or 'z', got {self.depth_kind!r}"
+            )
 
     def __len__(self) -> int:
         return int(self.timestamps.shape[0])
@@ -157,7 +165,9 @@ class Sequence:
             images=None if self.images is None else self.images[idx],
             depth=None if self.depth is None else self.depth[idx],
             depth_kind=self.depth_kind,
-            mask=None if self.mask is None else (self.mask if self.mask.ndim == 2 else self.mask[idx]),
+            mask=None
+            if self.mask is None
+            else (self.mask if self.mask.ndim == 2 else self.mask[idx]),
             meta=self._subset_meta(idx),
         )
 

@@ -35,7 +35,9 @@ from raytun3r_plugin.datasets.sequence import Sequence
 __all__ = ["load_tumvi", "read_euroc_csv"]
 
 
-def read_euroc_csv(path: Path, columns: int, what: str) -> tuple[np.ndarray, list[list[str]], list[int]]:
+def read_euroc_csv(
+    path: Path, columns: int, what: str
+) -> tuple[np.ndarray, list[list[str]], list[int]]:
     """Rows of an ASL/EuRoC csv: int64 nanosecond timestamps (N,), the other fields as strings,
     and the line number of each row. ``#`` lines are comments; ``columns`` counts all fields."""
     if not path.is_file():
@@ -49,11 +51,15 @@ def read_euroc_csv(path: Path, columns: int, what: str) -> tuple[np.ndarray, lis
             continue
         tok = [t.strip() for t in s.split(",")]
         if len(tok) != columns:
-            raise fail(path, lineno, f"{what}: expected {columns} comma-separated fields, got {len(tok)}")
+            raise fail(
+                path, lineno, f"{what}: expected {columns} comma-separated fields, got {len(tok)}"
+            )
         try:
             ts = int(tok[0])
         except ValueError:
-            raise fail(path, lineno, f"timestamp {tok[0]!r} is not an integer (nanoseconds)") from None
+            raise fail(
+                path, lineno, f"timestamp {tok[0]!r} is not an integer (nanoseconds)"
+            ) from None
         if stamps and ts <= stamps[-1]:
             raise fail(path, lineno, f"timestamp {ts} is not after the previous one ({stamps[-1]})")
         stamps.append(ts)
@@ -74,7 +80,11 @@ def _find_camchain(root: Path, given: str | Path | None) -> Path:
     for c in cands:
         if c.is_file():
             return c
-    raise fail(root, None, "no Kalibr camchain YAML found (camchain.yaml, dso/camchain.yaml, *camchain*.yaml); pass camchain=")
+    raise fail(
+        root,
+        None,
+        "no Kalibr camchain YAML found (camchain.yaml, dso/camchain.yaml, *camchain*.yaml); pass camchain=",
+    )
 
 
 def _t_cam_imu(path: Path, cam: str) -> np.ndarray:
@@ -132,10 +142,17 @@ def load_tumvi(
     cam_dir = root / "mav0" / cam
     img_ts, img_rows, _ = read_euroc_csv(cam_dir / "data.csv", 2, "timestamp,filename")
     mpath = root / "mav0" / "mocap0" / "data.csv"
-    mo_ts, mo_rows, mo_lines = read_euroc_csv(mpath, 8, "timestamp, p_x, p_y, p_z, q_w, q_x, q_y, q_z")
+    mo_ts, mo_rows, mo_lines = read_euroc_csv(
+        mpath, 8, "timestamp, p_x, p_y, p_z, q_w, q_x, q_y, q_z"
+    )
     if mo_ts.size == 0:
         raise fail(mpath, None, "no mocap samples")
-    mo = np.stack([parse_floats(mpath, ln, r, 7, "p_RS_R xyz, q_RS wxyz") for r, ln in zip(mo_rows, mo_lines, strict=True)])
+    mo = np.stack(
+        [
+            parse_floats(mpath, ln, r, 7, "p_RS_R xyz, q_RS wxyz")
+            for r, ln in zip(mo_rows, mo_lines, strict=True)
+        ]
+    )
     qn = np.linalg.norm(mo[:, 3:], axis=1)
     bad = np.flatnonzero(qn < 1e-8)
     if bad.size:
@@ -149,7 +166,9 @@ def load_tumvi(
     d1 = np.abs(mo_ts[k1] - img_ts)
     keep = np.minimum(d0, d1) <= lim
     span = (mo_ts[k1] - mo_ts[k0]).astype(np.float64)
-    alpha = np.where(span > 0, (img_ts - mo_ts[k0]).astype(np.float64) / np.where(span > 0, span, 1.0), 0.0)
+    alpha = np.where(
+        span > 0, (img_ts - mo_ts[k0]).astype(np.float64) / np.where(span > 0, span, 1.0), 0.0
+    )
     alpha = np.clip(alpha, 0.0, 1.0)
     p = pos[k0] + alpha[:, None] * (pos[k1] - pos[k0])
     q = slerp(quat[k0], quat[k1], alpha) if img_ts.size else np.zeros((0, 4))
@@ -159,7 +178,11 @@ def load_tumvi(
     world_from_cam = world_from_imu @ invert_pose(T_cam_imu)
     idx = np.flatnonzero(keep)
     if idx.size == 0:
-        raise fail(mpath, None, f"no image of {cam_dir / 'data.csv'} has a mocap sample within {max_dt * 1e3:g} ms")
+        raise fail(
+            mpath,
+            None,
+            f"no image of {cam_dir / 'data.csv'} has a mocap sample within {max_dt * 1e3:g} ms",
+        )
     data = cam_dir / "data"
     return Sequence(
         name=name or f"{root.name}/{cam}",

@@ -24,7 +24,9 @@ from raytun3r_plugin.poses import relative_pose  # re-exported: its one home
 __all__ = ["bilinear_sample", "correspondences", "dense_flow", "relative_pose"]
 
 
-def bilinear_sample(image: np.ndarray, uv: np.ndarray, valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def bilinear_sample(
+    image: np.ndarray, uv: np.ndarray, valid: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Bilinearly sample ``image`` (H, W) at pixel positions ``uv`` (M, 2) (pixel centres at
     integers, coordinates clamped to the image).
 
@@ -56,7 +58,9 @@ def bilinear_sample(image: np.ndarray, uv: np.ndarray, valid: np.ndarray | None 
 def _range_and_mask(seq: Sequence, i: int) -> tuple[np.ndarray, np.ndarray]:
     d = seq.range_depth(i)
     if d is None:
-        raise InputError(f"sequence {seq.name!r} has no depth; correspondences need ground-truth depth")
+        raise InputError(
+            f"sequence {seq.name!r} has no depth; correspondences need ground-truth depth"
+        )
     d = np.asarray(d, dtype=np.float64)
     m = d > 0
     fm = seq.frame_mask(i)
@@ -128,7 +132,9 @@ def correspondences(
     return uv_i, uv_j, visible
 
 
-def _raycast_visible(seq: Sequence, j: int, X_j: np.ndarray, rng_j: np.ndarray, rel_tol: float) -> np.ndarray:
+def _raycast_visible(
+    seq: Sequence, j: int, X_j: np.ndarray, rng_j: np.ndarray, rel_tol: float
+) -> np.ndarray:
     from raytun3r_plugin.synthetic.generate import scene_of
     from raytun3r_plugin.synthetic.scene import intersect
 

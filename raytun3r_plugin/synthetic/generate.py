@@ -33,7 +33,9 @@ def camera_centres(cam_from_world: np.ndarray) -> np.ndarray:
     return -np.einsum("nji,nj->ni", R, cam_from_world[:, :3, 3])
 
 
-def median_flow(camera: Camera, cam_from_world: np.ndarray, depth: float, n_rays: int = 256) -> float:
+def median_flow(
+    camera: Camera, cam_from_world: np.ndarray, depth: float, n_rays: int = 256
+) -> float:
     """Median image motion (pixels) between consecutive poses of points at range ``depth`` (m)
     along ``n_rays`` rays spread over the camera's valid region (a scene-independent estimate
     of the optical flow of a trajectory)."""
@@ -52,7 +54,9 @@ def median_flow(camera: Camera, cam_from_world: np.ndarray, depth: float, n_rays
         uv1, ok1 = camera.project(torch.from_numpy(X @ T[:3, :3].T + T[:3, 3]))
         m = (ok0 & ok1).detach().cpu().numpy()
         if m.any():
-            meds.append(float(np.median(np.linalg.norm(uv1.detach().cpu().numpy()[m] - uv0[m], axis=1))))
+            meds.append(
+                float(np.median(np.linalg.norm(uv1.detach().cpu().numpy()[m] - uv0[m], axis=1)))
+            )
     return float(np.median(meds)) if meds else 0.0
 
 
@@ -173,4 +177,3 @@ def render_sequence(
         mask=mask,
         meta={"synthetic": gen, "scene": scene, "per_frame": {"z_depth": zdepth, "sky": sky}},
     )
-

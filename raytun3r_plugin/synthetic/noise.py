@@ -27,7 +27,9 @@ __all__ = ["SolidNoise", "band_weight", "random_rotations", "smoothstep"]
 _SLICE_OFFSET = (37, 17)
 
 
-def smoothstep(edge0: torch.Tensor | float, edge1: torch.Tensor | float, x: torch.Tensor) -> torch.Tensor:
+def smoothstep(
+    edge0: torch.Tensor | float, edge1: torch.Tensor | float, x: torch.Tensor
+) -> torch.Tensor:
     """Hermite smoothstep: 0 below ``edge0``, 1 above ``edge1``, C1 in between (elementwise)."""
     t = torch.clamp((x - edge0) / (edge1 - edge0), 0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
@@ -104,7 +106,11 @@ class SolidNoise:
         s = float(self.size)
         grid = torch.remainder(xy, s).mul_(2.0 / s).sub_(1.0)
         v = F.grid_sample(
-            self.texture, grid.view(1, 1, n, 2), mode="bilinear", padding_mode="border", align_corners=True
+            self.texture,
+            grid.view(1, 1, n, 2),
+            mode="bilinear",
+            padding_mode="border",
+            align_corners=True,
         ).view(2 * self.channels, n)
         return torch.lerp(v[: self.channels], v[self.channels :], fs[:, 2]).t()
 

@@ -85,7 +85,9 @@ class _CameraRays:
         self.rays = rays.reshape(-1, 3).contiguous()
         self.valid = valid.reshape(-1)
         vv, uu = torch.meshgrid(
-            torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
+            torch.arange(h, dtype=torch.float64),
+            torch.arange(w, dtype=torch.float64),
+            indexing="ij",
         )
         uv = torch.stack([uu, vv], -1).reshape(-1, 2)
 
@@ -209,7 +211,13 @@ class Renderer:
             keeps torch's setting.
     """
 
-    def __init__(self, camera: Camera, supersample: int = 2, adaptive: bool = True, num_threads: int | None = 1) -> None:
+    def __init__(
+        self,
+        camera: Camera,
+        supersample: int = 2,
+        adaptive: bool = True,
+        num_threads: int | None = 1,
+    ) -> None:
         if supersample < 1:
             raise InputError("supersample must be >= 1")
         self.camera = camera
@@ -227,7 +235,12 @@ class Renderer:
 
     # ------------------------------------------------------------------------------------
     def _colour(
-        self, scene: Scene, origin: np.ndarray, dirs: torch.Tensor, hit: Hit, pixel_angle: torch.Tensor
+        self,
+        scene: Scene,
+        origin: np.ndarray,
+        dirs: torch.Tensor,
+        hit: Hit,
+        pixel_angle: torch.Tensor,
     ) -> torch.Tensor:
         """Shaded colour (N, 3) of hits (all entries of ``hit`` must be finite)."""
         n = dirs.shape[0]
@@ -260,7 +273,9 @@ class Renderer:
             smoothstep(thr + 0.05 - sw2, thr + 0.05 + sw2, octs[2, :, 2]),
         )[:, None]
         base = mt[:, MAT_BASE]
-        factor = (1.0 + 2.0 * mt[:, MAT_COLOUR_VAR, None] * (c0 + c1)) * (1.0 + 2.0 * mt[:, MAT_CONTRAST, None] * lum[:, None])
+        factor = (1.0 + 2.0 * mt[:, MAT_COLOUR_VAR, None] * (c0 + c1)) * (
+            1.0 + 2.0 * mt[:, MAT_CONTRAST, None] * lum[:, None]
+        )
         albedo = torch.lerp(base * factor, mt[:, MAT_SPOT], 0.85 * spot)
         light = torch.from_numpy(np.asarray(scene.light_dir, dtype=np.float32))
         diffuse = (-(hit.normal @ light)).clamp(min=0.0)
@@ -325,7 +340,11 @@ class Renderer:
         rgb = torch.where(valid[:, None], rgb, torch.zeros_like(rgb))
         rz = cr.rays[:, 2]
         z = torch.where(valid & (rz > 0), t_full * rz, torch.zeros_like(t_full))
-        sky = (mat_full == scene.sky_material) & valid if scene.sky is not None else torch.zeros_like(valid)
+        sky = (
+            (mat_full == scene.sky_material) & valid
+            if scene.sky is not None
+            else torch.zeros_like(valid)
+        )
         return RenderedFrame(
             rgb=rgb.reshape(h, w, 3).numpy().astype(np.float32),
             range=t_full.reshape(h, w).numpy().astype(np.float32),
@@ -336,7 +355,9 @@ class Renderer:
             sky=sky.reshape(h, w).numpy(),
         )
 
-    def _edges(self, valid: torch.Tensor, lens: torch.Tensor, surface: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    def _edges(
+        self, valid: torch.Tensor, lens: torch.Tensor, surface: torch.Tensor, t: torch.Tensor
+    ) -> torch.Tensor:
         """Pixels (HW,) bool to supersample: a lens pixel whose 8-neighbourhood shows another
         surface (object or face), an invalid pixel, or a depth jump of more than 5%."""
         h, w = self._rays.height, self._rays.width
@@ -350,7 +371,9 @@ class Renderer:
         edge = (smax != smin) | (tmax - tmin > 0.05 * tmin.clamp(min=1e-6))
         return edge.reshape(-1) & lens
 
-    def _supersampled(self, scene: Scene, origin: np.ndarray, Rcw: torch.Tensor, sel: torch.Tensor) -> torch.Tensor:
+    def _supersampled(
+        self, scene: Scene, origin: np.ndarray, Rcw: torch.Tensor, sel: torch.Tensor
+    ) -> torch.Tensor:
         """Mean colour (len(sel), 3) of the sub-pixel rays of pixels ``sel`` (lens-valid ones)."""
         cr = self._rays
         S = cr.sub_rays.shape[0]
@@ -378,7 +401,6 @@ def render_frame(
     num_threads: int | None = 1,
 ) -> RenderedFrame:
     """Render one frame (convenience wrapper; build a :class:`Renderer` to render many)."""
-    return Renderer(camera, supersample=supersample, adaptive=adaptive, num_threads=num_threads).render(
-        scene, cam_from_world
-    )
-
+    return Renderer(
+        camera, supersample=supersample, adaptive=adaptive, num_threads=num_threads
+    ).render(scene, cam_from_world)

@@ -32,7 +32,15 @@ import torch
 
 from raytun3r_plugin.errors import InputError
 
-__all__ = ["Hit", "RayTiles", "Scene", "intersect", "make_indoor_scene", "make_outdoor_scene", "make_scene"]
+__all__ = [
+    "Hit",
+    "RayTiles",
+    "Scene",
+    "intersect",
+    "make_indoor_scene",
+    "make_outdoor_scene",
+    "make_scene",
+]
 
 # Material table columns.
 MAT_BASE = slice(0, 3)
@@ -217,7 +225,9 @@ def _box_t(tab: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     return torch.where(ok, tn, torch.full_like(tn, math.inf))
 
 
-def _box_normal(tab: torch.Tensor, d: torch.Tensor, t: torch.Tensor, half: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _box_normal(
+    tab: torch.Tensor, d: torch.Tensor, t: torch.Tensor, half: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     pl = tab[:, 2:5] + t[:, None] * _to_box(tab, d)  # hit point in the box frame
     axis = (pl.abs() / half).argmax(dim=1)
     sgn = torch.sign(pl.gather(1, axis[:, None]).squeeze(1))
@@ -241,7 +251,16 @@ def _sphere_t(p: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
 def _cyl_table(scene: Scene, origin: np.ndarray) -> torch.Tensor:
     """Per cylinder (K, 5) relative to the origin: axis x, axis z, y_top, y_bottom, radius."""
     c = scene.cylinders
-    rel = np.stack([c[:, 0] - origin[0], c[:, 1] - origin[2], c[:, 2] - origin[1], c[:, 3] - origin[1], c[:, 4]], -1)
+    rel = np.stack(
+        [
+            c[:, 0] - origin[0],
+            c[:, 1] - origin[2],
+            c[:, 2] - origin[1],
+            c[:, 3] - origin[1],
+            c[:, 4],
+        ],
+        -1,
+    )
     return _f32(rel)
 
 
@@ -268,12 +287,16 @@ def _cyl_t(p: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     return t
 
 
-def _cyl_normal(p: torch.Tensor, d: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _cyl_normal(
+    p: torch.Tensor, d: torch.Tensor, t: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     cx, cz, y0, y1, rad = p.unbind(-1)
     px = t * d[:, 0] - cx
     py = t * d[:, 1]
     pz = t * d[:, 2] - cz
-    dist = torch.stack([(torch.sqrt(px * px + pz * pz) - rad).abs(), (py - y0).abs(), (py - y1).abs()], -1)
+    dist = torch.stack(
+        [(torch.sqrt(px * px + pz * pz) - rad).abs(), (py - y0).abs(), (py - y1).abs()], -1
+    )
     face = dist.argmin(dim=1)
     zero = torch.zeros_like(px)
     n_side = torch.stack([px / rad, zero, pz / rad], -1)
@@ -300,7 +323,9 @@ def _sky_t(scene: Scene, origin: np.ndarray, dirs: torch.Tensor) -> torch.Tensor
     return torch.where((disc >= 0) & (t > _EPS), t, torch.full_like(t, math.inf)).float()
 
 
-def intersect(scene: Scene, origin: np.ndarray, dirs: torch.Tensor, tiles: RayTiles | None = None) -> Hit:
+def intersect(
+    scene: Scene, origin: np.ndarray, dirs: torch.Tensor, tiles: RayTiles | None = None
+) -> Hit:
     """Nearest hit of rays from one world-frame ``origin`` (3,) along unit ``dirs`` (N, 3).
 
     Distances are float32 metres along the ray. Rays are cast relative to the origin, so far-away
@@ -320,17 +345,24 @@ def intersect(scene: Scene, origin: np.ndarray, dirs: torch.Tensor, tiles: RayTi
         best.fold_all(t, _GROUND)
     nb, ns, nc = scene.boxes.shape[0], scene.spheres.shape[0], scene.cylinders.shape[0]
     boxes = _box_table(scene, origin) if nb else None
-    spheres = _f32(np.concatenate([scene.spheres[:, :3] - origin, scene.spheres[:, 3:]], 1)) if ns else None
+    spheres = (
+        _f32(np.concatenate([scene.spheres[:, :3] - origin, scene.spheres[:, 3:]], 1))
+        if ns
+        else None
+    )
     cyls = _cyl_table(scene, origin) if nc else None
     if nb + ns + nc:
         cyl = scene.cylinders
-        centres = np.concatenate(
-            [
-                scene.boxes[:, :3],
-                scene.spheres[:, :3],
-                np.stack([cyl[:, 0], 0.5 * (cyl[:, 2] + cyl[:, 3]), cyl[:, 1]], -1),
-            ]
-        ) - origin
+        centres = (
+            np.concatenate(
+                [
+                    scene.boxes[:, :3],
+                    scene.spheres[:, :3],
+                    np.stack([cyl[:, 0], 0.5 * (cyl[:, 2] + cyl[:, 3]), cyl[:, 1]], -1),
+                ]
+            )
+            - origin
+        )
         radii = np.concatenate(
             [
                 np.linalg.norm(scene.boxes[:, 3:6], axis=1),
@@ -375,7 +407,9 @@ def _finish(scene, origin, dirs, best, boxes, spheres, cyls) -> Hit:
             p = t[:, None] * d
             lo = _f32(scene.room[:3] - origin)
             hi = _f32(scene.room[3:] - origin)
-            gap = torch.stack([(p - lo).abs(), (p - hi).abs()], -1).reshape(-1, 6)  # -x,+x,-y,+y,-z,+z
+            gap = torch.stack([(p - lo).abs(), (p - hi).abs()], -1).reshape(
+                -1, 6
+            )  # -x,+x,-y,+y,-z,+z
             f = gap.argmin(dim=1)
             nl = torch.zeros_like(d)
             nl.scatter_(1, (f // 2)[:, None], (1.0 - 2.0 * (f % 2)).to(d.dtype)[:, None])
@@ -434,7 +468,11 @@ class _Materials:
         v = rng.uniform(*value)
         base = colorsys.hsv_to_rgb(h, s, v)
         hs = (h + rng.uniform(0.25, 0.75)) % 1.0
-        vs = v * rng.uniform(0.3, 0.6) if rng.uniform() < 0.6 else min(1.0, v * rng.uniform(1.3, 1.8) + 0.1)
+        vs = (
+            v * rng.uniform(0.3, 0.6)
+            if rng.uniform() < 0.6
+            else min(1.0, v * rng.uniform(1.3, 1.8) + 0.1)
+        )
         spot = colorsys.hsv_to_rgb(hs, rng.uniform(0.2, 0.9), vs)
         row = np.zeros(MAT_DIM, dtype=np.float32)
         row[MAT_BASE] = base
@@ -485,7 +523,9 @@ def make_indoor_scene(seed: int, path: np.ndarray | None = None) -> Scene:
             mats.add(value=(0.5, 0.85), freq=(1.0, 2.5)),  # -x wall
             mats.add(value=(0.5, 0.85), freq=(1.0, 2.5)),  # +x wall
             mats.add(value=(0.7, 0.95), saturation=(0.0, 0.2), freq=(1.0, 2.0)),  # ceiling
-            mats.add(value=(0.3, 0.65), saturation=(0.3, 0.7), freq=(2.0, 4.0), contrast=(0.7, 1.0)),  # floor
+            mats.add(
+                value=(0.3, 0.65), saturation=(0.3, 0.7), freq=(2.0, 4.0), contrast=(0.7, 1.0)
+            ),  # floor
             mats.add(value=(0.5, 0.85), freq=(1.0, 2.5)),  # -z wall
             mats.add(value=(0.5, 0.85), freq=(1.0, 2.5)),  # +z wall
         ]
@@ -496,7 +536,10 @@ def make_indoor_scene(seed: int, path: np.ndarray | None = None) -> Scene:
     margin = 0.05
 
     def inside(x: float, z: float, rad: float) -> bool:
-        return xmin + rad + margin <= x <= xmax - rad - margin and zmin + rad + margin <= z <= zmax - rad - margin
+        return (
+            xmin + rad + margin <= x <= xmax - rad - margin
+            and zmin + rad + margin <= z <= zmax - rad - margin
+        )
 
     n_boxes = int(rng.integers(7, 11))
     tries = 0
@@ -586,9 +629,17 @@ def make_outdoor_scene(seed: int, path: np.ndarray | None = None) -> Scene:
     pxz = _path_xz(path)
     z0 = float(pxz[:, 1].min()) - 30.0
     z1 = float(pxz[:, 1].max()) + 80.0
-    road = mats.add(value=(0.25, 0.45), saturation=(0.0, 0.15), freq=(1.5, 3.0), contrast=(0.7, 1.0))
+    road = mats.add(
+        value=(0.25, 0.45), saturation=(0.0, 0.15), freq=(1.5, 3.0), contrast=(0.7, 1.0)
+    )
     pave = mats.add(value=(0.45, 0.7), saturation=(0.05, 0.3), freq=(1.5, 3.0), contrast=(0.7, 1.0))
-    sky = mats.add(value=(0.85, 0.95), saturation=(0.25, 0.45), hue=rng.uniform(0.55, 0.62), emissive=True, freq=(0.004, 0.006))
+    sky = mats.add(
+        value=(0.85, 0.95),
+        saturation=(0.25, 0.45),
+        hue=rng.uniform(0.55, 0.62),
+        emissive=True,
+        freq=(0.004, 0.006),
+    )
     boxes, box_m = [], []
     spheres, sph_m = [], []
     cyls, cyl_m = [], []
@@ -611,7 +662,17 @@ def make_outdoor_scene(seed: int, path: np.ndarray | None = None) -> Scene:
                 x = side * rng.uniform(5.2, 5.8)
                 if _clear_of(pxz, np.array([x, z]), 2.5, 1.0):
                     hy = rng.uniform(0.65, 0.85)
-                    boxes.append([x, -hy, z, rng.uniform(0.85, 1.0), hy, rng.uniform(2.0, 2.5), rng.uniform(-0.08, 0.08)])
+                    boxes.append(
+                        [
+                            x,
+                            -hy,
+                            z,
+                            rng.uniform(0.85, 1.0),
+                            hy,
+                            rng.uniform(2.0, 2.5),
+                            rng.uniform(-0.08, 0.08),
+                        ]
+                    )
                     box_m.append(mats.add(freq=(2.0, 5.0), saturation=(0.3, 0.9)))
             z += rng.uniform(6.0, 10.0)
         z = z0 + rng.uniform(0.0, 10.0)
@@ -625,7 +686,9 @@ def make_outdoor_scene(seed: int, path: np.ndarray | None = None) -> Scene:
                 if tree:
                     r = rng.uniform(1.0, 1.6)
                     spheres.append([x, top - r * 0.8, z, r])
-                    sph_m.append(mats.add(hue=rng.uniform(0.2, 0.4), saturation=(0.4, 0.8), freq=(2.0, 4.0)))
+                    sph_m.append(
+                        mats.add(hue=rng.uniform(0.2, 0.4), saturation=(0.4, 0.8), freq=(2.0, 4.0))
+                    )
             z += rng.uniform(8.0, 16.0)
     sun = np.array([rng.uniform(-0.6, 0.6), 1.0, rng.uniform(-0.3, 0.6)])
     zc = 0.5 * (z0 + z1)

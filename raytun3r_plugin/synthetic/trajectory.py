@@ -25,19 +25,25 @@ __all__ = [
 def _rot_x(a: np.ndarray) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     o, z = np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
+    return np.stack(
+        [np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2
+    )
 
 
 def _rot_y(a: np.ndarray) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     o, z = np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+    return np.stack(
+        [np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2
+    )
 
 
 def _rot_z(a: np.ndarray) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     o, z = np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+    return np.stack(
+        [np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2
+    )
 
 
 def pose_from_position_angles(
@@ -54,7 +60,13 @@ def pose_from_position_angles(
     return T
 
 
-def _sines(rng: np.random.Generator, t: np.ndarray, amplitude: float, omega: tuple[float, float], n: int = 3) -> np.ndarray:
+def _sines(
+    rng: np.random.Generator,
+    t: np.ndarray,
+    amplitude: float,
+    omega: tuple[float, float],
+    n: int = 3,
+) -> np.ndarray:
     """Sum of ``n`` sinusoids with total amplitude ``amplitude`` and random angular frequencies
     in ``omega`` (rad per time unit), weights 1, 1/2, 1/4, ... (normalised)."""
     w = 0.5 ** np.arange(n)
