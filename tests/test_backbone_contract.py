@@ -390,18 +390,24 @@ def test_changed_upstream_signature_is_refused_before_any_change(case, net, monk
         assert rt.handle_of(net) is None
 
 
-def test_moved_upstream_submodule_is_refused_before_any_change(case, net, monkeypatch):
+def test_moved_upstream_submodule_is_refused_before_any_change(case, net):
     spec, root = spec_for(net)
     snap = snapshot(net)
     for path in dict.fromkeys(path for target in spec.targets for path in target.owners):
         parent, _, name = path.rpartition(".")
-        with monkeypatch.context() as patch:
-            patch.setattr(resolve_path(root, parent) if parent else root, name, nn.Identity())
+        owner = resolve_path(root, parent) if parent else root
+        original = getattr(owner, name)
+        # Swapped by hand: pytest's monkeypatch (9.2) deletes, rather than restores, a submodule
+        # that nn.Module keeps in _modules instead of the instance __dict__.
+        setattr(owner, name, nn.Identity())
+        try:
             with pytest.raises(
                 UnsupportedUpstreamError,
                 match=rf"expected .* at '{re.escape(path)}', found torch\.nn\.modules\.linear\.Identity",
             ):
                 rt.apply(net, _cameras(case)[1])
+        finally:
+            setattr(owner, name, original)
         assert_same_snapshot(net, snap)
         assert rt.handle_of(net) is None
 
