@@ -41,7 +41,7 @@ from raytun3r_plugin.preprocess import InputLayout
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
 
-__all__ = ["adaptation_step", "objective_value", "window_of_step", "window_terms"]
+__all__ = ["adaptation_step", "objective_value", "problem_window_terms", "window_of_step", "window_terms"]
 
 
 @contextmanager
@@ -212,6 +212,32 @@ def window_of_step(step: int, n_windows: int, seed: int) -> int:
     return int(torch.randperm(n_windows, generator=generator)[position])
 
 
+def problem_window_terms(
+    model: nn.Module,
+    adapter: Adapter,
+    problem: AdaptationProblem,
+    config: AdaptConfig,
+    index: int,
+    generator: torch.Generator,
+) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
+    """:func:`window_terms` of window ``index`` of a prepared problem (its frames, pairs, layout,
+    valid region, geometry, PE scale and, in supervised mode, depth samples)."""
+    _, pairs = problem.windows[index]
+    return window_terms(
+        model,
+        adapter,
+        problem.batch(index),
+        pairs,
+        problem.layout,
+        problem.valid,
+        problem.geometry,
+        config,
+        generator,
+        pe_scale=problem.pe_scale,
+        depth_targets=problem.window_depth(index),
+    )
+
+
 def adaptation_step(
     model: nn.Module,
     adapter: Adapter,
@@ -234,21 +260,9 @@ def adaptation_step(
     """
     began = time.perf_counter()
     index = window_of_step(step, len(problem.windows), config.seed) if index is None else index
-    window, pairs = problem.windows[index]
+    window = problem.windows[index][0]
     generator = torch.Generator().manual_seed(int(config.seed) * 7_919 + step)
-    terms, counts = window_terms(
-        model,
-        adapter,
-        problem.batch(index),
-        pairs,
-        problem.layout,
-        problem.valid,
-        problem.geometry,
-        config,
-        generator,
-        pe_scale=problem.pe_scale,
-        depth_targets=problem.window_depth(index),
-    )
+    terms, counts = problem_window_terms(model, adapter, problem, config, index, generator)
     loss = total_loss(terms, config.weights)
     parameters = [p for group in optimizer.param_groups for p in group["params"]]
     optimizer.zero_grad(set_to_none=True)
@@ -309,21 +323,9 @@ def objective_value(
             mask=problem.mask,
         ),
     ):
-        for index, (_, pairs) in enumerate(problem.windows):
+        for index in range(len(problem.windows)):
             generator = torch.Generator().manual_seed(int(seed) * 7_919 + index)
-            terms, _ = window_terms(
-                model,
-                adapter,
-                problem.batch(index),
-                pairs,
-                problem.layout,
-                problem.valid,
-                problem.geometry,
-                config,
-                generator,
-                pe_scale=problem.pe_scale,
-                depth_targets=problem.window_depth(index),
-            )
+            terms, _ = problem_window_terms(model, adapter, problem, config, index, generator)
             terms = {**terms, "loss": total_loss(terms, config.weights)}
             for name, value in terms.items():
                 sums[name] = sums.get(name, 0.0) + float(value) / len(problem.windows)
