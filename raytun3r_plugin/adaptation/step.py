@@ -41,7 +41,13 @@ from raytun3r_plugin.preprocess import InputLayout
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
 
-__all__ = ["adaptation_step", "objective_value", "problem_window_terms", "window_of_step", "window_terms"]
+__all__ = [
+    "adaptation_step",
+    "objective_value",
+    "problem_window_terms",
+    "window_of_step",
+    "window_terms",
+]
 
 
 @contextmanager
