@@ -16,7 +16,7 @@ ROOT = Path(__file__).parent.parent
 PACKAGE = "raytun3r_plugin"
 APPS = f"{PACKAGE}.apps"
 
-#: What a backbone patch may import from the package (CODE_REVIEW.md, step 5.7): the hook and
+#: What a backbone patch may import from the package (docs/adding_a_backbone.md): the hook and
 #: registry machinery, the prediction type, weight loading, errors and RoPE, plus ``poses`` (leaf
 #: rigid-transform helpers Pi3 re-exports), ``_layout`` (the split-install guard in
 #: ``patches/__init__.py``) and the other patch modules. Anything else (adaptation, cameras,
