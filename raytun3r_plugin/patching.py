@@ -68,7 +68,20 @@ _DISABLED: contextvars.ContextVar[frozenset[int]] = contextvars.ContextVar(
 )
 
 # apply / remove of any model, one at a time (the check-then-install of apply must not interleave).
-_LOCK = threading.Lock()
+# Never taken with ``with``: an interrupt between a ``with``'s acquire and the start of its block
+# leaves the lock held for good. Callers acquire it as the first statement inside a ``try`` whose
+# ``finally`` calls :func:`_release`, which asks the lock itself whether this thread holds it
+# (an RLock knows its owner), so an interrupt at any point cannot leave it held by a thread that
+# has left apply/remove; a leaked level (an interrupt inside the ``finally``) is released by the
+# same thread's next apply/remove.
+_LOCK = threading.RLock()
+
+
+def _release() -> None:
+    """Release every level of :data:`_LOCK` this thread holds (none: nothing)."""
+    while _LOCK._is_owned():  # type: ignore[attr-defined]
+        _LOCK.release()
+
 
 _PART_COPY_HINT = (
     "copy the whole model that was given to apply(), or call handle.remove() before copying "
@@ -331,7 +344,8 @@ class RaytunHandle:
 
     def remove(self) -> None:
         """Undo every replacement in reverse order and drop the handle from the model; idempotent."""
-        with _LOCK:
+        try:
+            _LOCK.acquire()
             if self._removed:
                 return
             _undo(self._installed)
@@ -340,6 +354,8 @@ class RaytunHandle:
             if model is not None and vars(model).get(HANDLE_ATTRIBUTE) is self:
                 for name in ADDED_ATTRIBUTES:
                     vars(model).pop(name, None)
+        finally:
+            _release()
 
     @contextlib.contextmanager
     def disabled(self) -> Iterator[None]:
@@ -393,15 +409,22 @@ class RaytunHandle:
 
 
 def _undo(installed: list[_Installed]) -> None:
-    for item in reversed(installed):
+    """Restore every recorded attribute, last first; idempotent, so it can be run again.
+
+    A record is dropped only once its attribute is restored, so an undo that is itself
+    interrupted leaves the records still to restore. A record may precede its write (records
+    are made before the write, :func:`_install`): restoring an attribute that was never
+    replaced changes nothing.
+    """
+    while installed:
+        item = installed[-1]
         owner = item.owner()
-        if owner is None:  # freed with its model: nothing left to restore
-            continue
-        if item.had_own:
-            object.__setattr__(owner, item.attribute, item.previous)
-        else:
-            delattr(owner, item.attribute)
-    installed.clear()
+        if owner is not None:  # else freed with its model: nothing left to restore
+            if item.had_own:
+                object.__setattr__(owner, item.attribute, item.previous)
+            else:
+                vars(owner).pop(item.attribute, None)
+        installed.pop()
 
 
 def _same_camera(a, b) -> bool:
@@ -528,67 +551,125 @@ def apply(
         _check_adapter(adapter, info, camera, strict)
     wanted = _components_for(components, adapter)
 
-    with _LOCK:
-        existing = handle_of(model)
-        if existing is not None:
-            same = (
-                _same_camera(existing.camera, camera)
-                and (
-                    (existing.adapter is None and adapter is None)
-                    or (
-                        existing.adapter is not None
-                        and adapter is not None
-                        and existing.adapter.same_as(adapter)
-                    )
-                )
-                and existing.components == wanted
-            )
-            if same:
-                return existing
-            raise AlreadyAppliedError(
-                f"{type(model).__name__} is already patched ({existing!r}); call remove() first"
-            )
-
-        if spec.check is not None:
-            spec.check(root)
-        hooks = {
-            hook for hook, served in HOOK_COMPONENTS.items() if any(wanted.get(c) for c in served)
-        }
-        resolved = resolve_targets(spec, root, hooks)
-        state = PatchState(
-            camera, adapter, wanted, info, mask, knee_deg, max_stretch, model=model, spec=spec
+    try:
+        _LOCK.acquire()
+        return _apply_locked(
+            model, root, spec, info, camera, adapter, wanted, mask, knee_deg, max_stretch
         )
-        for target, path, owner in resolved:
-            current = owner.__dict__.get(target.attribute)
-            if getattr(current, WRAPPER_MARK, False):
-                raise AlreadyAppliedError(
-                    f"{path}.{target.attribute} is already wrapped by raytun3r"
-                )
-        # Build every replacement before installing any, so a build error changes nothing.
-        planned = []
-        for target, _path, owner in resolved:
-            previous = owner.__dict__.get(target.attribute, _NOTSET)
-            planned.append((owner, target.attribute, _Wrapper(owner, target, state, previous)))
+    finally:
+        _release()
 
-        installed: list[_Installed] = []
-        try:
-            for owner, attribute, replacement in planned:
-                _install(installed, owner, attribute, replacement)
-        except BaseException:
-            _undo(installed)
-            raise
+
+def _apply_locked(
+    model: nn.Module,
+    root: nn.Module,
+    spec: BackboneSpec,
+    info: BackboneInfo,
+    camera: Camera,
+    adapter: Adapter | None,
+    wanted: dict[str, bool],
+    mask: torch.Tensor | None,
+    knee_deg: float,
+    max_stretch: float,
+) -> RaytunHandle:
+    """The check-then-install of :func:`apply`, run while holding :data:`_LOCK`."""
+    existing = handle_of(model)
+    if existing is not None:
+        same = (
+            _same_camera(existing.camera, camera)
+            and (
+                (existing.adapter is None and adapter is None)
+                or (
+                    existing.adapter is not None
+                    and adapter is not None
+                    and existing.adapter.same_as(adapter)
+                )
+            )
+            and existing.components == wanted
+        )
+        if same:
+            return existing
+        raise AlreadyAppliedError(
+            f"{type(model).__name__} is already patched ({existing!r}); call remove() first"
+        )
+
+    if spec.check is not None:
+        spec.check(root)
+    hooks = {hook for hook, served in HOOK_COMPONENTS.items() if any(wanted.get(c) for c in served)}
+    resolved = resolve_targets(spec, root, hooks)
+    state = PatchState(
+        camera, adapter, wanted, info, mask, knee_deg, max_stretch, model=model, spec=spec
+    )
+    for target, path, owner in resolved:
+        current = owner.__dict__.get(target.attribute)
+        if getattr(current, WRAPPER_MARK, False):
+            raise AlreadyAppliedError(f"{path}.{target.attribute} is already wrapped by raytun3r")
+    # Build every replacement before installing any, so a build error changes nothing.
+    planned = []
+    for target, _path, owner in resolved:
+        previous = owner.__dict__.get(target.attribute, _NOTSET)
+        planned.append((owner, target.attribute, _Wrapper(owner, target, state, previous)))
+
+    # From here on the model changes: everything up to the return is inside the rollback's
+    # scope (the installs, the handle's construction and its registration on the model), and
+    # the rollback reads what is on the model, not local variables an interrupt may have
+    # left unassigned.
+    installed: list[_Installed] = []
+    try:
+        for owner, attribute, replacement in planned:
+            _install(installed, owner, attribute, replacement)
         handle = RaytunHandle(model, root, spec, state, installed)
-        object.__setattr__(model, HANDLE_ATTRIBUTE, handle)
+        _register(model, handle)
         return handle
+    except BaseException:
+        _rollback(model, installed)
+        raise
 
 
 def _install(installed: list[_Installed], owner, attribute: str, replacement) -> None:
+    """Replace ``owner.attribute`` by ``replacement``, recorded in ``installed`` first.
+
+    Record before write: an interrupt between the two leaves a record of an attribute not yet
+    replaced (whose undo changes nothing), never a replacement without a record.
+    """
     had_own = attribute in owner.__dict__
-    record = _Installed(weakref.ref(owner), attribute, had_own, owner.__dict__.get(attribute))
+    _record(
+        installed, _Installed(weakref.ref(owner), attribute, had_own, owner.__dict__.get(attribute))
+    )
+    _write(owner, attribute, replacement)
+
+
+def _record(installed: list[_Installed], record: _Installed) -> None:
+    installed.append(record)
+
+
+def _write(owner: Any, attribute: str, value: Any) -> None:
     # object.__setattr__: nn.Module.__setattr__ would be fine for plain functions, but this keeps
     # the write an ordinary instance attribute for every owner type.
-    object.__setattr__(owner, attribute, replacement)
-    installed.append(record)
+    object.__setattr__(owner, attribute, value)
+
+
+def _register(model: nn.Module, handle: RaytunHandle) -> None:
+    """Make ``handle`` the model's live handle (what :func:`handle_of` finds)."""
+    object.__setattr__(model, HANDLE_ATTRIBUTE, handle)
+
+
+def _rollback(model: nn.Module, installed: list[_Installed]) -> None:
+    """Undo a failed apply: every recorded replacement and a handle registered on the model.
+
+    Retried when it is itself interrupted (each step is idempotent), so that a second Ctrl-C
+    during the rollback does not leave a half-patched model.
+    """
+    for _attempt in range(100):
+        try:
+            handle = vars(model).get(HANDLE_ATTRIBUTE)
+            if isinstance(handle, RaytunHandle) and handle._installed is installed:
+                for name in ADDED_ATTRIBUTES:
+                    vars(model).pop(name, None)
+            _undo(installed)
+            return
+        except BaseException:  # a rollback interrupted: run it again
+            continue
 
 
 def remove(model: nn.Module) -> None:
