@@ -127,7 +127,6 @@ def main() -> None:
             prepare_problem(camera, seq.images, new),
             prepare_problem(camera, seq.images, old),
         )
-        problem_new.pe_scale = energy
         gt = torch.from_numpy(ground_truth_depth(seq, 24))
         at_truth = scale_errors(
             problem_new, seq, torch.where(gt > 0, gt, torch.full_like(gt, float("nan")))

@@ -313,7 +313,6 @@ def test_objective_scores_the_supervised_solution_below_the_zero_adapter(tmp_pat
     )
     config = adapt_config(112, 300, cache_dir=str(tmp_path))
     problem = prepare_problem(camera, seq.images, config)
-    problem.pe_scale = pe_energy(model.backbone.pretrained.pos_embed)
     zero = objective_value(model, Adapter.for_model(model), problem, config)
     fitted = objective_value(model, supervised, problem, config)
     # The data terms rank the supervised solution first.

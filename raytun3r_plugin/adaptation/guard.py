@@ -12,7 +12,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from raytun3r_plugin.adaptation.config import AdaptConfig
 from raytun3r_plugin.adaptation.losses import pe_correction_grid, pe_l2
 from raytun3r_plugin.adaptation.problem import AdaptationProblem
 from raytun3r_plugin.adapter import Adapter
@@ -54,7 +53,6 @@ class _CollapseGuard:
     def __init__(
         self,
         problem: AdaptationProblem,
-        config: AdaptConfig,
         min_correlation: float | None = None,
         spread_range: tuple[float, float] | None = None,
     ) -> None:

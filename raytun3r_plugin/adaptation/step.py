@@ -6,6 +6,7 @@ Part of :mod:`raytun3r_plugin.adaptation.train` (which re-exports the public nam
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Iterator
@@ -20,6 +21,7 @@ from raytun3r_plugin.adaptation.losses import (
     backproject,
     fit_translation_scale,
     pe_correction_grid,
+    pe_energy,
     pe_l2,
     pe_tv,
     pixel_optimal_scale,
@@ -37,6 +39,7 @@ from raytun3r_plugin.errors import AlreadyAppliedError
 from raytun3r_plugin.patching import apply, handle_of
 from raytun3r_plugin.prediction import predict
 from raytun3r_plugin.preprocess import InputLayout
+from raytun3r_plugin.registry import spec_for
 
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
@@ -45,6 +48,7 @@ __all__ = [
     "adaptation_step",
     "objective_value",
     "problem_window_terms",
+    "regulariser_scale",
     "window_of_step",
     "window_terms",
 ]
@@ -297,6 +301,16 @@ def adaptation_step(
     }
 
 
+def regulariser_scale(model: nn.Module, config: AdaptConfig) -> float:
+    """Divisor of the PE regularisers for ``model`` under ``config``: the backbone's PE energy
+    (:func:`~raytun3r_plugin.adaptation.losses.pe_energy`) for ``pe_regulariser="relative"``,
+    1 for ``"absolute"``."""
+    if config.pe_regulariser != "relative":
+        return 1.0
+    spec, root = spec_for(model)
+    return pe_energy(spec.describe(root).pos_embed)
+
+
 def objective_value(
     model: nn.Module,
     adapter: Adapter,
@@ -307,7 +321,8 @@ def objective_value(
     """The objective of ``config`` for ``adapter``, averaged over every window of ``problem``.
 
     Runs the model patched with ``adapter`` (the model must be unpatched; it is again
-    afterwards), without gradients. Match subsets come from a generator seeded by ``seed`` and
+    afterwards), without gradients; the PE regularisers are scaled for ``model``
+    (:func:`regulariser_scale`), as :func:`adapt` scales them. Match subsets come from a generator seeded by ``seed`` and
     the window index, so two adapters are scored on the same samples. Used to check that the
     objective ranks a better adapter lower (``tests``, ``docs/adaptation.md``).
 
@@ -316,6 +331,7 @@ def objective_value(
     """
     if handle_of(model) is not None:
         raise AlreadyAppliedError("objective_value needs an unpatched model")
+    problem = dataclasses.replace(problem, pe_scale=regulariser_scale(model, config))
     sums: dict[str, float] = {}
     with (
         _frozen(model),

@@ -74,7 +74,7 @@ from raytun3r_plugin.adaptation.guard import (
     depth_health,
     fit_verdict,
 )
-from raytun3r_plugin.adaptation.losses import LossWeights, pe_energy
+from raytun3r_plugin.adaptation.losses import LossWeights
 from raytun3r_plugin.adaptation.problem import (
     MAX_DEPTH_SAMPLES,
     AdaptationProblem,
@@ -85,6 +85,7 @@ from raytun3r_plugin.adaptation.step import (
     _frozen,
     adaptation_step,
     objective_value,
+    regulariser_scale,
     window_of_step,
     window_terms,
 )
@@ -92,7 +93,6 @@ from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AlreadyAppliedError
 from raytun3r_plugin.patching import apply, handle_of
 from raytun3r_plugin.preprocess import InputLayout, input_layout
-from raytun3r_plugin.registry import spec_for
 
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
@@ -241,9 +241,7 @@ def adapt(
         else copy.deepcopy(adapter)
     )
     problem = prepare_problem(camera, frames, config, adapter.patch_size, mask=mask, depth=depth)
-    if config.pe_regulariser == "relative":
-        spec, root = spec_for(model)
-        problem.pe_scale = pe_energy(spec.describe(root).pos_embed)
+    problem.pe_scale = regulariser_scale(model, config)
     adapter.camera = problem.layout.native_camera
     optimizer = torch.optim.Adam(list(adapter.parameters()), lr=config.lr)
 
@@ -271,9 +269,7 @@ def adapt(
     history: list[dict[str, Any]] = []
     # The thresholds are read here, at call time, so patching this module's constants takes effect.
     guard = (
-        _CollapseGuard(problem, config, GUARD_MIN_CORRELATION, GUARD_SPREAD_RANGE)
-        if config.guard
-        else None
+        _CollapseGuard(problem, GUARD_MIN_CORRELATION, GUARD_SPREAD_RANGE) if config.guard else None
     )
     completed, interrupted, began = start, False, time.perf_counter()
     bar = _Progress(config.steps, start, progress)
