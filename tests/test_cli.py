@@ -58,22 +58,26 @@ def setup(tmp_path_factory):
     }
 
 
+def model_args(setup) -> list[str]:
+    """``--backbone`` and ``--weights`` of the module's random da3-small file."""
+    return ["--backbone", "da3-small", "--weights", str(setup["weights"])]
+
+
+def frame_args(setup) -> list[str]:
+    """``--frames`` and ``--size`` of the module's synthetic frame folder."""
+    return ["--frames", str(setup["frames"]), "--size", str(SIZE)]
+
+
 def test_adapt_inspect_infer(setup, capsys):
     folder = setup["folder"]
     adapter = folder / "adapter.safetensors"
     code = main(
         [
             "adapt",
-            "--backbone",
-            "da3-small",
-            "--weights",
-            str(setup["weights"]),
+            *model_args(setup),
             "--camera",
             str(setup["camera"]),
-            "--frames",
-            str(setup["frames"]),
-            "--size",
-            str(SIZE),
+            *frame_args(setup),
             "--steps",
             "2",
             "--windows",
@@ -91,16 +95,10 @@ def test_adapt_inspect_infer(setup, capsys):
     code = main(
         [
             "infer",
-            "--backbone",
-            "da3-small",
-            "--weights",
-            str(setup["weights"]),
+            *model_args(setup),
             "--adapter",
             str(adapter),
-            "--frames",
-            str(setup["frames"]),
-            "--size",
-            str(SIZE),
+            *frame_args(setup),
             "--out",
             str(out),
         ]
@@ -131,16 +129,10 @@ def test_supervised_adapt_from_a_depth_folder_and_the_pe_picture(setup, tmp_path
     code = main(
         [
             "adapt",
-            "--backbone",
-            "da3-small",
-            "--weights",
-            str(setup["weights"]),
+            *model_args(setup),
             "--camera",
             str(setup["camera"]),
-            "--frames",
-            str(setup["frames"]),
-            "--size",
-            str(SIZE),
+            *frame_args(setup),
             "--steps",
             "3",
             "--windows",
@@ -169,16 +161,10 @@ def test_supervised_adapt_from_a_depth_folder_and_the_pe_picture(setup, tmp_path
             main(
                 [
                     "adapt",
-                    "--backbone",
-                    "da3-small",
-                    "--weights",
-                    str(setup["weights"]),
+                    *model_args(setup),
                     "--camera",
                     str(setup["camera"]),
-                    "--frames",
-                    str(setup["frames"]),
-                    "--size",
-                    str(SIZE),
+                    *frame_args(setup),
                     "--steps",
                     "1",
                     "--depth",
@@ -204,14 +190,8 @@ def test_mask_reaches_adaptation_and_inference(setup, tmp_path, capsys):
     mask[int(0.7 * SIZE) :] = 0  # the vehicle's body
     cv2.imwrite(str(tmp_path / "mask.png"), mask)
     common = [
-        "--backbone",
-        "da3-small",
-        "--weights",
-        str(setup["weights"]),
-        "--frames",
-        str(setup["frames"]),
-        "--size",
-        str(SIZE),
+        *model_args(setup),
+        *frame_args(setup),
     ]
     adapter = tmp_path / "adapter.safetensors"
     code = main(
@@ -280,10 +260,7 @@ def test_eval_prints_a_table_for_each_method(setup, capsys):
     code = main(
         [
             "eval",
-            "--backbone",
-            "da3-small",
-            "--weights",
-            str(setup["weights"]),
+            *model_args(setup),
             "--dataset",
             str(setup["sequence"]),
             "--size",
@@ -309,18 +286,12 @@ def test_errors_are_reported_not_raised(setup, tmp_path, capsys):
     code = main(
         [
             "infer",
-            "--backbone",
-            "da3-small",
-            "--weights",
-            str(setup["weights"]),
+            *model_args(setup),
             "--adapter",
             str(tmp_path / "other.safetensors"),
             "--camera",
             str(setup["camera"]),
-            "--frames",
-            str(setup["frames"]),
-            "--size",
-            str(SIZE),
+            *frame_args(setup),
             "--out",
             str(tmp_path / "o"),
         ]
@@ -602,10 +573,7 @@ def test_adapt_infer_and_eval_feed_the_network_the_same_input(setup, tmp_path, m
         main(
             [
                 "infer",
-                "--backbone",
-                "da3-small",
-                "--weights",
-                str(setup["weights"]),
+                *model_args(setup),
                 "--camera",
                 str(camera_file),
                 "--frames",
