@@ -16,6 +16,22 @@ if not all(REAL_UPSTREAM.values()) and STUBS.is_dir():
 
 warnings.filterwarnings("ignore", message="register_new_resolver")
 
+try:  # property-based tests (tests/test_*_properties.py); hypothesis is in the [test] extra
+    from hypothesis import HealthCheck, settings
+
+    # Derandomised: CI and every machine draw the same examples, so a red run reproduces; no
+    # example database is written into the source tree; no per-example deadline (CPU speeds vary).
+    settings.register_profile(
+        "raytun3r",
+        derandomize=True,
+        database=None,
+        deadline=None,
+        suppress_health_check=[HealthCheck.too_slow],
+    )
+    settings.load_profile("raytun3r")
+except ImportError:  # pragma: no cover - the [test] extra installs it
+    pass
+
 
 @pytest.fixture(autouse=True)
 def _quiet_da3_logger():
