@@ -12,6 +12,7 @@ import hashlib
 import json
 import math
 import os
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -32,6 +33,20 @@ DEFAULT_N_R_ROPE = 20
 
 #: Corrections that can be switched on and off (docs/conventions.md section 5); tables are "pe" and "rope".
 COMPONENTS = ("pe", "rope", "patch_resample", "border_tokens", "grid")
+
+#: The largest adapter file :meth:`Adapter.load` reads (a default adapter is about 45 KB).
+MAX_FILE_BYTES = 16 * 2**20
+#: ``[low, high]`` of each size in an adapter's metadata and constructor.
+SIZE_LIMITS = {
+    "embed_dim": (1, 8192),
+    "patch_size": (1, 64),
+    "n_r": (2, 1024),
+    "n_theta": (1, 1024),
+    "n_r_rope": (0, 1024),
+}
+#: Largest magnitude a table entry may have: PE units (a backbone's PE entries are O(0.1)) and
+#: RoPE displacement in tokens (a 1024 px input is 73 tokens wide). A file over it is corrupt.
+TABLE_LIMITS = {"pe.radial": 100.0, "pe.angular": 100.0, "rope.radial": 100.0}
 
 _REQUIRED_METADATA = (
     "format",
@@ -66,7 +81,12 @@ def normalise_components(
         unknown = set(components) - set(COMPONENTS)
         if unknown:
             raise AdapterError(f"unknown components {sorted(unknown)}; known: {list(COMPONENTS)}")
-        return {name: bool(components.get(name, True)) for name in COMPONENTS}
+        not_bool = [name for name, value in components.items() if not isinstance(value, bool)]
+        if not_bool:
+            raise AdapterError(
+                f"component {not_bool[0]!r} must be True or False, got {components[not_bool[0]]!r}"
+            )
+        return {name: components.get(name, True) for name in COMPONENTS}
     names = set(components)
     unknown = names - set(COMPONENTS)
     if unknown:
@@ -98,15 +118,21 @@ class Adapter(nn.Module):
         training: Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__()
-        for name, value, low in (
-            ("embed_dim", embed_dim, 1),
-            ("patch_size", patch_size, 1),
-            ("n_r", n_r, 2),
-            ("n_theta", n_theta, 1),
-            ("n_r_rope", n_r_rope, 0),
-        ):
-            if not isinstance(value, int) or value < low:
-                raise AdapterError(f"{name} must be an integer >= {low}, got {value!r}")
+        given = {
+            "embed_dim": embed_dim,
+            "patch_size": patch_size,
+            "n_r": n_r,
+            "n_theta": n_theta,
+            "n_r_rope": n_r_rope,
+        }
+        for name, value in given.items():
+            low, high = SIZE_LIMITS[name]
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise AdapterError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
+        if not isinstance(backbone, str) or not backbone:
+            raise AdapterError(f"backbone must be a non-empty string, got {backbone!r}")
+        if training is not None and not isinstance(training, Mapping):
+            raise AdapterError(f"training must be a mapping, got {type(training).__name__}")
         self.backbone = backbone
         self.embed_dim = embed_dim
         self.patch_size = patch_size
@@ -205,47 +231,75 @@ class Adapter(nn.Module):
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Adapter:
-        """Read and validate an adapter file; raises :class:`AdapterError` naming the problem."""
-        from safetensors import SafetensorError, safe_open
+        """Read and validate an adapter file; raises :class:`AdapterError` naming the problem.
+
+        Strict and bounded for any bytes (docs/conventions.md section 4, "What a reader
+        accepts"): at most :data:`MAX_FILE_BYTES`, a header of unique keys, exactly the
+        metadata keys of the format, integers in ``str(int)`` syntax within
+        :data:`SIZE_LIMITS`, ``components`` as JSON booleans, finite tables within
+        :data:`TABLE_LIMITS`, and a camera that passes its own construction checks.
+        """
+        from raytun3r_plugin._strict import read_safetensors
 
         path = Path(path)
         if not path.is_file():
             raise AdapterError(f"{path}: no such adapter file")
-        try:
-            with safe_open(str(path), framework="pt") as handle:
-                metadata = dict(handle.metadata() or {})
-                tensors = {name: handle.get_tensor(name) for name in handle.keys()}  # noqa: SIM118
-        except (SafetensorError, OSError, ValueError, RuntimeError) as error:
-            raise AdapterError(f"{path}: not a readable safetensors file ({error})") from error
+        metadata, tensors = read_safetensors(path, MAX_FILE_BYTES, AdapterError)
         return cls._from_parts(path, metadata, tensors)
 
     @classmethod
     def _from_parts(
         cls, path: Path, metadata: dict[str, str], tensors: dict[str, torch.Tensor]
     ) -> Adapter:
+        from raytun3r_plugin._strict import quote, strict_int, strict_json
+
+        where = str(path)
+
         def fail(message: str) -> AdapterError:
-            return AdapterError(f"{path}: {message}")
+            return AdapterError(f"{where}: {message}")
 
         missing = [key for key in _REQUIRED_METADATA if key not in metadata]
         if missing:
             raise fail(f"missing metadata {missing}")
+        unknown = sorted(set(metadata) - set(_REQUIRED_METADATA))
+        if unknown:
+            raise fail(f"unknown metadata {[quote(key) for key in unknown[:8]]}")
         if metadata["format"] != FORMAT:
-            raise fail(f"metadata 'format' is {metadata['format']!r}, expected {FORMAT!r}")
+            raise fail(f"metadata 'format' is {quote(metadata['format'])}, expected {FORMAT!r}")
         if metadata["format_version"] != FORMAT_VERSION:
             raise fail(
-                f"format_version {metadata['format_version']!r} is not supported (this raytun3r reads version {FORMAT_VERSION})"
+                f"format_version {quote(metadata['format_version'])} is not supported (this raytun3r reads version {FORMAT_VERSION})"
             )
-        sizes = {}
-        for key in ("embed_dim", "patch_size", "n_r", "n_theta", "n_r_rope"):
-            try:
-                sizes[key] = int(metadata[key])
-            except ValueError:
-                raise fail(f"metadata {key!r} is not an integer: {metadata[key]!r}") from None
-        for key in ("components", "training"):
-            try:
-                json.loads(metadata[key])
-            except json.JSONDecodeError as error:
-                raise fail(f"metadata {key!r} is not valid JSON ({error})") from None
+        sizes = {
+            key: strict_int(metadata[key], f"metadata {key!r}", low, high, AdapterError, where)
+            for key, (low, high) in SIZE_LIMITS.items()
+        }
+        for key, limit in (("backbone", 200), ("raytun3r_version", 64)):
+            value = metadata[key]
+            if not 0 < len(value) <= limit or not value.isprintable():
+                raise fail(
+                    f"metadata {key!r} must be 1 to {limit} printable characters, got {quote(value)}"
+                )
+        fingerprint = metadata["pe_fingerprint"]
+        if fingerprint and re.fullmatch(r"[0-9a-f]{16}", fingerprint) is None:
+            raise fail(
+                f"metadata 'pe_fingerprint' must be 16 hex digits or empty, got {quote(fingerprint)}"
+            )
+        components = strict_json(
+            metadata["components"], "metadata 'components'", AdapterError, where
+        )
+        if not isinstance(components, dict) or set(components) != set(COMPONENTS):
+            raise fail(
+                f"metadata 'components' must be an object with exactly the keys {list(COMPONENTS)}, got {quote(components)}"
+            )
+        not_bool = [name for name, value in components.items() if not isinstance(value, bool)]
+        if not_bool:
+            raise fail(
+                f"metadata 'components': {not_bool[0]!r} must be true or false, got {quote(components[not_bool[0]])}"
+            )
+        training = strict_json(metadata["training"], "metadata 'training'", AdapterError, where)
+        if not isinstance(training, dict):
+            raise fail(f"metadata 'training' must be a JSON object, got {quote(training)}")
         expected = {
             "pe.radial": (sizes["n_r"], sizes["embed_dim"]),
             "pe.angular": (sizes["n_theta"], sizes["embed_dim"]),
@@ -253,7 +307,9 @@ class Adapter(nn.Module):
         if sizes["n_r_rope"]:
             expected["rope.radial"] = (sizes["n_r_rope"],)
         if set(tensors) != set(expected):
-            raise fail(f"tensors {sorted(tensors)} do not match the expected {sorted(expected)}")
+            raise fail(
+                f"tensors {[quote(name) for name in sorted(tensors)[:8]]} do not match the expected {sorted(expected)}"
+            )
         for name, shape in expected.items():
             tensor = tensors[name]
             if tensor.dtype != torch.float32:
@@ -264,21 +320,32 @@ class Adapter(nn.Module):
                 )
             if not bool(torch.isfinite(tensor).all()):
                 raise fail(f"tensor {name!r} has non-finite values")
+            limit = TABLE_LIMITS[name]
+            largest = float(tensor.abs().max()) if tensor.numel() else 0.0
+            if largest > limit:
+                raise fail(
+                    f"tensor {name!r} has a value of magnitude {largest:.3g}, over the limit {limit:g}"
+                )
         camera = None
         if metadata["camera"]:
             from raytun3r_plugin.cameras import from_dict
 
+            record = strict_json(metadata["camera"], "metadata 'camera'", AdapterError, where)
+            if not isinstance(record, dict):
+                raise fail(f"metadata 'camera' must be a JSON object, got {quote(record)}")
             try:
-                camera = from_dict(json.loads(metadata["camera"]))
-            except (CameraError, json.JSONDecodeError, KeyError, TypeError) as error:
-                raise fail(f"metadata 'camera' is not a valid camera ({error})") from None
+                camera = from_dict(record)
+            except CameraError as error:
+                raise fail(
+                    f"metadata 'camera' is not a valid camera ({quote(str(error))})"
+                ) from None
         try:
             adapter = cls(
                 backbone=metadata["backbone"],
                 camera=camera,
-                components=json.loads(metadata["components"]),
-                pe_fingerprint=metadata["pe_fingerprint"],
-                training=json.loads(metadata["training"]),
+                components=components,
+                pe_fingerprint=fingerprint,
+                training=training,
                 **sizes,
             )
         except AdapterError as error:

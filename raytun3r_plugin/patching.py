@@ -18,6 +18,7 @@ import contextlib
 import contextvars
 import copy
 import inspect
+import math
 import threading
 import weakref
 from collections.abc import Callable, Iterator, Mapping
@@ -433,6 +434,11 @@ def _same_camera(a, b) -> bool:
     if (a.width, a.height) != (b.width, b.height):
         a = a.resized(b.width, b.height)
     if a.model != b.model:
+        return False
+    # The lens's field-of-view cap changes which rays are valid, so it is part of the camera.
+    if (a.max_fov_deg is None) != (b.max_fov_deg is None) or (
+        a.max_fov_deg is not None and not math.isclose(a.max_fov_deg, b.max_fov_deg, rel_tol=1e-6)
+    ):
         return False
     return bool(
         torch.allclose(a.params.detach().double(), b.params.detach().double(), rtol=1e-6, atol=1e-6)

@@ -32,7 +32,7 @@ def _adapter(fill: float):
 
     from raytun3r_plugin.adapter import Adapter
 
-    adapter = Adapter("da3", embed_dim=1024, n_r=2048, n_theta=512)  # 10 MB of tables
+    adapter = Adapter("da3", embed_dim=2048, n_r=1024, n_theta=256)  # 10 MB of tables
     with torch.no_grad():
         for table in adapter.pe.values():
             table.fill_(fill)
