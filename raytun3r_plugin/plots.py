@@ -31,10 +31,13 @@ def line_chart(
     *,
     log_y: bool = True,
     size: tuple[int, int] = (720, 420),
+    x: Sequence[float] | None = None,
+    x_label: str = "step",
 ) -> np.ndarray:
     """Curves of ``series`` (name -> values per step) on one chart, legend at the top right.
 
-    Non-finite values (and non-positive ones with ``log_y``) are left out of each curve.
+    ``x`` gives the abscissa of every value (default: the step index 0, 1, ...). Non-finite
+    values (and non-positive ones with ``log_y``) are left out of each curve.
     """
     import cv2
 
@@ -46,10 +49,10 @@ def line_chart(
     curves = {}
     for name, values in series.items():
         y = np.asarray(values, dtype=np.float64)
-        x = np.arange(y.size, dtype=np.float64)
+        xs = np.arange(y.size, dtype=np.float64) if x is None else np.asarray(x, np.float64)
         keep = np.isfinite(y) & ((y > 0) if log_y else True)
         if keep.any():
-            curves[name] = (x[keep], np.log10(y[keep]) if log_y else y[keep])
+            curves[name] = (xs[keep], np.log10(y[keep]) if log_y else y[keep])
     cv2.rectangle(image, (left, top), (width - right, height - bottom), (0, 0, 0), 1)
     if not curves:
         cv2.putText(
@@ -69,8 +72,8 @@ def line_chart(
     if y_hi - y_lo < 1e-9:
         y_lo, y_hi = y_lo - 0.5, y_hi + 0.5
 
-    def to_px(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        u = left + (x / x_max) * (width - left - right)
+    def to_px(xs: np.ndarray, y: np.ndarray) -> np.ndarray:
+        u = left + (xs / x_max) * (width - left - right)
         v = height - bottom - (y - y_lo) / (y_hi - y_lo) * (height - top - bottom)
         return np.stack([u, v], axis=1).round().astype(np.int32)
 
@@ -86,7 +89,7 @@ def line_chart(
         cv2.line(image, (u, height - bottom), (u, height - bottom + 4), (0, 0, 0), 1)
         cv2.putText(
             image,
-            f"{step:.0f}",
+            f"{step:.0f}" if x is None else f"{step:.2g}",
             (u - 10, height - bottom + 18),
             font,
             0.38,
@@ -94,10 +97,10 @@ def line_chart(
             1,
             cv2.LINE_AA,
         )
-    cv2.putText(image, "step", (width // 2 - 14, height - 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    for index, (name, (x, y)) in enumerate(curves.items()):
+    cv2.putText(image, x_label, (width // 2 - 14, height - 4), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    for index, (name, (xs, y)) in enumerate(curves.items()):
         colour = _COLOURS[index % len(_COLOURS)]
-        cv2.polylines(image, [to_px(x, y).reshape(-1, 1, 2)], False, colour, 1, cv2.LINE_AA)
+        cv2.polylines(image, [to_px(xs, y).reshape(-1, 1, 2)], False, colour, 1, cv2.LINE_AA)
         v = top + 16 + 16 * index
         cv2.line(image, (width - right - 120, v - 4), (width - right - 100, v - 4), colour, 2)
         cv2.putText(image, name, (width - right - 94, v), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
