@@ -143,6 +143,10 @@ class BackboneSpec:
         quiet: ``quiet() -> context manager`` that holds back the upstream's routine per-forward
             output (not its warnings) while it is entered; used by the command line and the
             benchmark scripts (:func:`quiet_upstream`), never by the library.
+        transformer_blocks: dotted paths (from the root) of the ``ModuleList`` s that hold the
+            backbone's own transformer blocks, each with a fused ``attn.qkv`` linear layer; the
+            baselines that tune those blocks (:mod:`raytun3r_plugin.baselines`) read them.
+            Empty: the family offers no such baseline.
     """
 
     family: str
@@ -156,6 +160,7 @@ class BackboneSpec:
     rope_base_attribute: str | None = None
     check: Callable[[nn.Module], None] | None = None
     quiet: Callable[[], AbstractContextManager] | None = None
+    transformer_blocks: tuple[str, ...] = ()
 
 
 _SPECS: dict[str, BackboneSpec] = {}
