@@ -153,3 +153,42 @@ def test_peft_gives_identical_outputs(net, tmp_path):
         twin, {k.removeprefix("base_model.model."): v for k, v in state.items()}
     )
     assert torch.allclose(_depth(twin.eval(), images), ours, atol=1e-5)
+
+
+def test_adapt_fits_the_lora_factors_with_the_same_objective(net, tmp_path):
+    from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+    from tests.test_losses import room_sequence
+
+    camera = fisheye(84, 70, 190.0)
+    images, _, _ = room_sequence(camera, 5, step=0.35, yaw=0.06)
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+    config = AdaptConfig(
+        steps=3,
+        input_size=84,
+        n_windows=3,
+        cache_dir=str(tmp_path / "cache"),
+        matcher_options={"border_px": 2},
+        seed=0,
+        components=[],
+        lr=1e-2,
+    )
+    with inject_lora(net) as handle:
+        adapter = adapt(
+            net,
+            camera,
+            images,
+            config,
+            tune=handle.weights,
+            out_path=tmp_path / "lora.safetensors",
+            progress=False,
+        )
+        moved = max(float(b.detach().abs().max()) for b in handle.weights.lora_B)
+    assert moved > 0, "the LoRA factors were fitted"
+    assert adapter.is_zero(), "the adapter's tables stay at zero"
+    assert adapter.training_info["tuned"] == {
+        "module": "LoraWeights",
+        "parameters": handle.weights.num_parameters(),
+    }
+    assert adapter.training_info["verdict"]["status"] in ("ok", "diverged")
+    assert not (tmp_path / "lora.safetensors").exists(), "the caller saves the LoRA, not adapt"
+    assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())

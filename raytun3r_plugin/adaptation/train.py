@@ -186,6 +186,7 @@ def adapt(
     progress: bool = True,
     mask: Any = None,
     depth: Any = None,
+    tune: nn.Module | None = None,
 ) -> Adapter:
     """Fit an adapter for ``model`` on a fisheye segment, without ground truth (or with it).
 
@@ -223,6 +224,13 @@ def adapt(
         configuration. On Ctrl-C the adapter of the last completed step is saved (with a
         checkpoint) and returned, with ``training_info["interrupted"] = True``.
 
+    Baselines:
+        ``tune``: a module whose parameters are fitted *instead of* the adapter's tables (e.g.
+        :class:`raytun3r_plugin.baselines.LoraWeights`, already injected into ``model``): same
+        objective, windows, optimiser and steps; the tables stay at zero, so the PE regularisers
+        are constant; no collapse guard, no checkpoint and no adapter file (the caller saves
+        ``tune``); the loss log and curves are still written next to ``out_path``.
+
     Raises:
         AlreadyAppliedError: the model already carries a raytun3r patch.
         InputError: frames/camera mismatch, a mask of the wrong shape or with nothing inside
@@ -243,7 +251,11 @@ def adapt(
     problem = prepare_problem(camera, frames, config, adapter.patch_size, mask=mask, depth=depth)
     problem.pe_scale = regulariser_scale(model, config)
     adapter.camera = problem.layout.native_camera
-    optimizer = torch.optim.Adam(list(adapter.parameters()), lr=config.lr)
+    if tune is not None:
+        for table in adapter.parameters():
+            table.requires_grad_(False)
+    trainable = list(adapter.parameters()) if tune is None else list(tune.parameters())
+    optimizer = torch.optim.Adam(trainable, lr=config.lr)
 
     paths = artifact_paths(out_path) if out_path is not None else None
     identity = {
@@ -253,7 +265,7 @@ def adapt(
         "pe_fingerprint": adapter.pe_fingerprint,
     }
     start = 0
-    if paths is not None and resume and paths["checkpoint"].is_file():
+    if paths is not None and resume and tune is None and paths["checkpoint"].is_file():
         start = _restore_checkpoint(paths["checkpoint"], adapter, optimizer, identity)
     if paths is not None:
         paths["log"].parent.mkdir(parents=True, exist_ok=True)
@@ -269,7 +281,9 @@ def adapt(
     history: list[dict[str, Any]] = []
     # The thresholds are read here, at call time, so patching this module's constants takes effect.
     guard = (
-        _CollapseGuard(problem, GUARD_MIN_CORRELATION, GUARD_SPREAD_RANGE) if config.guard else None
+        _CollapseGuard(problem, GUARD_MIN_CORRELATION, GUARD_SPREAD_RANGE)
+        if config.guard and tune is None
+        else None
     )
     completed, interrupted, began = start, False, time.perf_counter()
     bar = _Progress(config.steps, start, progress)
@@ -304,6 +318,7 @@ def adapt(
                         break
                     if (
                         paths is not None
+                        and tune is None
                         and config.checkpoint_every
                         and completed % config.checkpoint_every == 0
                         and completed < config.steps
@@ -326,11 +341,25 @@ def adapt(
     if guard is not None:
         adapter.training_info["guard"] = guard.report()
     adapter.training_info["verdict"] = fit_verdict(adapter, history, problem, guard)
+    if tune is not None:
+        tuned = {
+            "module": type(tune).__name__,
+            "parameters": sum(p.numel() for p in tune.parameters()),
+        }
+        adapter.training_info["tuned"] = tuned
+        verdict = adapter.training_info["verdict"]
+        if verdict["status"] == "did nothing":  # the tables stay at zero by design here
+            verdict["status"] = "ok"
+            verdict["summary"] = (
+                f"ok: tuned {tuned['module']} ({tuned['parameters']:,} parameters), loss "
+                f"{verdict['first_pass_loss']:.4g} -> {verdict['last_pass_loss']:.4g}"
+            )
     if progress:
         print(f"adapt: {adapter.training_info['verdict']['summary']}", file=sys.stderr, flush=True)
     if paths is not None:
-        _save_checkpoint(paths["checkpoint"], adapter, optimizer, completed, metadata)
-        adapter.save(paths["adapter"])
+        if tune is None:
+            _save_checkpoint(paths["checkpoint"], adapter, optimizer, completed, metadata)
+            adapter.save(paths["adapter"])
         write_loss_artifacts(
             paths, read_loss_log(paths["log"]) if paths["log"].is_file() else history
         )
