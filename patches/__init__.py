@@ -8,4 +8,5 @@ from raytun3r_plugin.patches import (  # noqa: E402
     da3,  # noqa: F401
     pi3,  # noqa: F401
     vggt,  # noqa: F401
+    vggt_omega,  # noqa: F401
 )

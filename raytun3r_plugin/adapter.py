@@ -65,8 +65,10 @@ _REQUIRED_METADATA = (
 )
 
 
-def pe_fingerprint(pos_embed: torch.Tensor) -> str:
-    """Short hash of a backbone's absolute PE table, to tell weight sets apart."""
+def pe_fingerprint(pos_embed: torch.Tensor | None) -> str:
+    """Short hash of a backbone's absolute PE table, to tell weight sets apart ("" without one)."""
+    if pos_embed is None:
+        return ""
     data = pos_embed.detach().to("cpu", torch.float32).contiguous().numpy().tobytes()
     return hashlib.sha256(data).hexdigest()[:16]
 

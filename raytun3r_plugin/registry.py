@@ -71,13 +71,18 @@ class PatchTarget:
 
 @dataclass(frozen=True)
 class BackboneInfo:
-    """What the adapter and the checks need to know about one model instance."""
+    """What the adapter and the checks need to know about one model instance.
+
+    ``pos_embed`` is the absolute PE table, or None for a backbone that has none (RoPE only,
+    e.g. VGGT-Omega): the ``pe`` component then has nothing to act on and the adapter's
+    ``pe_fingerprint`` is empty.
+    """
 
     name: str
     embed_dim: int
     patch_size: int
     has_rope: bool
-    pos_embed: torch.Tensor
+    pos_embed: torch.Tensor | None
     has_grid: bool = True
 
 

@@ -23,6 +23,8 @@ from torch import nn
 
 #: Input size (H, W) of the VGGT / Pi3 cases: 3 x 4 patches of 14 px.
 H, W = 42, 56
+#: Input size (H, W) of the VGGT-Omega case: 3 x 4 patches of 16 px.
+OMEGA_SIZE = (48, 64)
 
 
 @dataclass(frozen=True)
@@ -61,7 +63,7 @@ def _build_da3(seed: int) -> nn.Module:
     return build_tiny_network(seed=seed)
 
 
-_PACKAGE = {"vggt": "vggt", "pi3": "pi3", "pi3x": "pi3"}
+_PACKAGE = {"vggt": "vggt", "pi3": "pi3", "pi3x": "pi3", "vggt_omega": "vggt_omega"}
 
 
 def is_stub(kind: str) -> bool:
@@ -79,9 +81,12 @@ def tiny_real(kind: str, seed: int = 0) -> nn.Module:
     """A small network made of the real upstream classes, wired as upstream's ``__init__`` does."""
     state = _seeded(seed)
     try:
-        return {"vggt": _tiny_real_vggt, "pi3": _tiny_real_pi3, "pi3x": _tiny_real_pi3x}[
-            kind
-        ]().eval()
+        return {
+            "vggt": _tiny_real_vggt,
+            "pi3": _tiny_real_pi3,
+            "pi3x": _tiny_real_pi3x,
+            "vggt_omega": _tiny_real_vggt_omega,
+        }[kind]().eval()
     finally:
         torch.random.set_rng_state(state)
 
@@ -109,6 +114,45 @@ def _tiny_real_vggt():
     model.point_head = DPTHead(output_dim=4, activation="inv_log", conf_activation="expp1", **dpt)
     model.depth_head = DPTHead(output_dim=2, activation="exp", conf_activation="expp1", **dpt)
     model.track_head = None
+    return model
+
+
+def _tiny_real_vggt_omega():
+    """Upstream ``VGGTOmega.__init__`` with a small aggregator and heads (its DINOv3 ViT keeps
+    upstream's fixed 24 blocks / 16 heads, at width 64)."""
+    from vggt_omega.models.aggregator import Aggregator
+    from vggt_omega.models.heads import CameraHead, DenseHead
+    from vggt_omega.models.layers import LayerScale
+    from vggt_omega.models.layers.utils import named_apply
+    from vggt_omega.models.layers.vision_transformer import init_weights_vit
+    from vggt_omega.models.vggt_omega import VGGTOmega
+
+    model = VGGTOmega.__new__(VGGTOmega)
+    nn.Module.__init__(model)
+    model.aggregator = Aggregator(
+        patch_size=16,
+        embed_dim=64,
+        depth=2,
+        num_heads=4,
+        num_register_tokens=2,
+        register_attention_block_indices=[1],
+        cached_layer_indices=(0, 1),
+    )
+    model.camera_head = CameraHead(dim_in=128)
+    model.dense_head = DenseHead(
+        dim_in=128,
+        patch_size=16,
+        features=16,
+        out_channels=[8, 8, 16, 16],
+        intermediate_layer_idx=[0, 1, 0, 1],
+    )
+    model.text_alignment_head = None
+    # Upstream leaves the aggregator's and heads' key-bias masks at NaN until a checkpoint is
+    # loaded; the ViT initialiser writes them (and small random weights) everywhere.
+    named_apply(init_weights_vit, model)
+    for module in model.modules():  # LayerScale starts at 1e-5: positions would hardly matter
+        if isinstance(module, LayerScale):
+            nn.init.constant_(module.gamma, 1.0)
     return model
 
 
@@ -229,7 +273,7 @@ def _tiny_real_pi3x():
 
 
 def build(kind: str, seed: int = 0) -> nn.Module:
-    """A fresh VGGT / Pi3 / Pi3X: the stub's documented tiny recipe, or a tiny real network."""
+    """A fresh VGGT / Pi3 / Pi3X / VGGT-Omega: the stub's documented tiny recipe, or a tiny real network."""
     if not is_stub(kind):
         return tiny_real(kind, seed)
     stub_config = importlib.import_module(f"{_PACKAGE[kind]}._stub_config")
@@ -238,6 +282,10 @@ def build(kind: str, seed: int = 0) -> nn.Module:
             from vggt.models.vggt import VGGT
 
             return VGGT(img_size=70, patch_size=14, embed_dim=64, enable_track=False).eval()
+        if kind == "vggt_omega":
+            from vggt_omega.models.vggt_omega import VGGTOmega
+
+            return VGGTOmega(embed_dim=64).eval()
         if kind == "pi3":
             from pi3.models.pi3 import Pi3
 
@@ -258,6 +306,13 @@ CASES: tuple[BackboneCase, ...] = (
         "pi3", "pi3", partial(build, "pi3"), (H, W), inert=frozenset({"grid"})
     ),  # LinearPts3d heads: no grid
     BackboneCase("pi3x", "pi3", partial(build, "pi3x"), (H, W)),
+    BackboneCase(
+        "vggt_omega",
+        "vggt_omega",
+        partial(build, "vggt_omega"),
+        OMEGA_SIZE,
+        inert=frozenset({"pe"}),  # RoPE only: no absolute PE table
+    ),
 )
 CASE = {case.family: case for case in CASES}
 

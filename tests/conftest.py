@@ -10,7 +10,9 @@ from pathlib import Path
 import pytest
 
 STUBS = Path(__file__).parent / "stubs"
-REAL_UPSTREAM = {name: importlib.util.find_spec(name) is not None for name in ("vggt", "pi3")}
+REAL_UPSTREAM = {
+    name: importlib.util.find_spec(name) is not None for name in ("vggt", "pi3", "vggt_omega")
+}
 if not all(REAL_UPSTREAM.values()) and STUBS.is_dir():
     sys.path.append(str(STUBS))
 

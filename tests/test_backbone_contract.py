@@ -297,6 +297,9 @@ def test_gradients_reach_only_adapter_tables(case, net, images):
         "rope.radial",
     }
     for name, parameter in adapter.named_parameters():
+        if name.split(".")[0] in case.inert:  # e.g. no PE table (VGGT-Omega): nothing to reach
+            assert parameter.grad is None or not bool(parameter.grad.any()), name
+            continue
         assert parameter.grad is not None and float(parameter.grad.abs().sum()) > 0, name
     assert all(p.grad is None for p in net.parameters())
 

@@ -1,0 +1,3 @@
+from .vggt_omega import VGGTOmega
+
+__all__ = ["VGGTOmega"]
