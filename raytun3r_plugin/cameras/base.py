@@ -24,7 +24,20 @@ from torch import Tensor
 
 from raytun3r_plugin.errors import CameraError, CameraModelError
 
-__all__ = ["CAMERA_MODELS", "Camera", "from_dict", "param_error", "pixel_grid"]
+__all__ = [
+    "CAMERA_MODELS",
+    "DISTORTION_BOUND",
+    "FOCAL_RANGE_PX",
+    "MAX_IMAGE_SIDE",
+    "PRINCIPAL_MARGIN",
+    "ROUND_TRIP_TOL_PX",
+    "Camera",
+    "check_range",
+    "from_dict",
+    "param_error",
+    "pixel_grid",
+    "validate",
+]
 
 #: Registry of concrete models by their ``model`` name ("pinhole", "kb4", ...).
 CAMERA_MODELS: dict[str, type[Camera]] = {}
@@ -32,12 +45,84 @@ CAMERA_MODELS: dict[str, type[Camera]] = {}
 # The mandatory leading parameters of every model, in this order.
 _INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
 
+# ---------------------------------------------------------------------------- bounds
+# What a camera accepts (docs/cameras.md, "What a camera accepts"). Every bound is far outside
+# real calibrations and inside the range where the maths stays finite and invertible.
+
+#: Largest image side in pixels (width and height each in 1..MAX_IMAGE_SIDE).
+MAX_IMAGE_SIDE = 16384
+
+#: Focal lengths fx, fy must lie in this closed range, pixels.
+FOCAL_RANGE_PX = (1e-3, 1e6)
+
+#: The principal point may lie up to this many image sides outside the image:
+#: cx in [-m W, (1 + m) W], cy in [-m H, (1 + m) H] (crops may push it outside the image).
+PRINCIPAL_MARGIN = 2.0
+
+#: Bound on the magnitude of every polynomial distortion coefficient (k, p, s terms).
+DISTORTION_BOUND = 1e3
+
+#: Largest accepted project(unproject(uv)) - uv error, pixels, over the validation grid.
+ROUND_TRIP_TOL_PX = 0.05
+
+# The validation grid: ROUND_TRIP_GRID x ROUND_TRIP_GRID pixels spanning the image (border
+# included) plus _BORDER_SAMPLES pixels along each edge.
+ROUND_TRIP_GRID = 17
+_BORDER_SAMPLES = 33
+
+# Largest |crop offset| accepted by cropped(), pixels (keeps the offsets exact in float64 and
+# far from overflow; the principal-point margin decides what is really accepted).
+_MAX_CROP_OFFSET = 8 * MAX_IMAGE_SIDE
+
+# Round-trip results by camera key (worst error, worst pixel); see Camera._validate_round_trip.
+_ROUND_TRIP_CACHE: dict[tuple, tuple[float, tuple[float, float] | None]] = {}
+_ROUND_TRIP_CACHE_SIZE = 4096
+
 
 def param_error(model: str, name: str, problem: str) -> CameraError:
     """A :class:`CameraError` about parameter ``name``; ``.param`` lets readers map it to a file field."""
     err = CameraError(f"{model}: parameter '{name}' {problem}")
     err.param = name  # type: ignore[attr-defined]
     return err
+
+
+def check_range(
+    model: str,
+    name: str,
+    value: float,
+    lo: float,
+    hi: float,
+    *,
+    lo_open: bool = False,
+    hi_open: bool = False,
+    unit: str = "",
+) -> None:
+    """Raise :func:`param_error` unless ``lo <= value <= hi`` (``<`` on an open end)."""
+    above = value > lo if lo_open else value >= lo
+    below = value < hi if hi_open else value <= hi
+    if not (above and below):
+        left = "(" if lo_open else "["
+        right = ")" if hi_open else "]"
+        raise param_error(
+            model, name, f"must be in {left}{lo:g}, {hi:g}{right}{unit}, got {value!r}"
+        )
+
+
+def _to_float(model: str, name: str, v: Any) -> float:
+    # float() of a huge Python int raises OverflowError; that is a bad parameter, not a crash.
+    try:
+        return float(v)
+    except (OverflowError, TypeError, ValueError):
+        raise param_error(model, name, f"must be a finite number, got {_short(v)}") from None
+
+
+def _short(v: Any) -> str:
+    text = (
+        repr(v)
+        if not isinstance(v, int) or abs(v) < 10**30
+        else f"an integer of {len(str(v))} digits"
+    )
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def pixel_grid(
@@ -72,12 +157,16 @@ def _as_points(x: Any, what: str, last: int) -> Tensor:
 
 def _check_size(name: str, value: Any) -> int:
     # bool is an int subclass; a float such as 512.0 is accepted only if integral.
+    bad = CameraError(
+        f"camera {name} must be an integer in 1..{MAX_IMAGE_SIDE} pixels, got {_short(value)}"
+    )
     if isinstance(value, bool):
-        raise CameraError(f"camera {name} must be a positive integer, got {value!r}")
+        raise bad
     if isinstance(value, float) and value.is_integer():
         value = int(value)
-    if not isinstance(value, numbers.Integral) or value <= 0:
-        raise CameraError(f"camera {name} must be a positive integer, got {value!r}")
+    # Python ints compare exactly at any size (10**400 included): no float conversion here.
+    if not isinstance(value, numbers.Integral) or not 1 <= value <= MAX_IMAGE_SIDE:
+        raise bad
     return int(value)
 
 
@@ -94,12 +183,18 @@ class Camera:
             then invalid in ``project`` and ``unproject``. ``None`` = the model's own domain.
 
     Raises:
-        CameraError: missing/extra parameters, non-finite values, non-positive focal lengths,
-            parameters outside the model's domain, bad size.
+        CameraError: for any bad input and only that error type: missing/extra parameters,
+            wrong types, non-finite values, parameters outside the bounds of docs/cameras.md
+            ("What a camera accepts": focal lengths, principal-point margin, distortion
+            magnitude, the model's domain), a size outside 1..``MAX_IMAGE_SIDE``, or a camera
+            whose ``project(unproject(uv))`` misses ``uv`` by more than ``ROUND_TRIP_TOL_PX``
+            on the validation grid (checked in float64 on the detached parameters).
     """
 
     model: ClassVar[str] = ""
     param_names: ClassVar[tuple[str, ...]] = ()
+    #: Polynomial distortion coefficients, each bounded by ``DISTORTION_BOUND`` in magnitude.
+    distortion_names: ClassVar[tuple[str, ...]] = ()
 
     # Instances are frozen after __init__ (see __setattr__).
     width: int
@@ -135,6 +230,19 @@ class Camera:
             raise CameraModelError(
                 "Camera is abstract: use a model such as Pinhole or KannalaBrandt4"
             )
+        try:
+            self._build(width, height, params, max_fov_deg)
+        except CameraError:
+            raise
+        except (TypeError, ValueError, ArithmeticError, RecursionError, RuntimeError) as e:
+            # The checks above are meant to catch every bad input; this net turns anything
+            # they miss (an exotic tensor type, a NumPy quirk) into the library's error type.
+            raise CameraError(
+                f"{cls.__name__}: invalid camera input ({type(e).__name__}: {str(e)[:200]})"
+            ) from None
+
+    def _build(self, width: Any, height: Any, params: Any, max_fov_deg: Any) -> None:
+        cls = type(self)
         width = _check_size("width", width)
         height = _check_size("height", height)
         p = self._params_tensor(params)
@@ -143,16 +251,22 @@ class Camera:
         for name, v in named.items():
             if not math.isfinite(v):
                 raise param_error(cls.__name__, name, f"must be finite, got {v!r}")
+        lo_f, hi_f = FOCAL_RANGE_PX
         for name in ("fx", "fy"):
-            if named[name] <= 0.0:
-                raise param_error(cls.__name__, name, f"must be positive, got {named[name]!r}")
+            check_range(cls.__name__, name, named[name], lo_f, hi_f, unit=" px")
+        m = PRINCIPAL_MARGIN
+        check_range(cls.__name__, "cx", named["cx"], -m * width, (1 + m) * width, unit=" px")
+        check_range(cls.__name__, "cy", named["cy"], -m * height, (1 + m) * height, unit=" px")
+        for name in cls.distortion_names:
+            b = DISTORTION_BOUND
+            check_range(cls.__name__, name, named[name], -b, b)
         self._check_domain(named)
         if max_fov_deg is not None:
             if isinstance(max_fov_deg, bool) or not isinstance(max_fov_deg, numbers.Real):
                 raise CameraError(
-                    f"{cls.__name__}: max_fov_deg must be a number, got {max_fov_deg!r}"
+                    f"{cls.__name__}: max_fov_deg must be a number, got {_short(max_fov_deg)}"
                 )
-            max_fov_deg = float(max_fov_deg)
+            max_fov_deg = _to_float(cls.__name__, "max_fov_deg", max_fov_deg)
             if not (math.isfinite(max_fov_deg) and 0.0 < max_fov_deg <= 360.0):
                 raise CameraError(
                     f"{cls.__name__}: max_fov_deg must be in (0, 360], got {max_fov_deg!r}"
@@ -171,6 +285,7 @@ class Camera:
         set_(self, "_max_angle", min(natural, cap))
         set_(self, "_cap_cos", cap_cos)
         set_(self, "_cache", {})
+        self._validate_round_trip(use_cache=True)
 
     @classmethod
     def _params_tensor(cls, params: Any) -> Tensor:
@@ -192,11 +307,13 @@ class Camera:
                 if isinstance(v, Tensor):
                     if v.numel() != 1:
                         raise param_error(cls.__name__, n, "must be a scalar")
+                    if v.dtype == torch.bool or v.is_complex():
+                        raise param_error(cls.__name__, n, f"must be a real number, got {v.dtype}")
                     vals.append(v.reshape(()).to(torch.float64))
                 elif isinstance(v, bool) or not isinstance(v, numbers.Real):
-                    raise param_error(cls.__name__, n, f"must be a number, got {v!r}")
+                    raise param_error(cls.__name__, n, f"must be a number, got {_short(v)}")
                 else:
-                    vals.append(torch.tensor(float(v), dtype=torch.float64))
+                    vals.append(torch.tensor(_to_float(cls.__name__, n, v), dtype=torch.float64))
             if any(v.requires_grad for v in vals):
                 return torch.stack(vals)
             return torch.stack(vals).detach()
@@ -217,11 +334,13 @@ class Camera:
                 raise CameraError(
                     f"{cls.__name__}: params must be a sequence, got {params!r}"
                 ) from None
+            floats = []
             for i, v in enumerate(seq):
+                name = names[i] if i < len(names) else f"#{i}"
                 if isinstance(v, bool) or not isinstance(v, numbers.Real):
-                    name = names[i] if i < len(names) else f"#{i}"
-                    raise param_error(cls.__name__, name, f"must be a number, got {v!r}")
-            p = torch.tensor([float(v) for v in seq], dtype=torch.float64)
+                    raise param_error(cls.__name__, name, f"must be a number, got {_short(v)}")
+                floats.append(_to_float(cls.__name__, name, v))
+            p = torch.tensor(floats, dtype=torch.float64)
         if p.ndim != 1 or p.shape[0] != len(names):
             raise CameraError(
                 f"{cls.__name__}: expected {len(names)} parameters {list(names)}, got shape "
@@ -245,6 +364,85 @@ class Camera:
     def _set(self, name: str, value: Any) -> None:
         """Store a derived constant (for model hooks running inside ``__init__``)."""
         object.__setattr__(self, name, value)
+
+    # ------------------------------------------------------------------ validation
+    def _check_grid(self) -> Tensor:
+        """(N, 2) float64 pixels of the validation grid: a 17 x 17 grid spanning the image,
+        corners and edges included, plus 33 samples along each of the four edges."""
+        w1, h1 = float(self.width - 1), float(self.height - 1)
+        n = ROUND_TRIP_GRID
+        us = torch.linspace(0.0, w1, n, dtype=torch.float64)
+        vs = torch.linspace(0.0, h1, n, dtype=torch.float64)
+        inner = torch.stack(torch.meshgrid(us, vs, indexing="xy"), dim=-1).reshape(-1, 2)
+        t = torch.linspace(0.0, 1.0, _BORDER_SAMPLES, dtype=torch.float64)
+        zero, one = torch.zeros_like(t), torch.ones_like(t)
+        edges = [
+            torch.stack([t * w1, zero], -1),
+            torch.stack([t * w1, one * h1], -1),
+            torch.stack([zero, t * h1], -1),
+            torch.stack([one * w1, t * h1], -1),
+        ]
+        return torch.cat([inner, *edges])
+
+    def round_trip_error(self) -> tuple[float, tuple[float, float] | None, int]:
+        """The worst ``|project(unproject(uv)) - uv|`` over the validation grid, in float64
+        on the detached parameters (so a differentiable camera is checked on its values).
+
+        Returns:
+            (error in pixels, the worst pixel (u, v) or None, number of grid pixels with a
+            valid ray). The error is ``inf`` where a valid pixel's ray or its projection is
+            not finite, and also where any grid pixel's ray is not finite (unproject promises
+            finite rays everywhere). A camera with no valid grid pixel reports 0 valid pixels.
+        """
+        uv = self._check_grid()
+        p = self.params.detach().to(device="cpu", dtype=torch.float64)
+        with torch.no_grad():
+            rays, valid = self._unproject(uv, p)
+            if self._cap_cos is not None:
+                valid = valid & (rays[..., 2] >= self._cap_cos)
+            if not bool(torch.isfinite(rays).all()):
+                bad = (~torch.isfinite(rays).all(-1)).nonzero()[0, 0]
+                return math.inf, (float(uv[bad, 0]), float(uv[bad, 1])), int(valid.sum())
+            if not bool(valid.any()):
+                return 0.0, None, 0
+            back, _ = self._project(rays[valid], p)
+            err = torch.linalg.vector_norm(back - uv[valid], dim=-1)
+            err = torch.where(torch.isfinite(err), err, torch.full_like(err, math.inf))
+            i = int(err.argmax())
+            worst = uv[valid][i]
+            return float(err[i]), (float(worst[0]), float(worst[1])), int(valid.sum())
+
+    def _validate_round_trip(self, use_cache: bool) -> float:
+        # The result depends only on the camera key, so resized / scaled copies built again
+        # and again (one per forward) pay for it once.
+        key = (type(self).__name__, *self.key())
+        hit = _ROUND_TRIP_CACHE.get(key) if use_cache else None
+        if hit is None:
+            err, worst, n_valid = self.round_trip_error()
+            if n_valid == 0:
+                hit = (-1.0, None)
+            else:
+                hit = (err, worst)
+            if len(_ROUND_TRIP_CACHE) >= _ROUND_TRIP_CACHE_SIZE:
+                _ROUND_TRIP_CACHE.pop(next(iter(_ROUND_TRIP_CACHE)))
+            _ROUND_TRIP_CACHE[key] = hit
+        err, worst = hit
+        name = type(self).__name__
+        if err < 0.0:
+            raise CameraError(
+                f"{name} ({self.model}): no pixel of the {self.width}x{self.height} image has a "
+                f"valid ray (the lens circle misses the image, or the distortion cannot be inverted "
+                f"anywhere in it)"
+            )
+        if not err <= ROUND_TRIP_TOL_PX:
+            assert worst is not None
+            raise CameraError(
+                f"{name} ({self.model}): project(unproject(uv)) misses pixel "
+                f"({worst[0]:.6g}, {worst[1]:.6g}) by {err:.3g} px (tolerance "
+                f"{ROUND_TRIP_TOL_PX} px): the parameters are outside the range where the model "
+                f"can be inverted"
+            )
+        return err
 
     # ------------------------------------------------------------------ immutability
     def __setattr__(self, name: str, value: Any) -> None:
@@ -417,12 +615,21 @@ class Camera:
         Distortion acts on normalised coordinates in every model, so it is unchanged.
         """
         for name, s in (("sx", sx), ("sy", sy)):
-            if (
-                isinstance(s, bool)
-                or not isinstance(s, numbers.Real)
-                or not (math.isfinite(s) and s > 0)
-            ):
-                raise CameraError(f"scale {name} must be a positive finite number, got {s!r}")
+            if isinstance(s, bool) or not isinstance(s, numbers.Real):
+                raise CameraError(f"scale {name} must be a positive finite number, got {_short(s)}")
+            try:
+                f = float(s)
+            except OverflowError:
+                f = math.inf
+            if not (math.isfinite(f) and f > 0):
+                raise CameraError(f"scale {name} must be a positive finite number, got {_short(s)}")
+        # A factor that leaves more than MAX_IMAGE_SIDE pixels is refused by the constructor;
+        # refusing it here keeps round() away from huge floats.
+        for name, side, s in (("width", self.width, sx), ("height", self.height, sy)):
+            if side * float(s) > 2 * MAX_IMAGE_SIDE:
+                raise CameraError(
+                    f"scaled {name} {side} x {float(s):g} exceeds {MAX_IMAGE_SIDE} pixels"
+                )
         w = max(1, round(self.width * sx))
         h = max(1, round(self.height * sy))
         return self._replace(
@@ -446,7 +653,11 @@ class Camera:
         """
         for name, v in (("x0", x0), ("y0", y0)):
             if isinstance(v, bool) or not isinstance(v, numbers.Integral):
-                raise CameraError(f"crop {name} must be an integer, got {v!r}")
+                raise CameraError(f"crop {name} must be an integer, got {_short(v)}")
+            if abs(v) > _MAX_CROP_OFFSET:
+                raise CameraError(
+                    f"crop {name} must be within +-{_MAX_CROP_OFFSET} pixels, got {_short(v)}"
+                )
         w = _check_size("crop width", w)
         h = _check_size("crop height", h)
         return self._replace(w, h, self.fx, self.fy, self.cx - int(x0), self.cy - int(y0))
@@ -502,6 +713,26 @@ class Camera:
         vals = ", ".join(f"{n}={v:.6g}" for n, v in self._named.items())
         cap = "" if self._max_fov_deg is None else f", max_fov_deg={self._max_fov_deg:g}"
         return f"{type(self).__name__}({self.width}x{self.height}, {vals}{cap})"
+
+
+def validate(camera: Camera) -> float:
+    """Re-run every construction check on ``camera`` (bounds, domain, round trip), uncached.
+
+    Construction already does this; the function is for scripts that want the number.
+
+    Returns:
+        The worst round-trip error ``|project(unproject(uv)) - uv|`` over the validation grid,
+        pixels (at most ``ROUND_TRIP_TOL_PX``).
+
+    Raises:
+        CameraError: ``camera`` is not a :class:`Camera`, or fails a check.
+    """
+    if not isinstance(camera, Camera):
+        raise CameraError(f"validate: expected a Camera, got {type(camera).__name__}")
+    rebuilt = type(camera)(
+        camera.width, camera.height, camera.params.detach(), max_fov_deg=camera.max_fov_deg
+    )
+    return rebuilt._validate_round_trip(use_cache=False)
 
 
 def _rebuild(

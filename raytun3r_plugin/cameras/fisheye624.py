@@ -108,6 +108,7 @@ class Fisheye624(Camera):
         "s2",
         "s3",
     )
+    distortion_names = param_names[4:]
     newton_steps = 2
 
     def _natural_max_angle(self, p: dict[str, float]) -> float:

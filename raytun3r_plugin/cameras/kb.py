@@ -90,6 +90,7 @@ class KannalaBrandt4(Camera):
     _table: RadialTable
     _td_max: float
     param_names = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")
+    distortion_names = ("k1", "k2", "k3", "k4")
     newton_steps = 2
 
     def _natural_max_angle(self, p: dict[str, float]) -> float:
@@ -149,6 +150,7 @@ class ThinPrismFisheye(Camera):
     _fold: float
     _table: RadialTable
     param_names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "sx1", "sy1")
+    distortion_names = param_names[4:]
     newton_steps = 2
 
     def _natural_max_angle(self, p: dict[str, float]) -> float:

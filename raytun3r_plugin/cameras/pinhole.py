@@ -88,6 +88,7 @@ class OpenCVRadTan(Camera):
     # Derived in _natural_max_angle (via _set); declared for the type checker.
     _table: RadialTable
     param_names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
+    distortion_names = ("k1", "k2", "p1", "p2")
     newton_steps = 2
 
     def _natural_max_angle(self, p: dict[str, float]) -> float:

@@ -24,7 +24,13 @@ from raytun3r_plugin.cameras._math import (
     undistort,
     unit,
 )
-from raytun3r_plugin.cameras.base import Camera, param_error
+from raytun3r_plugin.cameras.base import Camera, check_range, param_error
+
+#: Upper bound of EUCM's beta (real lenses: about 0.5 to 2).
+EUCM_BETA_MAX = 100.0
+
+#: Upper bound of MEI's xi (real lenses: about 0.5 to 3; KITTI-360 image_02 has 2.2).
+MEI_XI_MAX = 100.0
 
 __all__ = ["EUCM", "MEI", "UCM", "DoubleSphere"]
 
@@ -49,6 +55,14 @@ def _normalised(uv: Tensor, p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     mx = (uv[..., 0] - p[2]) / p[0]
     my = (uv[..., 1] - p[3]) / p[1]
     return mx, my, mx * mx + my * my
+
+
+def _inside(mx: Tensor, my: Tensor, r2: Tensor, valid: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Replace pixels outside the unprojection domain by the principal point (0, 0, 0), so
+    the closed forms stay finite there (their rays are marked invalid anyway): without it
+    alpha = 1 gives sqrt(negative) / 0 beyond the image circle."""
+    zero = torch.zeros_like(r2)
+    return torch.where(valid, mx, zero), torch.where(valid, my, zero), torch.where(valid, r2, zero)
 
 
 def _pixels(p: Tensor, x: Tensor, y: Tensor, den: Tensor, valid: Tensor) -> Tensor:
@@ -98,12 +112,13 @@ class UCM(Camera):
 
     def _unproject(self, uv: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
         mx, my, r2 = _normalised(uv, p)
+        valid = r2.detach() < self._r2_max
+        mx, my, r2 = _inside(mx, my, r2, valid)
         a = p[4]
         b = 1.0 - a
         c = (safe_sqrt(1.0 + (1.0 - 2.0 * a) * r2) - a * b * r2) / (1.0 + b * b * r2)
         k = a + b * c
         rays = unit(torch.stack([mx * k, my * k, c], dim=-1))
-        valid = r2.detach() < self._r2_max
         return rays, valid
 
 
@@ -115,7 +130,7 @@ class EUCM(Camera):
     ``max_angle = acos(-sqrt(w^2 beta / (1 - w^2 + w^2 beta)))``.
     Unproject: ``r2 = |m|^2`` (alpha > 0.5 needs ``r2 < 1 / ((2 alpha - 1) beta)``),
     ``m_z = (1 - beta alpha^2 r2) / (alpha sqrt(1 - (2 alpha - 1) beta r2) + 1 - alpha)``,
-    ray = normalise(m_x, m_y, m_z). Domain: alpha in [0, 1], beta > 0.
+    ray = normalise(m_x, m_y, m_z). Domain: alpha in [0, 1], beta in (0, 100].
     """
 
     model = "eucm"
@@ -126,8 +141,7 @@ class EUCM(Camera):
 
     def _check_domain(self, p: dict[str, float]) -> None:
         _in_unit_interval(type(self).__name__, "alpha", p["alpha"])
-        if not p["beta"] > 0.0:
-            raise param_error(type(self).__name__, "beta", f"must be positive, got {p['beta']!r}")
+        check_range(type(self).__name__, "beta", p["beta"], 0.0, EUCM_BETA_MAX, lo_open=True)
 
     def _natural_max_angle(self, p: dict[str, float]) -> float:
         a, beta = p["alpha"], p["beta"]
@@ -148,12 +162,24 @@ class EUCM(Camera):
 
     def _unproject(self, uv: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
         mx, my, r2 = _normalised(uv, p)
+        valid = r2.detach() < self._r2_max
+        mx, my, r2 = _inside(mx, my, r2, valid)
         a, beta = p[4], p[5]
         mz = (1.0 - beta * a * a * r2) / (
             a * safe_sqrt(1.0 - (2.0 * a - 1.0) * beta * r2) + (1.0 - a)
         )
         rays = unit(torch.stack([mx, my, mz], dim=-1))
-        return rays, r2.detach() < self._r2_max
+        return rays, valid
+
+
+def _ds_radius2(xi: float, alpha: float, theta: float) -> float:
+    """Squared normalised image radius of the unit ray at ``theta`` (inf where undefined)."""
+    x, z = math.sin(theta), math.cos(theta)
+    k = xi + z
+    den = alpha * math.sqrt(x * x + k * k) + (1.0 - alpha) * k
+    if not den > 0.0:
+        return math.inf
+    return (x / den) ** 2
 
 
 class DoubleSphere(Camera):
@@ -168,7 +194,8 @@ class DoubleSphere(Camera):
     Unproject: ``r2 = |m|^2`` (alpha > 0.5 needs ``r2 < 1 / (2 alpha - 1)``),
     ``m_z = (1 - alpha^2 r2) / (alpha sqrt(1 - (2 alpha - 1) r2) + 1 - alpha)``,
     ``P = (m_z xi + sqrt(m_z^2 + (1 - xi^2) r2)) / (m_z^2 + r2) * (m_x, m_y, m_z) - (0, 0, xi)``.
-    Domain: xi in [-1, 1], alpha in [0, 1].
+    Domain: xi in (-1, 1] (xi = -1 collapses the image onto the axis and is refused), alpha
+    in [0, 1].
     """
 
     model = "ds"
@@ -178,8 +205,10 @@ class DoubleSphere(Camera):
     param_names = ("fx", "fy", "cx", "cy", "xi", "alpha")
 
     def _check_domain(self, p: dict[str, float]) -> None:
-        if not -1.0 <= p["xi"] <= 1.0:
-            raise param_error(type(self).__name__, "xi", f"must be in [-1, 1], got {p['xi']!r}")
+        # xi = -1 is refused on purpose: there k = (|m_z| - m_z) / (...) is 0 in front of the
+        # camera, every pixel unprojects to the optical axis and the model cannot be inverted.
+        # Any xi > -1 works (the round-trip check at construction decides how close).
+        check_range(type(self).__name__, "xi", p["xi"], -1.0, 1.0, lo_open=True)
         _in_unit_interval(type(self).__name__, "alpha", p["alpha"])
 
     def _natural_max_angle(self, p: dict[str, float]) -> float:
@@ -191,7 +220,15 @@ class DoubleSphere(Camera):
         # xi + z < 0, i.e. the smaller root of z^2 + 2 xi (1 - w1^2) z + xi^2 (1 - w1^2) - w1^2.
         q = 1.0 - w1 * w1
         z = -xi * q - w1 * math.sqrt(max(1.0 - xi * xi * q, 0.0))
-        return math.acos(max(-1.0, min(1.0, -1.0 if z < -1.0 else z)))
+        angle = math.acos(max(-1.0, min(1.0, -1.0 if z < -1.0 else z)))
+        # Where the domain ends before the fold (large xi: the back pole at xi = 1), the image
+        # of the projection is the disc of the boundary ray's radius, smaller than the fold's
+        # 1 / (2 alpha - 1): pixels between the two have no ray, and the closed-form inverse
+        # would return one that projects elsewhere. Found by the round-trip check.
+        r2_b = _ds_radius2(xi, a, angle - 1e-7)
+        if r2_b < self._r2_max * (1.0 - 1e-6):
+            self._set("_r2_max", r2_b)
+        return angle
 
     def _project(self, points: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
         x, y, z = points.unbind(-1)
@@ -210,12 +247,14 @@ class DoubleSphere(Camera):
 
     def _unproject(self, uv: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
         mx, my, r2 = _normalised(uv, p)
+        valid = r2.detach() < self._r2_max
+        mx, my, r2 = _inside(mx, my, r2, valid)
         xi, a = p[4], p[5]
         mz = (1.0 - a * a * r2) / (a * safe_sqrt(1.0 - (2.0 * a - 1.0) * r2) + 1.0 - a)
         mz2 = mz * mz
         k = (mz * xi + safe_sqrt(mz2 + (1.0 - xi * xi) * r2)) / (mz2 + r2)
         rays = unit(torch.stack([k * mx, k * my, k * mz - xi], dim=-1))
-        return rays, r2.detach() < self._r2_max
+        return rays, valid
 
 
 @functools.lru_cache(maxsize=256)
@@ -260,7 +299,7 @@ class MEI(Camera):
     Unproject: start at the tabulated inverse of the radial part, 2 fixed 2-D Newton steps (plus
     one differentiable) undo the distortion, then
     ``Z_s = (-xi r2 + sqrt(1 + (1 - xi^2) r2)) / (r2 + 1)``,
-    ``ray = (x (Z_s + xi), y (Z_s + xi), Z_s)``. Domain: xi >= 0.
+    ``ray = (x (Z_s + xi), y (Z_s + xi), Z_s)``. Domain: xi in [0, 100].
     """
 
     model = "mei"
@@ -268,11 +307,11 @@ class MEI(Camera):
     _w: float
     _table: RadialTable
     param_names = ("fx", "fy", "cx", "cy", "xi", "k1", "k2", "p1", "p2")
+    distortion_names = ("k1", "k2", "p1", "p2")
     newton_steps = 2
 
     def _check_domain(self, p: dict[str, float]) -> None:
-        if not p["xi"] >= 0.0:
-            raise param_error(type(self).__name__, "xi", f"must be >= 0, got {p['xi']!r}")
+        check_range(type(self).__name__, "xi", p["xi"], 0.0, MEI_XI_MAX)
 
     def _natural_max_angle(self, p: dict[str, float]) -> float:
         xi = p["xi"]
