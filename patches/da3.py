@@ -41,7 +41,7 @@ from raytun3r_plugin.registry import (
     UpstreamVersion,
     register,
 )
-from raytun3r_plugin.weights import load_into, read_state_dict, strip_prefix
+from raytun3r_plugin.weights import StateSignature, load_into, read_checkpoint, strip_prefix
 
 FAMILY = "da3"
 UPSTREAM_MODULE = "depth_anything_3"
@@ -65,6 +65,30 @@ _KNOWN = {
     (1024, 24, False): "da3mono-large",
 }
 _INSTALL_HINT = "pip install --no-deps depth-anything-3 && pip install omegaconf addict einops"
+#: The official sizes :func:`identify` tells apart by their tensors (``load_backbone`` refuses a
+#: file of another size for these names).
+SIZE_NAMES = (
+    "da3-small",
+    "da3-base",
+    "da3-large",
+    "da3-giant",
+    "da3mono-large",
+    "da3metric-large",
+    "da3-large-1.1",
+    "da3-giant-1.1",
+)
+#: Releases that reuse an architecture (same config, new weights): name -> DA3 config name.
+NAME_ALIASES = {
+    "da3-large-1.1": "da3-large",
+    "da3-giant-1.1": "da3-giant",
+    "da3nested-giant-large-1.1": "da3nested-giant-large",
+}
+#: Names of the nested model (two networks; raytun3r has no builder for it, see docs/backbones.md).
+NESTED_NAMES = ("da3nested-giant-large", "da3nested-giant-large-1.1")
+#: Modules some DA3 configs import beyond the ``[da3]`` extra -> what to pip install.
+_EXTRA_MODULES = {"evo": "pip install evo  (or: pip install 'raytun3r[da3-giant]')"}
+#: Which configs need which of those modules (da3-giant's Gaussian-splat adapter imports evo).
+_NEEDS = {"da3-giant": ("evo",)}
 
 
 def recognise(model: nn.Module) -> nn.Module | None:
@@ -197,20 +221,95 @@ def _import_upstream():
     return create_object, load_config, MODEL_REGISTRY
 
 
-def build_network(name: str) -> nn.Module:
-    """A randomly initialised ``DepthAnything3Net`` from the package's own config ``name``."""
-    create_object, load_config, registry = _import_upstream()
-    if name not in registry:
-        raise WeightsError(
-            f"depth_anything_3 defines no config {name!r}; it has {sorted(registry)}"
+def canonical_name(name: str) -> str:
+    """The DA3 config a model name builds (``da3-large-1.1`` -> ``da3-large``); others unchanged."""
+    return NAME_ALIASES.get(name, name)
+
+
+def config_name(config: dict) -> str | None:
+    """The model a DA3 ``config.json`` declares: ``{"model_name": "da3-small", ...}``."""
+    name = config.get("model_name")
+    return name if isinstance(name, str) and name.startswith("da3") else None
+
+
+def identify(state: dict[str, torch.Tensor]) -> StateSignature | None:
+    """Name a DA3 state dict (keys with or without ``model.``) from its ViT's shapes.
+
+    The PE table ``backbone.pretrained.pos_embed`` (1, 1 + 37 * 37, D) gives the embed dim D,
+    the ``blocks.N`` the depth, the q/k-norm weights the RoPE (multi-view) models; returns
+    ``None`` for a state dict of another family.
+    """
+    state = strip_prefix(state, "model.")
+    if "da3.backbone.pretrained.pos_embed" in state and any(
+        k.startswith("da3_metric.") for k in state
+    ):
+        pe = state["da3.backbone.pretrained.pos_embed"]
+        return StateSignature(
+            FAMILY, NESTED_NAMES, "nested: a da3-giant and a da3metric-large", tuple(pe.shape)
         )
-    return create_object(load_config(registry[name]))
+    pe = state.get("backbone.pretrained.pos_embed")
+    if pe is None:
+        return None
+    prefix = "backbone.pretrained.blocks."
+    depth = len({key[len(prefix) :].split(".")[0] for key in state if key.startswith(prefix)})
+    has_rope = any(".attn.q_norm." in key for key in state if key.startswith(prefix))
+    embed = int(pe.shape[-1])
+    known = _KNOWN.get((embed, depth, has_rope))
+    if known == "da3mono-large":
+        names: tuple[str, ...] = ("da3mono-large", "da3metric-large")  # one architecture
+    elif known is not None:
+        names = (known, *(alias for alias, base in NAME_ALIASES.items() if base == known))
+    else:
+        names = ()
+    detail = f"embed dim {embed}, {depth} blocks, {'RoPE' if has_rope else 'no RoPE'}"
+    return StateSignature(FAMILY, names, detail, tuple(pe.shape))
+
+
+def require_modules(name: str) -> None:
+    """Fail before any file is read when a config needs a module that is not installed."""
+    from importlib.util import find_spec
+
+    for module in _NEEDS.get(canonical_name(name), ()):
+        if find_spec(module) is None:
+            raise MissingDependencyError(
+                f"{name} needs the {module!r} package (depth_anything_3 imports it for this "
+                f"model's Gaussian-splat adapter); install it with: {_EXTRA_MODULES[module]}"
+            )
+
+
+def build_network(name: str) -> nn.Module:
+    """A randomly initialised ``DepthAnything3Net`` from the package's own config ``name``.
+
+    ``name`` may be an alias of :data:`NAME_ALIASES`; the network records it as ``raytun3r_name``
+    (``describe`` reports it: ``da3metric-large`` and ``da3mono-large`` share one architecture).
+    """
+    create_object, load_config, registry = _import_upstream()
+    config = canonical_name(name)
+    if config not in registry:
+        raise WeightsError(
+            f"depth_anything_3 defines no config {config!r}; it has {sorted(registry)}"
+        )
+    require_modules(name)
+    try:
+        model = create_object(load_config(registry[config]))
+    except ModuleNotFoundError as error:  # a module imported only by this config
+        hint = _EXTRA_MODULES.get((error.name or "").split(".")[0], f"pip install {error.name}")
+        raise MissingDependencyError(
+            f"{name}: depth_anything_3 needs {error.name!r} for this model; install it with: {hint}"
+        ) from error
+    model.raytun3r_name = name
+    return model
 
 
 def load_weights(model: nn.Module, path) -> nn.Module:
-    """Load an official DA3 checkpoint (keys prefixed ``model.``) or a plain state dict."""
-    state = strip_prefix(read_state_dict(path), "model.")
-    return load_into(model, state, str(path))
+    """Load an official DA3 checkpoint (keys prefixed ``model.``) or a plain state dict.
+
+    ``path`` is a weight file, a folder holding one, or a read
+    :class:`~raytun3r_plugin.weights.Checkpoint`.
+    """
+    checkpoint = read_checkpoint(path)
+    state = strip_prefix(checkpoint.state, "model.")
+    return load_into(model, state, checkpoint.source)
 
 
 def _builder(name: str):
@@ -219,8 +318,11 @@ def _builder(name: str):
             raise WeightsError(
                 f"{name} needs a local weight file (.safetensors or .pt); raytun3r never downloads"
             )
-        return load_weights(build_network(name), path)
+        require_modules(name)
+        checkpoint = read_checkpoint(path)  # before the (slow) build: a bad path fails at once
+        return load_weights(build_network(name), checkpoint)
 
+    build.takes_checkpoint = True  # load_backbone passes the Checkpoint it has already read
     return build
 
 
@@ -296,8 +398,7 @@ def build_tiny_network(
 
 
 def _builders() -> dict:
-    names = ("da3-small", "da3-base", "da3-large", "da3-giant", "da3mono-large", "da3metric-large")
-    builders = {name: _builder(name) for name in names}
+    builders = {name: _builder(name) for name in SIZE_NAMES}
     try:  # the network raytun3r trains and ships (patches/da3_default.py)
         from raytun3r_plugin.patches.da3_default import BUILDERS as shipped
     except ImportError:

@@ -50,7 +50,7 @@ from raytun3r_plugin.registry import (
     UpstreamVersion,
     register,
 )
-from raytun3r_plugin.weights import load_into, read_state_dict
+from raytun3r_plugin.weights import StateSignature, load_into, read_checkpoint
 
 UPSTREAM_MODULE = "pi3"
 UPSTREAM_COMMIT = "9fa3ddb3f8d53041f8b2738df404f62223bbaa7b"
@@ -418,15 +418,39 @@ def load_weights(model: nn.Module, state: dict, source: str) -> nn.Module:
     return load_into(model, state, source)
 
 
+#: One official size per family; Pi3X is told from Pi3 by its metric branch.
+SIZE_NAMES = ("pi3", "pi3x")
+_PI3X_ONLY = ("metric_token", "metric_decoder.", "metric_head.")
+
+
+def identify(state: dict[str, torch.Tensor]) -> StateSignature | None:
+    """A Pi3 or Pi3X state dict (DINOv2 ``encoder`` PE table + ``point_decoder``), else ``None``."""
+    pe = state.get("encoder.pos_embed")
+    if pe is None or not any(key.startswith("point_decoder.") for key in state):
+        return None
+    name = "pi3x" if any(key.startswith(_PI3X_ONLY) for key in state) else "pi3"
+    prefix = "encoder.blocks."
+    depth = len({key[len(prefix) :].split(".")[0] for key in state if key.startswith(prefix)})
+    multimodal = any(key.startswith(_MULTIMODAL_PREFIXES) for key in state)
+    detail = f"encoder embed dim {int(pe.shape[-1])}, {depth} encoder blocks"
+    if name == "pi3x":
+        detail += ", with" if multimodal else ", without"
+        detail += " the conditioning branches"
+    return StateSignature(name, (name,), detail, tuple(pe.shape))
+
+
 def _builder(name: str):
     def build(path=None) -> nn.Module:
         if path is None:
             raise WeightsError(
                 f"{name} needs a local weight file (.safetensors or .pt); raytun3r never downloads"
             )
-        state = read_state_dict(path)  # before the (slow) build: a bad path fails at once
-        return load_weights(build_network(name), state, str(path))
+        checkpoint = read_checkpoint(path)  # before the (slow) build: a bad path fails at once
+        model = load_weights(build_network(name), checkpoint.state, checkpoint.source)
+        model.raytun3r_name = name
+        return model
 
+    build.takes_checkpoint = True  # load_backbone passes the Checkpoint it has read
     return build
 
 

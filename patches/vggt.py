@@ -43,7 +43,7 @@ from raytun3r_plugin.registry import (
     UpstreamVersion,
     register,
 )
-from raytun3r_plugin.weights import load_into, read_state_dict
+from raytun3r_plugin.weights import StateSignature, load_into, read_checkpoint
 
 FAMILY = "vggt"
 UPSTREAM_MODULE = "vggt"
@@ -202,8 +202,33 @@ def build_network() -> nn.Module:
 
 
 def load_weights(model: nn.Module, path) -> nn.Module:
-    """Load an official VGGT checkpoint (``model.safetensors`` or ``model.pt``; keys unprefixed) strictly."""
-    return load_into(model, read_state_dict(path), str(path))
+    """Load a VGGT checkpoint strictly: a file, a folder holding one, or a read ``Checkpoint``.
+
+    Official files (``model.safetensors`` / ``model.pt``) have unprefixed keys; a training
+    checkpoint (``{"model": ..., "optimizer": ...}``, ``module.`` / ``_orig_mod.``) is unwrapped.
+    """
+    checkpoint = read_checkpoint(path)
+    return load_into(model, checkpoint.state, checkpoint.source)
+
+
+#: The official size (upstream ``VGGT()`` fixes everything but the embed dim).
+SIZE_NAMES = ("vggt-1b",)
+_PE_KEY = "aggregator.patch_embed.pos_embed"
+
+
+def identify(state: dict[str, torch.Tensor]) -> StateSignature | None:
+    """A VGGT state dict (its aggregator's DINOv2 PE table and frame/global blocks), else ``None``.
+
+    VGGT has one official size, so the name is always ``vggt-1b``; a file of another size fails
+    the strict load, which lists the tensors whose shapes differ.
+    """
+    pe = state.get(_PE_KEY)
+    if pe is None or "aggregator.camera_token" not in state:
+        return None
+    prefix = "aggregator.frame_blocks."
+    depth = len({key[len(prefix) :].split(".")[0] for key in state if key.startswith(prefix)})
+    detail = f"embed dim {int(pe.shape[-1])}, {depth} aggregator blocks"
+    return StateSignature(FAMILY, SIZE_NAMES, detail, tuple(pe.shape))
 
 
 def _build_vggt_1b(path=None) -> nn.Module:
@@ -211,8 +236,13 @@ def _build_vggt_1b(path=None) -> nn.Module:
         raise WeightsError(
             "vggt-1b needs a local weight file (.safetensors or .pt); raytun3r never downloads"
         )
-    state = read_state_dict(path)  # before the (slow, 5 GB) build: a bad path fails at once
-    return load_into(build_network(), state, str(path))
+    checkpoint = read_checkpoint(path)  # before the (slow, 5 GB) build: a bad path fails at once
+    model = load_weights(build_network(), checkpoint)
+    model.raytun3r_name = "vggt-1b"
+    return model
+
+
+_build_vggt_1b.takes_checkpoint = True  # load_backbone passes the Checkpoint it has read
 
 
 SPEC = register(

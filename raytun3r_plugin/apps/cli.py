@@ -1,4 +1,4 @@
-"""``raytun3r`` command line: adapt, infer, eval, inspect, demo, bench."""
+"""``raytun3r`` command line: adapt, infer, eval, inspect, weights, demo, bench."""
 
 from __future__ import annotations
 
@@ -28,6 +28,38 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
         write_pe_picture(Adapter.load(args.adapter), args.picture)
         print(f"PE correction picture: {args.picture}")
+    return 0
+
+
+def cmd_weights(args: argparse.Namespace) -> int:
+    """Say what a checkpoint is without building it (``raytun3r_plugin.weights.describe_checkpoint``)."""
+    from raytun3r_plugin.weights import describe_checkpoint
+
+    record = describe_checkpoint(args.path)
+    if args.json:
+        import json
+
+        print(json.dumps(record, indent=2, sort_keys=True))
+        return 0
+    name = record["name"] or (
+        f"one of {record['candidates']}" if record["candidates"] else "unknown"
+    )
+    if record["config_model_name"]:
+        name += f"  (config.json: {record['config_model_name']})"
+    dtypes = ", ".join(f"{dtype} ({count})" for dtype, count in record["dtypes"].items())
+    rows = [
+        ("file", record["file"]),
+        ("family", record["family"] or "unknown (no registered backbone has these keys)"),
+        ("name", name),
+        ("shapes", record["detail"] or "-"),
+        ("tensors", f"{record['tensors']} ({record['parameters']:,} values)"),
+        ("dtype", dtypes),
+        ("PE table", "x".join(map(str, record["pe_shape"])) if record["pe_shape"] else "-"),
+    ]
+    if record["ignored_entries"]:
+        rows.append(("ignored", ", ".join(record["ignored_entries"])))
+    rows.append(("load", record["load"] or "- (pass the name: see `raytun3r backbones`)"))
+    print("\n".join(f"{key:<9} {value}" for key, value in rows))
     return 0
 
 
@@ -188,7 +220,8 @@ def _add_model_arguments(parser: argparse.ArgumentParser) -> None:
         "--backbone", required=True, help="model name, e.g. da3-small (see `raytun3r backbones`)"
     )
     parser.add_argument(
-        "--weights", help="local weight file (.safetensors or .pt); never downloaded"
+        "--weights",
+        help="local weight file (.safetensors, .pt) or model folder (config.json + weights); never downloaded",
     )
 
 
@@ -335,6 +368,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--quick", action="store_true")
     p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser(
+        "weights",
+        help="say what a checkpoint (file or folder) is, without building it, and how to load it",
+    )
+    p.add_argument("path", help="weight file, model folder or hub snapshot folder")
+    p.add_argument("--json", action="store_true", help="print the record as JSON")
+    p.set_defaults(func=cmd_weights)
 
     p = sub.add_parser("backbones", help="list the backbone names load_backbone accepts")
     p.set_defaults(
