@@ -363,8 +363,11 @@ def check_name(name: str, checkpoint: Checkpoint, signature: StateSignature | No
         # family without ``identify`` is left to the strict load.
         own = getattr(_module_of(family), "identify", None)
         mine = own(checkpoint.state) if callable(own) else None
-        if not callable(own) or (mine is not None and mine.family == family):
+        if not callable(own):
             return
+        if mine is not None and mine.family == family:
+            signature = mine
+    if family != signature.family:
         raise WeightsError(
             f"{checkpoint.path}: asked for {name!r} ({family}), but the tensors are a "
             f"{signature.family} checkpoint ({signature.detail}); likely "

@@ -178,12 +178,19 @@ def test_none_name_is_inferred_from_shapes_or_refused_when_ambiguous(tmp_path):
         rt.load_backbone(None, tmp_path / "other.safetensors")
 
 
-def test_file_of_another_size_names_the_likely_backbone(small, tmp_path):
+def test_file_of_another_size_names_the_likely_backbone(small, tmp_path, monkeypatch):
     _, folder = small
+
+    def never(name):
+        raise AssertionError("built a network for a file of another size")
+
+    monkeypatch.setattr(da3_patch, "build_network", never)  # the refusal comes before any build
     bare = tmp_path / "small.safetensors"  # no config.json next to it: the shapes decide
     os.symlink(folder / "model.safetensors", bare)
     with pytest.raises(WeightsError) as error:
         rt.load_backbone("da3-base", bare)
+    with pytest.raises(WeightsError, match="no such weight file"):
+        rt.load_backbone("da3-base", tmp_path / "missing.safetensors")
     message = str(error.value)
     assert (
         "'da3-base'" in message and "da3-small" in message and "embed dim 384, 12 blocks" in message
