@@ -47,7 +47,7 @@ from raytun3r_plugin.registry import (
     UpstreamVersion,
     register,
 )
-from raytun3r_plugin.weights import load_into, read_state_dict
+from raytun3r_plugin.weights import StateSignature, load_into, read_checkpoint
 
 FAMILY = "vggt_omega"
 UPSTREAM_MODULE = "vggt_omega"
@@ -64,8 +64,10 @@ ROPE_BASE_ATTRIBUTE = "base"
 #: Training-time coordinate augmentations of ``RopePositionEmbedding`` (random per call).
 _AUGMENTATIONS = ("shift_coords", "jitter_coords", "rescale_coords")
 
-# (embed_dim, aggregator depth) -> name; VGGT-Omega-1B is the only published size.
-_KNOWN = {(1024, 24): "vggt-omega-1b"}
+# (embed_dim, aggregator depth) -> name; VGGT-Omega-1B is the only published size, released as
+# two checkpoints (the second with the text-alignment head, trained at 256 px).
+_KNOWN = {(1024, 24): "vggt-omega-1b-512"}
+_KNOWN_TEXT = {(1024, 24): "vggt-omega-1b-256-text"}
 _INSTALL_HINT = (
     "VGGT-Omega is not on PyPI: clone the facebookresearch/vggt-omega repository from GitHub and "
     "run 'pip install -e .' in it (or put the checkout on PYTHONPATH)"
@@ -99,9 +101,8 @@ def describe(root: nn.Module) -> BackboneInfo:
     aggregator = _aggregator(root)
     embed_dim = int(aggregator.patch_embed.embed_dim)
     depth = len(aggregator.frame_blocks)
-    known = _KNOWN.get((embed_dim, depth))
-    if known and getattr(root, "text_alignment_head", None) is not None:
-        known += "-text"  # the 256 px text-aligned checkpoint: other weights, same sizes
+    text = getattr(root, "text_alignment_head", None) is not None
+    known = (_KNOWN_TEXT if text else _KNOWN).get((embed_dim, depth))
     name = (
         getattr(root, "raytun3r_name", None) or known or f"vggt_omega-custom-e{embed_dim}-d{depth}"
     )
@@ -293,6 +294,30 @@ def build_network(enable_alignment: bool = False) -> nn.Module:
     return VGGTOmega(enable_alignment=enable_alignment)
 
 
+def identify(state: dict[str, torch.Tensor]) -> StateSignature | None:
+    """A VGGT-Omega state dict (two RoPE ``periods`` buffers, no PE table), else ``None``.
+
+    The text-aligned checkpoint is told from the other by its ``text_alignment_head.`` keys.
+    """
+    periods = state.get("aggregator.rope_embed.periods")
+    if (
+        periods is None
+        or "aggregator.patch_embed.rope_embed.periods" not in state
+        or "aggregator.patch_embed.pos_embed" in state
+    ):
+        return None
+    embed = state.get("aggregator.camera_token")
+    embed_dim = int(embed.shape[-1]) if embed is not None else 0
+    prefix = "aggregator.frame_blocks."
+    depth = len({key[len(prefix) :].split(".")[0] for key in state if key.startswith(prefix)})
+    text = any(key.startswith("text_alignment_head.") for key in state)
+    known = (_KNOWN_TEXT if text else _KNOWN).get((embed_dim, depth))
+    detail = f"embed dim {embed_dim}, {depth} aggregator blocks, no PE table"
+    if text:
+        detail += ", with the text-alignment head"
+    return StateSignature(FAMILY, (known,) if known else (), detail, None)
+
+
 def _builder(name: str, enable_alignment: bool):
     def build(path=None) -> nn.Module:
         if path is None:
@@ -300,9 +325,12 @@ def _builder(name: str, enable_alignment: bool):
                 f"{name} needs a local weight file (.pt or .safetensors, e.g. the official "
                 f"{name.replace('-', '_')}.pt); raytun3r never downloads"
             )
-        state = read_state_dict(path)  # before the slow build: a bad path fails at once
-        return load_into(build_network(enable_alignment), state, str(path))
+        checkpoint = read_checkpoint(path)  # before the slow build: a bad path fails at once
+        model = load_into(build_network(enable_alignment), checkpoint.state, checkpoint.source)
+        model.raytun3r_name = name
+        return model
 
+    build.takes_checkpoint = True  # load_backbone passes the Checkpoint it has read
     return build
 
 

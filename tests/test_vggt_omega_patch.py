@@ -238,6 +238,27 @@ def test_builders_need_a_local_file_and_load_strictly(net, tmp_path, monkeypatch
         torch.equal(a, b)
         for a, b in zip(loaded.state_dict().values(), net.state_dict().values(), strict=True)
     )
+    assert loaded.raytun3r_name == "vggt-omega-1b-512"
+    # through load_backbone, with the name and without (then the tensors must say it)
+    assert type(rt.load_backbone("vggt-omega-1b-512", path)).__name__ == "VGGTOmega"
+    signature = omega_patch.identify(net.state_dict())
+    assert signature.family == "vggt_omega" and signature.pe_shape is None
+    assert signature.names == () and "no PE table" in signature.detail  # a tiny custom size
+    with pytest.raises(WeightsError, match=r"a vggt_omega checkpoint .* no official size"):
+        rt.load_backbone(None, path)
+    text_state = dict(net.state_dict(), **{"text_alignment_head.language_token": torch.zeros(1)})
+    assert "text-alignment head" in omega_patch.identify(text_state).detail
+    assert omega_patch.identify({"aggregator.patch_embed.pos_embed": torch.zeros(1)}) is None
+    zero = torch.zeros(1)
+    official = {  # the key layout of the released 1B checkpoints (shapes only where read)
+        "aggregator.rope_embed.periods": zero,
+        "aggregator.patch_embed.rope_embed.periods": zero,
+        "aggregator.camera_token": torch.zeros(1, 2, 1, 1024),
+        **{f"aggregator.frame_blocks.{i}.norm1.weight": zero for i in range(24)},
+    }
+    assert omega_patch.identify(official).names == ("vggt-omega-1b-512",)
+    official["text_alignment_head.language_token"] = zero
+    assert omega_patch.identify(official).names == ("vggt-omega-1b-256-text",)
     state = net.state_dict()
     state.pop("aggregator.rope_embed.periods")
     torch.save(state, path)
