@@ -436,6 +436,7 @@ SPEC = register(
         builders=_builders(),
         rope_classes=ROPE_CLASSES,
         rope_base_attribute=ROPE_BASE_ATTRIBUTE,
+        transformer_blocks=("backbone.pretrained.blocks",),
         quiet=quiet_info,
     )
 )

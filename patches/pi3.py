@@ -465,6 +465,7 @@ PI3_SPEC = register(
         builders={"pi3": _builder("pi3")},
         rope_classes=ROPE_CLASSES,
         rope_base_attribute=ROPE_BASE_ATTRIBUTE,
+        transformer_blocks=("encoder.blocks", "decoder"),
         check=_check("pi3"),
     )
 )
@@ -479,6 +480,7 @@ PI3X_SPEC = register(
         builders={"pi3x": _builder("pi3x")},
         rope_classes=ROPE_CLASSES,
         rope_base_attribute=ROPE_BASE_ATTRIBUTE,
+        transformer_blocks=("encoder.blocks", "decoder"),
         check=_check("pi3x"),
     )
 )

@@ -256,6 +256,11 @@ SPEC = register(
         builders={"vggt-1b": _build_vggt_1b},
         rope_classes=ROPE_CLASSES,
         rope_base_attribute=ROPE_BASE_ATTRIBUTE,
+        transformer_blocks=(
+            "aggregator.patch_embed.blocks",
+            "aggregator.frame_blocks",
+            "aggregator.global_blocks",
+        ),
         check=check,
     )
 )

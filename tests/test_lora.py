@@ -192,3 +192,26 @@ def test_adapt_fits_the_lora_factors_with_the_same_objective(net, tmp_path):
     assert adapter.training_info["verdict"]["status"] in ("ok", "diverged")
     assert not (tmp_path / "lora.safetensors").exists(), "the caller saves the LoRA, not adapt"
     assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
+
+
+@pytest.mark.parametrize("family", ["da3", "vggt", "pi3", "pi3x"])
+def test_lora_contract_on_every_backbone_that_declares_its_blocks(family):
+    import importlib.util
+
+    from tests.backbones import CASE, make
+
+    case = CASE[family]
+    if importlib.util.find_spec(case.package) is None:
+        pytest.skip(f"{case.package} is not importable")
+    model = make(family)
+    images = case.images()
+    reference = _depth(model, images)
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    handle = inject_lora(model)
+    assert len(handle.weights.paths) >= 2
+    assert torch.equal(_depth(model, images), reference)
+    _randomise(handle.weights)
+    assert not torch.allclose(_depth(model, images), reference)
+    handle.remove()
+    assert torch.equal(_depth(model, images), reference)
+    assert all(torch.equal(state[k], v) for k, v in model.state_dict().items())
