@@ -142,3 +142,20 @@ def test_the_report_writes_a_csv_and_a_picture_with_every_curve(tmp_path):
     assert report["summary"]["adapted"]["sigma1"] != report["summary"]["pretrained"]["sigma1"]
     assert rt.handle_of(net) is None
     assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
+
+
+def test_cli_analyze_jacobian_prints_the_curves_and_writes_the_files(tmp_path, capsys):
+    from raytun3r_plugin.apps.cli import main
+
+    from raytun3r_plugin.weights import load_backbone
+
+    net = load_backbone("raytun3r-da3-tiny")
+    adapter = rt.Adapter.for_model(net, fisheye((224, 224), 190.0, "kb4"))
+    path = adapter.save(tmp_path / "a.safetensors")
+    args = ["analyze", "jacobian", "--backbone", "raytun3r-da3-tiny", "--adapter", str(path)]
+    code = main([*args, "--size", "112", "--bins", "4", "--out", str(tmp_path / "jac")])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "pretrained" in out and "adapted" in out and "reference" in out
+    assert (tmp_path / "jac" / "jacobian.csv").is_file()
+    assert (tmp_path / "jac" / "jacobian.png").is_file()

@@ -31,6 +31,29 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_analyze_jacobian(args: argparse.Namespace) -> int:
+    from raytun3r_plugin.adapter import Adapter
+    from raytun3r_plugin.apps.analysis import jacobian_report
+
+    model = _load_model(args.backbone, args.weights)
+    adapter = Adapter.load(args.adapter) if args.adapter else None
+    report = jacobian_report(model, adapter, args.out, size=args.size, bins=args.bins)
+    print("sigma_1 / sigma_1(centre) per radius bin (1.0 = flat, pinhole-like):")
+    names = list(report["summary"])
+    has_reference = "reference_sigma1" in report["rows"][0]
+    print(
+        "   rho  tokens  "
+        + "  ".join(f"{n:>10}" for n in names)
+        + ("   reference" if has_reference else "")
+    )
+    for row in report["rows"]:
+        cells = "  ".join(f"{row[f'{n}_sigma1']:10.3f}" for n in names)
+        reference = f"  {row['reference_sigma1']:10.3f}" if has_reference else ""
+        print(f"  {row['rho']:4.2f}  {row['tokens']:6d}  {cells}{reference}")
+    print(f"wrote {report['csv']} and {report['png']}")
+    return 0
+
+
 def cmd_weights(args: argparse.Namespace) -> int:
     """Say what a checkpoint is without building it (``raytun3r_plugin.weights.describe_checkpoint``)."""
     from raytun3r_plugin.weights import describe_checkpoint
@@ -376,6 +399,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("path", help="weight file, model folder or hub snapshot folder")
     p.add_argument("--json", action="store_true", help="print the record as JSON")
     p.set_defaults(func=cmd_weights)
+
+    p = sub.add_parser("analyze", help="analyses of a model (docs/analysis.md)")
+    analyses = p.add_subparsers(dest="analysis", required=True)
+    p = analyses.add_parser(
+        "jacobian",
+        help="PE-Jacobian curves per radius (pretrained, and with an adapter), CSV and picture",
+    )
+    _add_model_arguments(p)
+    p.add_argument("--adapter", default=None, help="adapter file; its camera sets the reference")
+    p.add_argument("--size", type=int, default=None, help="square input side in px (default 504)")
+    p.add_argument("--bins", type=int, default=20, help="radius bins over rho in [0, 1]")
+    p.add_argument("--out", default="jacobian", help="folder for jacobian.csv and jacobian.png")
+    p.set_defaults(func=cmd_analyze_jacobian)
 
     p = sub.add_parser("backbones", help="list the backbone names load_backbone accepts")
     p.set_defaults(
