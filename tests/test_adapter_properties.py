@@ -173,7 +173,13 @@ def test_an_accepted_mutated_adapter_never_breaks_a_patched_forward(rng, tmp_pat
     for _ in range(20):  # draw mutations until one is accepted (most are refused)
         path.write_bytes(mutate(rng, adapter_bytes(template)))
         adapter = _load_or_refuse(path)
-        if adapter is not None and adapter.camera is not None and adapter.embed_dim == 64:
+        # A mutated backbone name is refused by apply even with strict=False: skip those.
+        if (
+            adapter is not None
+            and adapter.camera is not None
+            and adapter.embed_dim == 64
+            and adapter.backbone == template.backbone
+        ):
             break
     else:
         return

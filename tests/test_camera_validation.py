@@ -436,3 +436,23 @@ def test_accepted_edge_cameras_run_the_tiny_da3_network_end_to_end():
         assert bool(torch.isfinite(prediction.depth).all())
         ran += 1
     assert ran >= 3
+
+
+@settings(max_examples=200)
+@given(
+    st.dictionaries(
+        st.sampled_from(["model", "width", "height", "params", "max_fov_deg", "extra"]),
+        st.one_of(_junk, st.sampled_from(MODELS)),
+    ),
+)
+def test_from_dict_raises_only_camera_error(record):
+    record = {"model": "pinhole", "width": 8, "height": 8, "params": {}, **record}
+    try:
+        C.from_dict(record)
+    except CameraError:
+        pass
+
+
+def test_from_dict_with_an_unhashable_model_raises_camera_error():
+    with pytest.raises(CameraError, match="unknown camera model"):
+        C.from_dict({"model": ["kb4"], "width": 8, "height": 8, "params": {}})

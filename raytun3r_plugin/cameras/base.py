@@ -759,9 +759,10 @@ def from_dict(d: Mapping[str, Any]) -> Camera:
     if extra:
         raise CameraError(f"camera description: unexpected field '{extra[0]}'")
     model = d["model"]
-    if model not in CAMERA_MODELS:
+    # A list or dict here is unhashable: test the type before the dict lookup.
+    if not isinstance(model, str) or model not in CAMERA_MODELS:
         raise CameraError(
-            f"camera description: field 'model': unknown camera model {model!r} "
+            f"camera description: field 'model': unknown camera model {_short(model)} "
             f"(known: {sorted(CAMERA_MODELS)})"
         )
     params = d["params"]
