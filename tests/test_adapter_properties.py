@@ -155,16 +155,22 @@ def test_strict_apply_refuses_a_camera_that_differs_only_in_its_field_of_view():
         pass
 
 
-@settings(max_examples=6)
-@given(rng=st.randoms(use_true_random=False))
-def test_an_accepted_mutated_adapter_never_breaks_a_patched_forward(rng, tmp_path_factory):
+_NET: list = []
+
+
+def _tiny_net():
     from raytun3r_plugin.patches.da3 import build_tiny_network
 
-    net = build_tiny_network(seed=0)
+    if not _NET:
+        _NET.append(build_tiny_network(seed=0))
+    return _NET[0]
+
+
+@settings(max_examples=8)
+@given(rng=st.randoms(use_true_random=False))
+def test_an_accepted_mutated_adapter_never_breaks_a_patched_forward(rng, tmp_path_factory):
+    net = _tiny_net()
     template = rt.Adapter.for_model(net, valid_adapter(rng).camera)
-    adapter = valid_adapter(rng)
-    # Same sizes as the network, random tables and camera from the generator, then one mutation.
-    template.camera = adapter.camera
     with torch.no_grad():
         for parameter in template.parameters():
             parameter.copy_(torch.randn(parameter.shape) * 0.05)
@@ -173,21 +179,19 @@ def test_an_accepted_mutated_adapter_never_breaks_a_patched_forward(rng, tmp_pat
     for _ in range(20):  # draw mutations until one is accepted (most are refused)
         path.write_bytes(mutate(rng, adapter_bytes(template)))
         adapter = _load_or_refuse(path)
-        # A mutated backbone name is refused by apply even with strict=False: skip those.
-        if (
-            adapter is not None
-            and adapter.camera is not None
-            and adapter.embed_dim == 64
-            and adapter.backbone == template.backbone
-        ):
+        if adapter is not None and adapter.camera is not None:
             break
     else:
         return
-    camera = adapter.camera
     images = torch.rand(2, 3, 56, 56)
     before = {k: v.clone() for k, v in net.state_dict().items()}
-    with rt.apply(net, camera.resized(56, 56), adapter, strict=False), torch.no_grad():
-        depth = rt.predict(net, images).depth
-    assert bool(torch.isfinite(depth).all())
+    try:
+        handle = rt.apply(net, adapter.camera.resized(56, 56), adapter, strict=False)
+    except AdapterError:  # an adapter for another backbone or size: refused, model untouched
+        assert rt.handle_of(net) is None
+    else:
+        with handle, torch.no_grad():
+            depth = rt.predict(net, images).depth
+        assert bool(torch.isfinite(depth).all())
+        assert not math.isnan(float(depth.mean()))
     assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
-    assert not math.isnan(float(depth.mean()))
