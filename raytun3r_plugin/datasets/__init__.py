@@ -1,6 +1,7 @@
 """Image sequences with ground truth: one :class:`Sequence` type and readers for raytun3r's own
 folder format (synthetic data), COLMAP text models (ETH3D, ScanNet++ DSLR), nerfstudio
-``transforms.json`` (ScanNet++), TUM-VI (ASL/EuRoC layout) and KITTI-360 fisheye cameras.
+``transforms.json`` (ScanNet++), TUM-VI (ASL/EuRoC layout), KITTI-360 fisheye cameras, ETH3D
+multi-camera-rig scenes and Aria Digital Twin (Project Aria calibration JSON).
 
 Every reader returns a :class:`Sequence` and raises :class:`~raytun3r_plugin.errors.DatasetError`
 naming the file (and the line) on missing or malformed input. See
@@ -12,7 +13,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from raytun3r_plugin.datasets.aria import load_adt, read_aria_calibration, read_aria_trajectory
 from raytun3r_plugin.datasets.colmap import load_colmap, read_images_txt
+from raytun3r_plugin.datasets.eth3d import eth3d_rig_cameras, load_eth3d_rig, load_eth3d_rig_all
 from raytun3r_plugin.datasets.folder import load_synthetic, write_sequence
 from raytun3r_plugin.datasets.kitti360 import load_kitti360
 from raytun3r_plugin.datasets.scannetpp import load_scannetpp_transforms
@@ -24,18 +27,24 @@ __all__ = [
     "KINDS",
     "Sequence",
     "detect_kind",
+    "eth3d_rig_cameras",
+    "load_adt",
     "load_colmap",
+    "load_eth3d_rig",
+    "load_eth3d_rig_all",
     "load_kitti360",
     "load_scannetpp_transforms",
     "load_sequence",
     "load_synthetic",
     "load_tumvi",
+    "read_aria_calibration",
+    "read_aria_trajectory",
     "read_image",
     "read_images_txt",
     "write_sequence",
 ]
 
-KINDS = ("synthetic", "colmap", "scannetpp", "tumvi", "kitti360")
+KINDS = ("synthetic", "colmap", "scannetpp", "tumvi", "kitti360", "eth3d_rig", "adt")
 
 
 def detect_kind(path: str | Path) -> str:
@@ -55,12 +64,19 @@ def detect_kind(path: str | Path) -> str:
         return "tumvi"
     if (p / "calibration").is_dir() and (p / "data_poses").is_dir():
         return "kitti360"
+    if (p / "rig_calibration" / "images.txt").is_file() or (
+        p / "rig_calibration_undistorted" / "images.txt"
+    ).is_file():
+        return "eth3d_rig"
+    if (p / "aria_trajectory.csv").is_file():
+        return "adt"
     for sub in (p, p / "sparse" / "0", p / "sparse", p / "colmap", p / "dslr_calibration_jpg"):
         if (sub / "images.txt").is_file() and (sub / "cameras.txt").is_file():
             return "colmap"
     raise DatasetError(
         f"{p}: cannot tell the dataset kind (no meta.json, transforms.json, mav0/, "
-        "calibration/ + data_poses/, or cameras.txt + images.txt)"
+        "calibration/ + data_poses/, rig_calibration/, aria_trajectory.csv, or "
+        "cameras.txt + images.txt)"
     )
 
 
@@ -71,7 +87,9 @@ def load_sequence(path: str | Path, kind: str | None = None, **kw: Any) -> Seque
         path: the dataset folder (or file, for ``meta.json`` / ``transforms.json``).
         kind: one of :data:`KINDS`; detected from the content when None.
         **kw: passed to the reader (``load_kitti360`` needs ``sequence=`` unless ``data_poses``
-            holds a single sequence).
+            holds a single sequence; ``load_eth3d_rig`` needs ``camera=`` when the rig has
+            several cameras, and reads ``rig_calibration_undistorted`` with ``undistorted=True``
+            or when only that one exists).
     """
     p = Path(path)
     kind = kind or detect_kind(p)
@@ -94,4 +112,10 @@ def load_sequence(path: str | Path, kind: str | None = None, **kw: Any) -> Seque
                 )
             kw["sequence"] = seqs[0]
         return load_kitti360(p, **kw)
+    if kind == "eth3d_rig":
+        if "undistorted" not in kw and not (p / "rig_calibration" / "images.txt").is_file():
+            kw["undistorted"] = True
+        return load_eth3d_rig(p, **kw)
+    if kind == "adt":
+        return load_adt(p, **kw)
     raise DatasetError(f"unknown dataset kind {kind!r}; expected one of {KINDS}")

@@ -83,6 +83,7 @@ def load_scannetpp_transforms(
     skip_bad: bool = True,
     pixel_offset: float = 0.5,
     name: str | None = None,
+    mask_dir: str | Path | None = None,
 ) -> Sequence:
     """Read a nerfstudio ``transforms.json`` (ScanNet++ DSLR) as a :class:`Sequence`.
 
@@ -95,8 +96,13 @@ def load_scannetpp_transforms(
         skip_bad: drop frames flagged ``"is_bad": true``.
         pixel_offset: subtracted from cx, cy (see module docstring).
         name: sequence name (default: the scene folder name).
+        mask_dir: folder the frames' ``mask_path`` entries are relative to; by default the
+            first of the JSON's folder, ``../resized_anon_masks``, ``../resized_masks``,
+            ``../masks`` that holds the first mask.
 
-    Frames are ordered by ``file_path``; timestamps are frame indices. ``meta["per_frame"]``
+    Frames with ``mask_path`` (all or none of the kept frames) give ``mask`` (N, H, W) bool:
+    the mask image (8-bit grey) is valid where its value is >= 128 (ScanNet++ writes 255 =
+    valid, 0 = anonymised / invalid). Frames are ordered by ``file_path``; timestamps are frame indices. ``meta["per_frame"]``
     holds ``file_path`` and ``is_test``.
 
     Raises:
@@ -157,13 +163,17 @@ def load_scannetpp_transforms(
                     p, line, f"{where}.transform_matrix must be 4x4 (or 3x4), got shape {M.shape}"
                 )
             check_rigid(p, line, M, f"{where}.transform_matrix")
-            entries.append((fpath, is_test, M @ _GL_TO_CV))
+            mpath = fr.get("mask_path")
+            if mpath is not None and (not isinstance(mpath, str) or not mpath):
+                raise fail(p, line, f"{where}.mask_path must be a non-empty string, got {mpath!r}")
+            entries.append((fpath, is_test, M @ _GL_TO_CV, mpath))
     if not entries:
         raise fail(p, None, f"no usable frames for split {split!r}")
     entries.sort(key=lambda e: e[0])
     img_root = _image_root(p, entries[0][0], image_dir)
     n = len(entries)
     world_from_cam = np.stack([e[2] for e in entries])
+    mask = _masks(p, entries, camera, mask_dir)
     return Sequence(
         name=name
         or (p.parent.parent.parent.name if p.parent.name == "nerfstudio" else p.parent.name),
@@ -171,6 +181,7 @@ def load_scannetpp_transforms(
         timestamps=np.arange(n, dtype=np.float64),
         cam_from_world=invert_pose(world_from_cam),
         image_paths=[img_root / e[0] for e in entries],
+        mask=mask,
         meta={
             "source": str(p),
             "format": "nerfstudio",
@@ -180,6 +191,54 @@ def load_scannetpp_transforms(
             },
         },
     )
+
+
+def _masks(p: Path, entries: list, camera, given: str | Path | None) -> np.ndarray | None:
+    """(N, H, W) bool masks from the frames' ``mask_path`` (None if no frame has one)."""
+    import cv2
+
+    with_mask = [e[3] is not None for e in entries]
+    if not any(with_mask):
+        return None
+    if not all(with_mask):
+        missing = next(e[0] for e in entries if e[3] is None)
+        raise fail(p, None, f"frame {missing!r} has no mask_path while other frames have one")
+    first = entries[0][3]
+    if given is not None:
+        root = Path(given)
+    else:
+        cands = [
+            p.parent,
+            p.parent.parent / "resized_anon_masks",
+            p.parent.parent / "resized_masks",
+            p.parent.parent / "masks",
+        ]
+        root = next((c for c in cands if (c / first).is_file()), None)
+        if root is None:
+            raise DatasetError(
+                f"{p}: mask {first!r} not found under any of: "
+                f"{', '.join(str(c) for c in cands)}; pass mask_dir="
+            )
+    out = np.zeros((len(entries), camera.height, camera.width), dtype=bool)
+    for k, e in enumerate(entries):
+        mp = root / e[3]
+        if not mp.is_file():
+            raise fail(mp, None, f"mask file not found (mask_path of {e[0]!r})")
+        m = cv2.imread(str(mp), cv2.IMREAD_UNCHANGED)
+        if m is None:
+            raise fail(mp, None, "cannot decode mask image")
+        if m.ndim == 3:
+            m = m[..., 0]
+        if m.dtype != np.uint8:
+            raise fail(mp, None, f"mask must be 8-bit (255 = valid), got {m.dtype}")
+        if m.shape != (camera.height, camera.width):
+            raise fail(
+                mp,
+                None,
+                f"mask is {m.shape[1]}x{m.shape[0]} px, camera is {camera.width}x{camera.height}",
+            )
+        out[k] = m >= 128
+    return out
 
 
 def _image_root(p: Path, first: str, given: str | Path | None) -> Path:
