@@ -165,9 +165,12 @@ def _check_size(name: str, value: Any) -> int:
     if isinstance(value, float) and value.is_integer():
         value = int(value)
     # Python ints compare exactly at any size (10**400 included): no float conversion here.
-    if not isinstance(value, numbers.Integral) or not 1 <= value <= MAX_IMAGE_SIDE:
+    if not isinstance(value, numbers.Integral):
         raise bad
-    return int(value)
+    n = int(value)
+    if not 1 <= n <= MAX_IMAGE_SIDE:
+        raise bad
+    return n
 
 
 class Camera:
