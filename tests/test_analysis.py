@@ -146,7 +146,6 @@ def test_the_report_writes_a_csv_and_a_picture_with_every_curve(tmp_path):
 
 def test_cli_analyze_jacobian_prints_the_curves_and_writes_the_files(tmp_path, capsys):
     from raytun3r_plugin.apps.cli import main
-
     from raytun3r_plugin.weights import load_backbone
 
     net = load_backbone("raytun3r-da3-tiny")
