@@ -106,10 +106,11 @@ def load_eth3d_rig(
         name: sequence name (default ``<scene>/<camera>``).
 
     Frames are ordered by timestamp (the image file name, ns); ``timestamps`` are seconds.
-    ``meta["rig"]``: ``ref_camera``, ``cam_from_ref`` (4, 4) (the median over shared timestamps
-    is not taken: the first shared frame is used and ``max_dev_m`` / ``max_dev_deg`` report how
-    far the other shared frames deviate), ``n_shared``. ``meta["per_frame"]``: ``image_id``,
-    ``name``, ``timestamp_ns``.
+    ``meta["rig"]``: ``ref_camera``, ``cam_from_ref`` (4, 4) float64, the transform from the
+    reference camera to this one taken from the first shared timestamp, ``n_shared`` (frames
+    both cameras have), ``max_dev_m`` / ``max_dev_deg`` (how far the other shared frames'
+    transforms deviate from it: a check that the ground truth is a rigid rig).
+    ``meta["per_frame"]``: ``image_id``, ``name``, ``timestamp_ns``.
 
     Raises:
         DatasetError: missing files, malformed ``images.txt`` lines or NAMEs, one camera folder
