@@ -26,6 +26,7 @@ from __future__ import annotations
 import csv
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -39,6 +40,9 @@ from raytun3r_plugin.datasets._common import (
 )
 from raytun3r_plugin.datasets.sequence import Sequence
 from raytun3r_plugin.errors import CameraError, DatasetError
+
+if TYPE_CHECKING:  # pragma: no cover - typing only
+    from raytun3r_plugin.cameras import Camera
 
 __all__ = ["load_adt", "read_aria_calibration", "read_aria_trajectory"]
 
@@ -72,7 +76,7 @@ def _numbers(path: Path, line: int | None, v, count: int, what: str) -> np.ndarr
 
 def read_aria_calibration(
     path: str | Path, label: str, width: int, height: int
-) -> tuple[object, np.ndarray]:
+) -> tuple[Camera, np.ndarray]:
     """Camera ``label`` of an Aria device calibration JSON.
 
     Args:
@@ -228,7 +232,7 @@ def _interpolate(
     return out, ok
 
 
-def _z_to_range(camera, z: np.ndarray) -> np.ndarray:
+def _z_to_range(camera: Camera, z: np.ndarray) -> np.ndarray:
     """Planar z (H, W) metres -> range along the unit ray through the camera's unproject."""
     rays, valid = camera.ray_table()
     rz = rays[..., 2].detach().cpu().numpy().astype(np.float64)
@@ -321,7 +325,7 @@ def load_adt(
     )
 
 
-def _depth_png(path: Path, camera) -> np.ndarray:
+def _depth_png(path: Path, camera: Camera) -> np.ndarray:
     import cv2
 
     if not path.is_file():

@@ -21,6 +21,7 @@ documented for the rig, so the caller must say (``depth_kind``).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -206,7 +207,9 @@ def _rig(
     }
 
 
-def load_eth3d_rig_all(scene: str | Path, undistorted: bool = False, **kw) -> dict[str, Sequence]:
+def load_eth3d_rig_all(
+    scene: str | Path, undistorted: bool = False, **kw: Any
+) -> dict[str, Sequence]:
     """Every camera of the rig: ``{camera folder: Sequence}`` (see :func:`load_eth3d_rig`)."""
     return {
         c: load_eth3d_rig(scene, camera=c, undistorted=undistorted, **kw)
