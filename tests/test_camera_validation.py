@@ -458,3 +458,11 @@ def test_from_dict_raises_only_camera_error(record):
 def test_from_dict_with_an_unhashable_model_raises_camera_error():
     with pytest.raises(CameraError, match="unknown camera model"):
         C.from_dict({"model": ["kb4"], "width": 8, "height": 8, "params": {}})
+
+
+@pytest.mark.parametrize(
+    "size, fov", [("64", 190.0), ((64,), 190.0), (64, "190"), (64, None), (10**400, 190.0)]
+)
+def test_fisheye_builder_raises_only_camera_error(size, fov):
+    with pytest.raises(CameraError):
+        C.fisheye(size, fov)

@@ -9,9 +9,10 @@ unchanged to the last bit (``tests/test_cameras_builders.py`` holds the old form
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Sequence
 
-from raytun3r_plugin.cameras.base import Camera
+from raytun3r_plugin.cameras.base import MAX_IMAGE_SIDE, Camera, _short
 from raytun3r_plugin.cameras.kb import KannalaBrandt4
 from raytun3r_plugin.cameras.unified import DoubleSphere
 from raytun3r_plugin.errors import CameraError
@@ -73,9 +74,18 @@ def fisheye(
         CameraError: for an unknown ``model``, a size that is not positive, a field of view
             outside (0, 360) degrees, or fewer or more than four ``k``.
     """
-    width, height = (size, size) if isinstance(size, int) else (int(size[0]), int(size[1]))
-    if width <= 0 or height <= 0:
-        raise CameraError(f"fisheye: size must be positive, got {size!r}")
+    if isinstance(size, (str, bytes)):
+        raise CameraError(f"fisheye: size must be S or (width, height), got {size!r}")
+    try:
+        width, height = (size, size) if isinstance(size, int) else (int(size[0]), int(size[1]))
+    except (TypeError, ValueError, IndexError, OverflowError):
+        raise CameraError(f"fisheye: size must be S or (width, height), got {size!r}") from None
+    if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE):
+        raise CameraError(
+            f"fisheye: size must be in 1..{MAX_IMAGE_SIDE} pixels per side, got {_short(width)} x {_short(height)}"
+        )
+    if isinstance(fov_deg, bool) or not isinstance(fov_deg, numbers.Real):
+        raise CameraError(f"fisheye: fov_deg must be a number, got {fov_deg!r}")
     if not 0.0 < fov_deg < 360.0:
         raise CameraError(f"fisheye: fov_deg must be in (0, 360) degrees, got {fov_deg!r}")
     radius = min(width, height) / 2 if radius_px is None else float(radius_px)
