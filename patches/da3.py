@@ -38,6 +38,7 @@ from raytun3r_plugin.registry import (
     BackboneInfo,
     BackboneSpec,
     PatchTarget,
+    PromptTarget,
     UpstreamVersion,
     register,
 )
@@ -437,6 +438,13 @@ SPEC = register(
         rope_classes=ROPE_CLASSES,
         rope_base_attribute=ROPE_BASE_ATTRIBUTE,
         transformer_blocks=("backbone.pretrained.blocks",),
+        prompt_target=PromptTarget(
+            owner="backbone.pretrained",
+            attribute="process_attention",
+            signature=("x", "block", "attn_type", "pos", "attn_mask"),
+            blocks="backbone.pretrained.blocks",
+            insert_at=1,  # after the cls/camera slot
+        ),
         quiet=quiet_info,
     )
 )

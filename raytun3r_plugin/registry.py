@@ -70,6 +70,26 @@ class PatchTarget:
 
 
 @dataclass(frozen=True)
+class PromptTarget:
+    """Where a baseline inserts extra tokens before each transformer block (calibration tokens).
+
+    Attributes:
+        owner: dotted path of the module whose ``attribute`` runs one block on a (B, S, N, C)
+            token tensor with its (B, S, N, 2) positions (DA3's ``process_attention``).
+        attribute: that method; ``signature`` its parameter names after ``self``, as upstream.
+        blocks: dotted path of the ``ModuleList`` of the blocks it runs (one token set each).
+        insert_at: token index the extra tokens go to (after the special tokens); they take the
+            position of token 0.
+    """
+
+    owner: str
+    attribute: str
+    signature: tuple[str, ...]
+    blocks: str
+    insert_at: int = 1
+
+
+@dataclass(frozen=True)
 class BackboneInfo:
     """What the adapter and the checks need to know about one model instance.
 
@@ -152,6 +172,7 @@ class BackboneSpec:
             backbone's own transformer blocks, each with a fused ``attn.qkv`` linear layer; the
             baselines that tune those blocks (:mod:`raytun3r_plugin.baselines`) read them.
             Empty: the family offers no such baseline.
+        prompt_target: where the calibration-token baseline inserts its tokens, or None.
     """
 
     family: str
@@ -166,6 +187,7 @@ class BackboneSpec:
     check: Callable[[nn.Module], None] | None = None
     quiet: Callable[[], AbstractContextManager] | None = None
     transformer_blocks: tuple[str, ...] = ()
+    prompt_target: PromptTarget | None = None
 
 
 _SPECS: dict[str, BackboneSpec] = {}

@@ -3,8 +3,26 @@
 - :mod:`raytun3r_plugin.baselines.lora`: LoRA on the fused ``attn.qkv`` of the backbone's own
   transformer blocks (declared per family as ``BackboneSpec.transformer_blocks``), reversible
   like :func:`raytun3r_plugin.apply` and saved in PEFT's layout.
+- :mod:`raytun3r_plugin.baselines.calibration_tokens`: learned tokens inserted before every
+  block (VPT-deep), where a family declares ``BackboneSpec.prompt_target`` (DA3).
+
+Both are fitted with ``adapt(..., tune=weights)``: the objective, windows, optimiser and steps
+of raytun3r's own fit, with the adapter's tables held at zero.
 """
 
+from raytun3r_plugin.baselines.calibration_tokens import (
+    CalibrationTokens,
+    TokenHandle,
+    inject_calibration_tokens,
+)
 from raytun3r_plugin.baselines.lora import LoraHandle, LoraWeights, inject_lora, lora_targets
 
-__all__ = ["LoraHandle", "LoraWeights", "inject_lora", "lora_targets"]
+__all__ = [
+    "CalibrationTokens",
+    "LoraHandle",
+    "LoraWeights",
+    "TokenHandle",
+    "inject_calibration_tokens",
+    "inject_lora",
+    "lora_targets",
+]
