@@ -78,7 +78,9 @@ def main() -> None:
         median = statistics.median(times[name])
         print(f"| {name} | {parameters[name]:,} | {median:.3f} | {median / base:.2f}x |")
     print("| Multi-PH (5 pinhole views) | 0 | not implemented | - |")
-    print("| calibration tokens (t=4; 12 x 4 x 384, by arithmetic) | 18,432 | not implemented | - |")
+    print(
+        "| calibration tokens (t=4; 12 x 4 x 384, by arithmetic) | 18,432 | not implemented | - |"
+    )
 
 
 if __name__ == "__main__":
