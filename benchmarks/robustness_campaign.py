@@ -95,6 +95,30 @@ def _count_later(outcomes: Counter, examples: dict, problem: str | None, label: 
     examples.setdefault(kind, f"{label}{problem}")
 
 
+def read_counted(read, path: Path, hang_s: float, outcomes: Counter, examples: dict, label: str):
+    """``read(path)``, counting the outcome; returns ``(value or None, seconds)`` and removes
+    the file."""
+    started = time.perf_counter()
+    try:
+        with time_limit(hang_s):
+            value = read(path)
+    except Hang:
+        outcomes["hangs"] += 1
+        value = None
+    except Raytun3rError:
+        outcomes["refused"] += 1
+        value = None
+    except Exception as error:  # what the campaign exists to find
+        outcomes["other exceptions"] += 1
+        examples.setdefault(type(error).__name__, f"{label}: {str(error)[:120]}")
+        value = None
+    else:
+        outcomes["accepted"] += 1
+    finally:
+        path.unlink(missing_ok=True)
+    return value, time.perf_counter() - started
+
+
 def adapter_campaign(count: int, seed: int, hang_s: float, net, images, folder: Path) -> dict:
     from tests.adapter_generators import adapter_bytes, mutate, valid_adapter
 
@@ -113,24 +137,12 @@ def adapter_campaign(count: int, seed: int, hang_s: float, net, images, folder: 
             template = fitting
         path = folder / f"adapter-{index}.safetensors"
         path.write_bytes(mutate(rng, adapter_bytes(template)))
-        started = time.perf_counter()
-        try:
-            with time_limit(hang_s):
-                adapter = rt.Adapter.load(path)
-        except Hang:
-            outcomes["hangs"] += 1
+        adapter, seconds = read_counted(
+            rt.Adapter.load, path, hang_s, outcomes, examples, path.name
+        )
+        slowest = max(slowest, seconds)
+        if adapter is None:
             continue
-        except Raytun3rError:
-            outcomes["refused"] += 1
-            continue
-        except Exception as error:
-            outcomes["other exceptions"] += 1
-            examples.setdefault(type(error).__name__, f"{path.name}: {str(error)[:120]}")
-            continue
-        finally:
-            slowest = max(slowest, time.perf_counter() - started)
-            path.unlink(missing_ok=True)
-        outcomes["accepted"] += 1
         camera = adapter.camera
         if camera is None:
             continue
@@ -156,9 +168,8 @@ def adapter_campaign(count: int, seed: int, hang_s: float, net, images, folder: 
 
 
 def calibration_campaign(count: int, seed: int, hang_s: float, net, images, folder: Path) -> dict:
-    from tests.calibration_generators import mutate, valid_calibrations
-
     from raytun3r_plugin.cameras import formats
+    from tests.calibration_generators import mutate, valid_calibrations
 
     rng = random.Random(seed)
     outcomes: Counter[str] = Counter()
@@ -174,24 +185,10 @@ def calibration_campaign(count: int, seed: int, hang_s: float, net, images, fold
         path = folder / f"calibration-{index}{suffix}"
         path.write_bytes(data)
         per_format[name] += 1
-        started = time.perf_counter()
-        try:
-            with time_limit(hang_s):
-                camera = formats.load(path)
-        except Hang:
-            outcomes["hangs"] += 1
+        camera, seconds = read_counted(formats.load, path, hang_s, outcomes, examples, name)
+        slowest = max(slowest, seconds)
+        if camera is None:
             continue
-        except Raytun3rError:
-            outcomes["refused"] += 1
-            continue
-        except Exception as error:
-            outcomes["other exceptions"] += 1
-            examples.setdefault(type(error).__name__, f"{name}: {str(error)[:120]}")
-            continue
-        finally:
-            slowest = max(slowest, time.perf_counter() - started)
-            path.unlink(missing_ok=True)
-        outcomes["accepted"] += 1
         key = camera.key()
         if key not in checked:
             checked[key] = camera_works(camera, net, images)

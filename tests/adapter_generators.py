@@ -16,6 +16,8 @@ import struct
 
 import torch
 
+from raytun3r_plugin.adapter import _REQUIRED_METADATA
+
 _NASTY_TEXT = [
     "",
     " 20 ",
@@ -44,21 +46,6 @@ _NASTY_TEXT = [
     "\ud800".encode("utf-8", "surrogatepass").decode("utf-8", "replace"),
     "x" * 10_000,
 ]
-_FIELDS = (
-    "format",
-    "format_version",
-    "backbone",
-    "embed_dim",
-    "patch_size",
-    "n_r",
-    "n_theta",
-    "n_r_rope",
-    "camera",
-    "components",
-    "pe_fingerprint",
-    "raytun3r_version",
-    "training",
-)
 _CAMERA_VALUES = [
     0.0,
     -1.0,
@@ -166,7 +153,7 @@ def mutate(rng: random.Random, data: bytes) -> bytes:
         return struct.pack("<Q", rng.choice([0, 7, len(data), 2**63, 2**64 - 1])) + data[8:]
     metadata = header["__metadata__"]
     if kind == "metadata":
-        field = rng.choice(_FIELDS)
+        field = rng.choice(_REQUIRED_METADATA)
         if rng.random() < 0.2:
             metadata.pop(field)
         else:

@@ -19,14 +19,13 @@ from __future__ import annotations
 import math
 import os
 import weakref
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
 
+from raytun3r_plugin.baselines._handle import BaselineHandle
 from raytun3r_plugin.errors import (
     AdapterError,
     AlreadyAppliedError,
@@ -133,7 +132,7 @@ class CalibrationTokens(nn.Module):
         return result
 
 
-class TokenHandle:
+class TokenHandle(BaselineHandle):
     """What :func:`inject_calibration_tokens` returns: ``remove()``, context manager,
     ``disabled()``."""
 
@@ -157,20 +156,6 @@ class TokenHandle:
         model = self._model()
         if model is not None and _ACTIVE.get(model) is self:
             del _ACTIVE[model]
-
-    @contextmanager
-    def disabled(self) -> Iterator[None]:
-        previous, self._enabled = self._enabled, False
-        try:
-            yield
-        finally:
-            self._enabled = previous
-
-    def __enter__(self) -> TokenHandle:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.remove()
 
 
 def inject_calibration_tokens(

@@ -22,14 +22,13 @@ import json
 import math
 import os
 import weakref
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
 
+from raytun3r_plugin.baselines._handle import BaselineHandle
 from raytun3r_plugin.errors import AdapterError, AlreadyAppliedError, UnsupportedUpstreamError
 
 if TYPE_CHECKING:
@@ -236,7 +235,7 @@ class LoraWeights(nn.Module):
         return weights
 
 
-class LoraHandle:
+class LoraHandle(BaselineHandle):
     """What :func:`inject_lora` returns: ``remove()``, a context manager, and ``disabled()``."""
 
     def __init__(self, model: nn.Module, weights: LoraWeights) -> None:
@@ -258,21 +257,6 @@ class LoraHandle:
         model = self._model()
         if model is not None and _ACTIVE.get(model) is self:
             del _ACTIVE[model]
-
-    @contextmanager
-    def disabled(self) -> Iterator[None]:
-        """Run the model without the LoRA update inside the block."""
-        previous, self._enabled = self._enabled, False
-        try:
-            yield
-        finally:
-            self._enabled = previous
-
-    def __enter__(self) -> LoraHandle:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.remove()
 
 
 def inject_lora(
