@@ -9,8 +9,15 @@
 - Kalibr camchain YAML (``cam0: {camera_model, intrinsics, distortion_model, ...}``);
 - COLMAP ``cameras.txt`` (pixel centres at +0.5 there: cx, cy lose 0.5 on import).
 
+The format is decided from the parsed keys (``model_type`` -> camodocal/OpenCV, ``value0`` ->
+basalt, ``camN.camera_model`` -> Kalibr, ``model`` -> raytun3r; COLMAP from its line shape),
+never from the extension or the ``%YAML:1.0`` header line.
+
 Every error is a :class:`CameraError` whose message starts with the file path and names the
-offending field.
+offending field. Reading is bounded for any input: at most :data:`MAX_FILE_BYTES` read
+(:data:`MAX_YAML_BYTES` for YAML), no YAML aliases, nesting at most :data:`MAX_DEPTH`, number
+literals at most :data:`MAX_NUMBER_CHARS` characters, values in messages cut to ~80 characters.
+See docs/cameras.md, "Calibration files: what is accepted".
 """
 
 from __future__ import annotations
@@ -40,39 +47,90 @@ PathLike = str | os.PathLike
 
 
 # ---------------------------------------------------------------------------- helpers
+#: Largest calibration file read, in bytes. Real calibration files are a few KiB; the cap bounds
+#: parse time and memory for any input.
+MAX_FILE_BYTES = 1 << 20
+#: Largest YAML text parsed, in bytes: PyYAML's pure-Python parser reads ~0.2 MB/s, so this
+#: bounds a YAML file to ~0.3 s (a Kalibr camchain is ~1 KiB per camera).
+MAX_YAML_BYTES = 64 << 10
+#: Deepest nesting of lists/mappings accepted (Kalibr needs 4: cam0.T_cn_cnm1[i][j]).
+MAX_DEPTH = 32
+#: Longest number literal accepted, in characters (a float64 needs at most ~25).
+MAX_NUMBER_CHARS = 64
+_SHORT = 80
+
+
+def _short(value: Any) -> str:
+    """``repr(value)`` cut to at most ~80 characters, so that no message repeats a huge value."""
+    if isinstance(value, (list, tuple, dict)) and len(value) > 20:
+        # Avoid building the whole repr of a large container just to cut it.
+        r = f"<{type(value).__name__} of {len(value)} items>"
+    else:
+        try:
+            r = repr(value)
+        except (ValueError, RecursionError):  # huge ints (Python 3.11 digit limit), deep lists
+            r = f"<{type(value).__name__}>"
+    return r if len(r) <= _SHORT else r[: _SHORT - 3] + "..."
+
+
 def _fail(path: PathLike, field: str, problem: str) -> CameraError:
+    field = field if len(field) <= _SHORT else field[: _SHORT - 3] + "..."
+    if len(problem) > 4 * _SHORT:
+        problem = problem[: 4 * _SHORT - 3] + "..."
     return CameraError(f"{path}: field '{field}': {problem}")
 
 
 def _num(path: PathLike, field: str, value: Any) -> float:
-    """A float from a parsed file value. Strings are accepted because YAML 1.1 reads numbers
-    such as ``1e-05`` (no dot) as strings; non-finite values are rejected later, by the model,
-    with the parameter's name."""
-    if isinstance(value, bool) or value is None:
-        raise _fail(path, field, f"expected a number, got {value!r}")
-    if isinstance(value, (int, float)):
-        return float(value)
-    if isinstance(value, str):
+    """A float from a parsed file value: an int or float (bool is not a number, nor is a
+    string; the YAML loader reads ``1e-05`` as a float). Non-finite values pass through and are
+    rejected by the model, with the parameter's name."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
         try:
-            return float(value.strip())
+            return float(value)
+        except OverflowError:
+            raise _fail(path, field, "number out of range") from None
+    raise _fail(path, field, f"expected a number, got {_short(value)}")
+
+
+def _token_num(path: PathLike, field: str, token: str) -> float:
+    """A float from a text token (COLMAP)."""
+    if len(token) <= MAX_NUMBER_CHARS:
+        try:
+            return float(token)
         except ValueError:
             pass
-    raise _fail(path, field, f"expected a number, got {value!r}")
+    raise _fail(path, field, f"expected a number, got {_short(token)}")
 
 
 def _int(path: PathLike, field: str, value: Any) -> int:
-    if isinstance(value, bool):
-        raise _fail(path, field, f"expected a positive integer, got {value!r}")
-    if isinstance(value, str):
-        try:
-            value = int(value.strip())
-        except ValueError:
-            pass
+    """A positive int; an integer-valued float (``640.0``) is accepted, a string is not."""
     if isinstance(value, float) and value.is_integer():
         value = int(value)
-    if not isinstance(value, int) or value <= 0:
-        raise _fail(path, field, f"expected a positive integer, got {value!r}")
+    if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+        raise _fail(path, field, f"expected a positive integer, got {_short(value)}")
     return value
+
+
+def _token_int(path: PathLike, field: str, token: str) -> int:
+    if re.fullmatch(r"[0-9]{1,9}", token):
+        return _int(path, field, int(token))
+    raise _fail(path, field, f"expected a positive integer, got {_short(token)}")
+
+
+def _check_depth(path: PathLike, data: Any) -> None:
+    """Refuse containers nested deeper than :data:`MAX_DEPTH` (iterative: no recursion)."""
+    stack = [(data, 1)]
+    while stack:
+        v, depth = stack.pop()
+        if isinstance(v, Mapping):
+            children = list(v.values())
+        elif isinstance(v, (list, tuple)):
+            children = list(v)
+        else:
+            continue
+        if depth > MAX_DEPTH:
+            raise CameraError(f"{path}: nested deeper than {MAX_DEPTH} levels")
+        stack.extend((c, depth + 1) for c in children)
 
 
 def _get(path: PathLike, d: Mapping[str, Any], key: str, field: str) -> Any:
@@ -83,10 +141,12 @@ def _get(path: PathLike, d: Mapping[str, Any], key: str, field: str) -> Any:
 
 def _numbers(path: PathLike, value: Any, field: str, count: int, names: str) -> list[float]:
     if not isinstance(value, (list, tuple)):
-        raise _fail(path, field, f"expected a list of {count} numbers [{names}], got {value!r}")
+        raise _fail(
+            path, field, f"expected a list of {count} numbers [{names}], got {_short(value)}"
+        )
     if len(value) != count:
         raise _fail(
-            path, field, f"expected {count} values [{names}], got {len(value)}: {list(value)!r}"
+            path, field, f"expected {count} values [{names}], got {len(value)}: {_short(value)}"
         )
     return [_num(path, f"{field}[{i}]", v) for i, v in enumerate(value)]
 
@@ -115,23 +175,25 @@ def _camera_index(path: PathLike, camera: str | int | None, names: list[str]) ->
     if camera is None:
         return 0
     if isinstance(camera, bool):
-        raise _fail(path, "camera", f"unknown camera id {camera!r}")
+        raise _fail(path, "camera", f"unknown camera id {_short(camera)}")
     if isinstance(camera, int):
         if 0 <= camera < len(names):
             return camera
     elif isinstance(camera, str):
         if camera in names:
             return names.index(camera)
-        m = re.fullmatch(r"(?:cam)?(\d+)", camera.strip())
+        m = re.fullmatch(r"(?:cam)?([0-9]{1,9})", camera.strip())
         if m and 0 <= int(m.group(1)) < len(names):
             return int(m.group(1))
-    raise _fail(path, "camera", f"unknown camera id {camera!r} (available: {names})")
+    raise _fail(path, "camera", f"unknown camera id {_short(camera)} (available: {_short(names)})")
 
 
 # ---------------------------------------------------------------------------- raytun3r JSON
 def _read_own(path: PathLike, d: Mapping[str, Any], camera: str | int | None) -> Camera:
     if camera not in (None, 0, "0", "cam0"):
-        raise _fail(path, "camera", f"unknown camera id {camera!r} (the file holds one camera)")
+        raise _fail(
+            path, "camera", f"unknown camera id {_short(camera)} (the file holds one camera)"
+        )
     try:
         return from_dict(d)
     except CameraError as e:
@@ -158,11 +220,11 @@ def _read_basalt(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
     base = f"value0.intrinsics[{i}]"
     entry = intr[i]
     ctype = _get(path, entry, "camera_type", f"{base}.camera_type")
-    if ctype not in _BASALT:
+    if not isinstance(ctype, str) or ctype not in _BASALT:
         raise _fail(
             path,
             f"{base}.camera_type",
-            f"unsupported camera type {ctype!r} (supported: {sorted(_BASALT)})",
+            f"unsupported camera type {_short(ctype)} (supported: {sorted(_BASALT)})",
         )
     cls, keys = _BASALT[ctype]
     block = _get(path, entry, "intrinsics", f"{base}.intrinsics")
@@ -173,7 +235,7 @@ def _read_basalt(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
         raise _fail(
             path,
             f"{base}.intrinsics.{extra[0]}",
-            f"unexpected parameter for {ctype!r} (expected {list(keys)})",
+            f"unexpected parameter for {_short(ctype)} (expected {list(keys)})",
         )
     values = {
         k: _num(path, f"{base}.intrinsics.{k}", _get(path, block, k, f"{base}.intrinsics.{k}"))
@@ -183,7 +245,7 @@ def _read_basalt(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
         raise _fail(path, f"value0.resolution[{i}]", "is missing")
     wh = res[i]
     if not isinstance(wh, (list, tuple)) or len(wh) != 2:
-        raise _fail(path, f"value0.resolution[{i}]", f"expected [width, height], got {wh!r}")
+        raise _fail(path, f"value0.resolution[{i}]", f"expected [width, height], got {_short(wh)}")
     w = _int(path, f"value0.resolution[{i}][0]", wh[0])
     h = _int(path, f"value0.resolution[{i}][1]", wh[1])
     return _build(path, cls, w, h, values, {k: f"{base}.intrinsics.{k}" for k in keys})
@@ -191,7 +253,7 @@ def _read_basalt(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
 
 # ---------------------------------------------------------------------------- Kalibr YAML
 def _read_kalibr(path: PathLike, d: Mapping[str, Any], camera: str | int | None) -> Camera:
-    names = sorted((k for k in d if re.fullmatch(r"cam\d+", str(k))), key=lambda k: int(k[3:]))
+    names = sorted((k for k in d if _is_cam_key(k)), key=lambda k: int(k[3:]))
     if camera is None:
         key = "cam0" if "cam0" in names else names[0]
     elif isinstance(camera, int) and not isinstance(camera, bool) and f"cam{camera}" in names:
@@ -199,14 +261,20 @@ def _read_kalibr(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
     elif isinstance(camera, str) and (camera in names or f"cam{camera}" in names):
         key = camera if camera in names else f"cam{camera}"
     else:
-        raise _fail(path, "camera", f"unknown camera id {camera!r} (available: {names})")
+        raise _fail(
+            path, "camera", f"unknown camera id {_short(camera)} (available: {_short(names)})"
+        )
     c = d[key]
     if not isinstance(c, Mapping):
         raise _fail(path, key, "expected a mapping")
     cam_model = _get(path, c, "camera_model", f"{key}.camera_model")
+    if not isinstance(cam_model, str):
+        raise _fail(path, f"{key}.camera_model", f"expected a string, got {_short(cam_model)}")
     dist_model = c.get("distortion_model", "none")
     if dist_model is None:
         dist_model = "none"
+    if not isinstance(dist_model, str):
+        raise _fail(path, f"{key}.distortion_model", f"expected a string, got {_short(dist_model)}")
     # Kalibr's command line says "equi" for what its camchain files call "equidistant".
     dist_model = {"equi": "equidistant"}.get(dist_model, dist_model)
     res = _numbers(
@@ -229,14 +297,18 @@ def _read_kalibr(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
 
     def no_dist() -> None:
         coeffs = c.get("distortion_coeffs", [])
-        if coeffs not in (None, []) and any(_num(path, dist_field, x) != 0.0 for x in coeffs):
+        if coeffs is None:
+            return
+        if not isinstance(coeffs, list):
+            raise _fail(path, dist_field, f"expected a list, got {_short(coeffs)}")
+        if any(_num(path, f"{dist_field}[{i}]", x) != 0.0 for i, x in enumerate(coeffs)):
             raise _fail(path, dist_field, "must be empty for distortion_model 'none'")
 
     if dist_model not in ("none", "radtan", "equidistant"):
         raise _fail(
             path,
             f"{key}.distortion_model",
-            f"unsupported distortion model {dist_model!r} (supported: none, radtan, equidistant)",
+            f"unsupported distortion model {_short(dist_model)} (supported: none, radtan, equidistant)",
         )
     if cam_model == "pinhole":
         fu, fv, pu, pv = _numbers(path, raw_intr, intr_field, 4, "fu fv pu pv")
@@ -297,7 +369,7 @@ def _read_kalibr(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
             no_dist()
             # xi form -> alpha form: alpha = xi / (1 + xi), f_alpha = f_xi / (1 + xi).
             if not (math.isfinite(xi) and xi >= 0.0):
-                raise _fail(path, fields["xi"], f"must be a finite number >= 0, got {xi!r}")
+                raise _fail(path, fields["xi"], f"must be a finite number >= 0, got {_short(xi)}")
             vals = {
                 "fx": fu / (1.0 + xi),
                 "fy": fv / (1.0 + xi),
@@ -316,7 +388,7 @@ def _read_kalibr(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
             raise _fail(
                 path,
                 f"{key}.distortion_model",
-                f"camera_model {cam_model!r} supports distortion_model none only",
+                f"camera_model {_short(cam_model)} supports distortion_model none only",
             )
         no_dist()
         first = ("xi", "alpha") if cam_model == "ds" else ("alpha", "beta")
@@ -328,32 +400,94 @@ def _read_kalibr(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
     raise _fail(
         path,
         f"{key}.camera_model",
-        f"unsupported camera model {cam_model!r} (supported: pinhole, omni, ds, eucm)",
+        f"unsupported camera model {_short(cam_model)} (supported: pinhole, omni, ds, eucm)",
     )
 
 
-# ---------------------------------------------------------------------------- OpenCV YAML
-class _CvLoader(yaml.SafeLoader):
-    """SafeLoader that also reads OpenCV's ``!!opencv-matrix`` nodes (as plain mappings)."""
+# ---------------------------------------------------------------------------- YAML
+class _CalibLoader(yaml.SafeLoader):
+    """Bounded SafeLoader for calibration YAML (Kalibr, OpenCV FileStorage / camodocal).
+
+    - Aliases are refused outright: neither Kalibr nor OpenCV FileStorage writes them, and
+      refusing them rules out alias bombs ("billion laughs") and merge keys.
+    - Nesting deeper than :data:`MAX_DEPTH` is refused while composing (before recursion).
+    - Number literals longer than :data:`MAX_NUMBER_CHARS` are refused before ``int()``.
+    - ``1e-05`` (no dot) and ``1.0e5`` (no exponent sign) are floats, as in YAML 1.2 (YAML 1.1
+      would read them as strings; Kalibr writes such numbers).
+    - OpenCV's ``!!opencv-matrix`` nodes are read as plain mappings.
+    """
+
+    _depth = 0
+
+    def compose_node(self, parent: Any, index: Any) -> Any:  # noqa: D102 - PyYAML hook
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(
+                None, None, "YAML aliases are not accepted in calibration files", event.start_mark
+            )
+        self._depth += 1
+        try:
+            if self._depth > MAX_DEPTH:
+                raise yaml.composer.ComposerError(
+                    None,
+                    None,
+                    f"nested deeper than {MAX_DEPTH} levels",
+                    self.peek_event().start_mark,
+                )
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def construct_yaml_int(self, node: yaml.ScalarNode) -> int:  # noqa: D102
+        if len(node.value) > MAX_NUMBER_CHARS:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"integer longer than {MAX_NUMBER_CHARS} characters", node.start_mark
+            )
+        return super().construct_yaml_int(node)
+
+    def construct_yaml_float(self, node: yaml.ScalarNode) -> float:  # noqa: D102
+        if len(node.value) > MAX_NUMBER_CHARS:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"number longer than {MAX_NUMBER_CHARS} characters", node.start_mark
+            )
+        return super().construct_yaml_float(node)
 
 
-_CvLoader.add_constructor(
+_CalibLoader.add_constructor("tag:yaml.org,2002:int", _CalibLoader.construct_yaml_int)
+_CalibLoader.add_constructor("tag:yaml.org,2002:float", _CalibLoader.construct_yaml_float)
+_CalibLoader.add_constructor(
     "tag:yaml.org,2002:opencv-matrix",
     lambda loader, node: loader.construct_mapping(node, deep=True),
 )
+_CalibLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."),
+)
 
 
-def _parse_opencv_yaml(path: PathLike, text: str) -> Any:
+def _parse_yaml(path: PathLike, text: str) -> Any:
+    if len(text.encode("utf-8")) > MAX_YAML_BYTES:
+        raise CameraError(
+            f"{path}: YAML calibration file larger than {MAX_YAML_BYTES} bytes; not a calibration"
+        )
     lines = text.splitlines()
-    # PyYAML does not understand the "%YAML:1.0" directive OpenCV writes.
-    if lines and lines[0].lstrip().startswith("%YAML"):
+    # PyYAML does not understand the "%YAML:1.0" directive OpenCV writes (nor does it need it).
+    if lines and lines[0].lstrip().startswith("%YAML:"):
         lines = lines[1:]
     # OpenCV may write "key:value"; YAML needs a space after the colon of a key.
     fixed = [re.sub(r"^(\s*[A-Za-z_][\w.\-]*):(?=[^\s:/])", r"\1: ", ln) for ln in lines]
     try:
-        return yaml.load("\n".join(fixed), Loader=_CvLoader)  # noqa: S506 - SafeLoader subclass
+        return yaml.load("\n".join(fixed), Loader=_CalibLoader)  # noqa: S506 - SafeLoader subclass
     except yaml.YAMLError as e:
-        raise CameraError(f"{path}: not a valid OpenCV YAML file: {e}") from None
+        msg = str(e)
+        if len(msg) > 4 * _SHORT:
+            msg = msg[: 4 * _SHORT - 3] + "..."
+        raise CameraError(f"{path}: not a valid YAML file: {msg}") from None
+
+
+def _is_cam_key(k: Any) -> bool:
+    return isinstance(k, str) and re.fullmatch(r"cam[0-9]{1,6}", k) is not None
 
 
 _CAMODOCAL: dict[str, tuple[type[Camera], list[tuple[str, str, str]]]] = {
@@ -405,12 +539,16 @@ _CAMODOCAL: dict[str, tuple[type[Camera], list[tuple[str, str, str]]]] = {
 def _read_camodocal(path: PathLike, d: Mapping[str, Any], camera: str | int | None) -> Camera:
     name = d.get("camera_name")
     if camera not in (None, 0, "0") and camera != name:
-        raise _fail(path, "camera", f"unknown camera id {camera!r} (the file holds {name!r})")
+        raise _fail(
+            path, "camera", f"unknown camera id {_short(camera)} (the file holds {_short(name)})"
+        )
     mt = d["model_type"]
-    key = str(mt).upper() if isinstance(mt, str) else mt
+    key = mt.upper() if isinstance(mt, str) else None
     if key not in _CAMODOCAL:
         raise _fail(
-            path, "model_type", f"unsupported model type {mt!r} (supported: {sorted(_CAMODOCAL)})"
+            path,
+            "model_type",
+            f"unsupported model type {_short(mt)} (supported: {sorted(_CAMODOCAL)})",
         )
     cls, spec = _CAMODOCAL[key]
     w = _int(path, "image_width", _get(path, d, "image_width", "image_width"))
@@ -427,9 +565,10 @@ def _read_camodocal(path: PathLike, d: Mapping[str, Any], camera: str | int | No
             raise _fail(
                 path,
                 f"{g}.{extra[0]}",
-                f"unexpected parameter for model_type {mt!r} (expected {sorted(allowed)})",
+                f"unexpected parameter for model_type {_short(mt)} (expected {sorted(allowed)})",
             )
     values = {n: _num(path, f"{g}.{f}", _get(path, d[g], f, f"{g}.{f}")) for n, g, f in spec}
+    # camodocal files also hold camera_name (a string); other top-level keys are ignored.
     return _build(path, cls, w, h, values, {n: f"{g}.{f}" for n, g, f in spec})
 
 
@@ -541,7 +680,7 @@ _COLMAP_EXPORT = {
     "fisheye624": "RAD_TAN_THIN_PRISM_FISHEYE",
 }
 
-_COLMAP_LINE = re.compile(r"^\s*-?\d+\s+[A-Z][A-Z0-9_]*\s")
+_COLMAP_LINE = re.compile(r"^\s*-?[0-9]{1,18}\s+[A-Z][A-Z0-9_]*\s")
 
 
 def _looks_like_colmap(text: str) -> bool:
@@ -561,10 +700,12 @@ def _read_colmap(path: PathLike, text: str, camera: str | int | None) -> Camera:
         want: int | None = None
         if isinstance(camera, int) and not isinstance(camera, bool):
             want = camera
-        elif isinstance(camera, str) and re.fullmatch(r"\s*-?\d+\s*", camera):
+        elif isinstance(camera, str) and re.fullmatch(r"\s*-?[0-9]{1,18}\s*", camera):
             want = int(camera)
         if want is None or want not in ids:
-            raise _fail(path, "camera", f"unknown camera id {camera!r} (available: {ids})")
+            raise _fail(
+                path, "camera", f"unknown camera id {_short(camera)} (available: {_short(ids)})"
+            )
         idx = ids.index(want)
     lineno, tok = rows[idx]
     where = f"camera {tok[0]} (line {lineno})"
@@ -573,13 +714,13 @@ def _read_colmap(path: PathLike, text: str, camera: str | int | None) -> Camera:
         raise _fail(
             path,
             f"{where} MODEL",
-            f"unsupported COLMAP camera model {model!r} (supported: {sorted(_COLMAP)})",
+            f"unsupported COLMAP camera model {_short(model)} (supported: {sorted(_COLMAP)})",
         )
     cls, names, convert = _COLMAP[model]
     if len(tok) < 4:
         raise _fail(path, f"{where} WIDTH HEIGHT", "is missing")
-    w = _int(path, f"{where} WIDTH", tok[2])
-    h = _int(path, f"{where} HEIGHT", tok[3])
+    w = _token_int(path, f"{where} WIDTH", tok[2])
+    h = _token_int(path, f"{where} HEIGHT", tok[3])
     raw = tok[4:]
     if len(raw) != len(names):
         raise _fail(
@@ -587,7 +728,7 @@ def _read_colmap(path: PathLike, text: str, camera: str | int | None) -> Camera:
             f"{where} PARAMS",
             f"{model} takes {len(names)} parameters {list(names)}, got {len(raw)}",
         )
-    vals = [_num(path, f"{where} param {n}", v) for n, v in zip(names, raw, strict=True)]
+    vals = [_token_num(path, f"{where} param {n}", v) for n, v in zip(names, raw, strict=True)]
     values = convert(vals)
     # COLMAP's pixel (0, 0) is the top-left corner of the image; ours is the first pixel centre.
     values["cx"] -= 0.5
@@ -640,48 +781,90 @@ def to_colmap_line(camera: Camera, camera_id: int, model: str | None = None) -> 
 # ---------------------------------------------------------------------------- entry points
 def detect_format(path: PathLike) -> str:
     """Name of the calibration format of ``path``: ``raytun3r``, ``basalt``, ``opencv_yaml``,
-    ``kalibr`` or ``colmap`` (raises :class:`CameraError` if none fits)."""
+    ``kalibr`` or ``colmap``, decided from the parsed content (keys), never from the extension
+    or the ``%YAML`` header line (raises :class:`CameraError` if none fits)."""
     return _parse(Path(path))[0]
 
 
-def _parse(path: Path) -> tuple[str, Any]:
+def _read_text(path: Path) -> str:
+    """The file as UTF-8 text, at most :data:`MAX_FILE_BYTES` bytes."""
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise CameraError(f"{path}: cannot read calibration file: {e}") from None
-    head = text.lstrip()
-    if head.startswith("{"):
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise CameraError(f"{path}: not valid JSON: {e}") from None
-        if isinstance(d, Mapping) and "value0" in d:
-            return "basalt", d
-        if isinstance(d, Mapping) and "model" in d:
-            return "raytun3r", d
-        raise CameraError(f"{path}: unknown calibration format (JSON without 'value0' or 'model')")
-    if head.startswith("%YAML"):
-        d = _parse_opencv_yaml(path, text)
-        if isinstance(d, Mapping) and "model_type" in d:
-            return "opencv_yaml", d
+        with open(path, "rb") as f:
+            raw = f.read(MAX_FILE_BYTES + 1)
+    except OSError as e:
+        raise CameraError(f"{path}: cannot read calibration file: {e.strerror or e}") from None
+    if len(raw) > MAX_FILE_BYTES:
         raise CameraError(
-            f"{path}: unknown calibration format (OpenCV YAML without field 'model_type')"
+            f"{path}: calibration file larger than {MAX_FILE_BYTES} bytes; not a calibration"
         )
-    if _looks_like_colmap(text):
-        return "colmap", text
     try:
-        d = yaml.safe_load(text)
-    except yaml.YAMLError:
-        d = None
-    if isinstance(d, Mapping):
-        if "model_type" in d:
-            return "opencv_yaml", d
-        if any(re.fullmatch(r"cam\d+", str(k)) and isinstance(v, Mapping) for k, v in d.items()):
-            return "kalibr", d
-    raise CameraError(
-        f"{path}: unknown calibration format (expected raytun3r/basalt JSON, Kalibr camchain or "
-        "KITTI-360/OpenCV YAML, or COLMAP cameras.txt)"
-    )
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise CameraError(f"{path}: not UTF-8 text (byte {e.start})") from None
+    if text.startswith("\ufeff"):  # a byte-order mark some editors write
+        text = text[1:]
+    if "\x00" in text:
+        raise CameraError(f"{path}: not a text file (NUL byte)")
+    return text
+
+
+def _json_number(path: PathLike, kind: str) -> Callable[[str], Any]:
+    """``json.loads`` hook: refuse a number literal longer than :data:`MAX_NUMBER_CHARS` before
+    ``int()`` / ``float()`` sees it (Python 3.11 refuses ints over 4300 digits only after
+    spending time on them, and with a ValueError)."""
+
+    def parse(s: str) -> Any:
+        if len(s) > MAX_NUMBER_CHARS:
+            raise CameraError(f"{path}: JSON {kind} longer than {MAX_NUMBER_CHARS} characters")
+        return int(s) if kind == "integer" else float(s)
+
+    return parse
+
+
+def _classify(d: Any) -> str | None:
+    """Format name from the top-level keys of parsed JSON/YAML, or None."""
+    if not isinstance(d, Mapping):
+        return None
+    if "model_type" in d:
+        return "opencv_yaml"
+    if "value0" in d:
+        return "basalt"
+    if any(_is_cam_key(k) and isinstance(v, Mapping) and "camera_model" in v for k, v in d.items()):
+        return "kalibr"
+    if "model" in d:
+        return "raytun3r"
+    return None
+
+
+def _parse(path: Path) -> tuple[str, Any]:
+    text = _read_text(path)
+    head = text.lstrip()
+    if head.startswith(("{", "[")):
+        try:
+            d = json.loads(
+                text,
+                parse_int=_json_number(path, "integer"),
+                parse_float=_json_number(path, "number"),
+            )
+        except RecursionError:
+            raise CameraError(f"{path}: not valid JSON: nested too deeply") from None
+        except ValueError as e:  # JSONDecodeError is a ValueError, as are the number limits
+            raise CameraError(f"{path}: not valid JSON: {str(e)[: 4 * _SHORT]}") from None
+    elif _looks_like_colmap(text):
+        return "colmap", text
+    else:
+        d = _parse_yaml(path, text)
+    _check_depth(path, d)
+    kind = _classify(d)
+    if kind is None:
+        keys = sorted(str(k) for k in d)[:8] if isinstance(d, Mapping) else None
+        found = f"top-level keys {_short(keys)}" if keys is not None else _short(type(d).__name__)
+        raise CameraError(
+            f"{path}: unknown calibration format, found {found} (expected raytun3r JSON 'model', "
+            "basalt 'value0', Kalibr 'cam0.camera_model', camodocal/OpenCV 'model_type', or "
+            "COLMAP cameras.txt lines)"
+        )
+    return kind, d
 
 
 def load(path: PathLike, camera: str | int | None = None) -> Camera:
