@@ -463,6 +463,7 @@ def summarize(
     Args:
         pose_errors: output of :func:`relative_pose_errors`; adds ``rotation_deg``,
             ``translation_deg`` and ``pose_max_deg`` (max of both per pair) statistics,
+            ``translation_folded_deg`` (min(e, 180 - e), when ``translation_deg`` is signed),
             ``n_pairs``, ``n_skipped``, ``folded`` and ``auc@T`` / ``acc@T`` (fraction with
             max error < T) of the max error for every threshold T (degrees).
         d_reproj: per-pair d_reproj values (pixels).
@@ -484,6 +485,10 @@ def summarize(
         out["n_pairs"] = int(pose_errors["n_pairs"])
         out["n_skipped"] = int(pose_errors["n_skipped"])
         out["folded"] = bool(pose_errors.get("folded", False))
+        if not out["folded"]:
+            # Both conventions, so a table can say which it shows: the signed error (0-180,
+            # a reversed direction is 180) and VGGT-style folded one (0-90, sign-invariant).
+            out["translation_folded_deg"] = _stats(np.minimum(tra, 180.0 - tra))
         for th in thresholds:
             out[f"auc@{th:g}"] = auc(worst, th)
             out[f"acc@{th:g}"] = (

@@ -194,9 +194,26 @@ def cmd_eval(args: argparse.Namespace) -> int:
         f"{seq.name}: {len(seq)} frames at {seq.camera.width}x{seq.camera.height} px, camera {seq.camera!r}"
     )
     print(
+        "protocol: relative poses of consecutive frames within each 3-frame window (run_method's "
+        "default), the "
+        f"same pairs for every method; pairs whose ground-truth baseline is under 1 mm are "
+        f"skipped and counted ({rows[0]['skipped_pairs']} of "
+        f"{rows[0]['pairs'] + rows[0]['skipped_pairs']}); trans_deg is the signed direction "
+        f"error (0-180), trans_folded_deg the folded one (0-90, VGGT-style)"
+    )
+    print(
         format_table(
             rows,
-            ["method", "rot_deg", "trans_deg", "d_reproj_px", "abs_rel", "delta_1.25", "coverage"],
+            [
+                "method",
+                "rot_deg",
+                "trans_deg",
+                "trans_folded_deg",
+                "d_reproj_px",
+                "abs_rel",
+                "delta_1.25",
+                "coverage",
+            ],
         )
     )
     return 0

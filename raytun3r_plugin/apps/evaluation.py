@@ -225,8 +225,9 @@ def score(
 
 
 def headline(summary: dict[str, Any]) -> dict[str, float]:
-    """The numbers a results table shows: means of rotation / translation error (deg),
-    d_reproj (px), AbsRel, delta < 1.25, coverage."""
+    """The numbers a results table shows: means of rotation / translation error (deg; signed
+    0-180 as ``trans_deg``, folded 0-90 as ``trans_folded_deg``), d_reproj (px), AbsRel,
+    delta < 1.25, coverage, and the counts of scored and skipped pairs."""
 
     def mean(key: str) -> float:
         value = summary.get(key)
@@ -235,10 +236,13 @@ def headline(summary: dict[str, Any]) -> dict[str, float]:
     return {
         "rot_deg": mean("rotation_deg"),
         "trans_deg": mean("translation_deg"),
+        "trans_folded_deg": mean("translation_folded_deg"),
         "d_reproj_px": mean("d_reproj"),
         "abs_rel": mean("abs_rel"),
         "delta_1.25": mean("delta_125"),
         "coverage": float(summary.get("coverage", math.nan)),
+        "pairs": summary.get("n_pairs", 0),
+        "skipped_pairs": summary.get("n_skipped", 0),
     }
 
 
