@@ -115,3 +115,24 @@ def test_fisheye_refuses_bad_arguments():
         fisheye(64, 190.0, k=(0.1,))
     with pytest.raises(CameraError, match="size"):
         fisheye((0, 64), 190.0)
+
+
+def test_perturbed_changes_each_group_by_the_given_amount():
+    import pytest
+
+    from raytun3r_plugin.cameras import fisheye, perturbed
+    from raytun3r_plugin.errors import CameraError
+
+    camera = fisheye((120, 100), 190.0, "ds")
+    rough = perturbed(camera, focal=0.05, principal=0.01, distortion=-0.1)
+    p, q = camera.params, rough.params
+    assert type(rough) is type(camera) and rough.max_fov_deg == camera.max_fov_deg
+    assert float(q[0]) == pytest.approx(1.05 * float(p[0]))
+    assert float(q[2]) == pytest.approx(float(p[2]) + 1.2)
+    assert float(q[3]) == pytest.approx(float(p[3]) + 1.0)
+    assert float(q[5]) == pytest.approx(0.9 * float(p[5]))
+    assert perturbed(camera) == camera
+    with pytest.raises(CameraError, match="focal must be a number in"):
+        perturbed(camera, focal=2.0)
+    with pytest.raises(CameraError):
+        perturbed(fisheye((120, 100), 190.0, "ds", alpha=0.95), distortion=0.2)  # alpha > 1

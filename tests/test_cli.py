@@ -592,3 +592,38 @@ def test_adapt_infer_and_eval_feed_the_network_the_same_input(setup, tmp_path, m
     # And the same cameras: infer patches with adapt's camera, eval scores with its input camera.
     assert seen["camera"].to_dict() == problem.layout.native_camera.to_dict()
     assert evaluated.camera.to_dict() == problem.layout.camera.to_dict()
+
+
+def test_eval_with_a_perturbed_calibration_reports_both_rows(setup, capsys):
+    code = main(
+        [
+            "eval",
+            *model_args(setup),
+            "--dataset",
+            str(setup["sequence"]),
+            "--size",
+            str(SIZE),
+            "--method",
+            "raytun3r",
+            "--perturb-calibration",
+            "focal=0.1,principal=0.02",
+        ]
+    )
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "| raytun3r |" in out
+    assert "| raytun3r (calibration focal +0.1, principal +0.02) |" in out
+    assert "trans_folded_deg" in out and "protocol:" in out
+    assert (
+        main(
+            [
+                "eval",
+                *model_args(setup),
+                "--dataset",
+                str(setup["sequence"]),
+                "--perturb-calibration",
+                "zoom=2",
+            ]
+        )
+        == 2
+    )

@@ -190,6 +190,20 @@ def cmd_eval(args: argparse.Namespace) -> int:
         {"method": method, **headline(score(seq, run_method(model, seq, method, adapter=adapter)))}
         for method in methods
     ]
+    if args.perturb_calibration:
+        import dataclasses
+
+        from raytun3r_plugin.cameras import perturbed
+
+        amounts = _parse_amounts(args.perturb_calibration)
+        rough = dataclasses.replace(seq, camera=perturbed(seq.camera, **amounts))
+        label = ", ".join(f"{k} {v:+g}" for k, v in amounts.items())
+        for method in methods:
+            # Run with the rough camera, score against the true one (seq).
+            output = run_method(model, rough, method, adapter=adapter)
+            rows.append(
+                {"method": f"{method} (calibration {label})", **headline(score(seq, output))}
+            )
     print(
         f"{seq.name}: {len(seq)} frames at {seq.camera.width}x{seq.camera.height} px, camera {seq.camera!r}"
     )
@@ -217,6 +231,25 @@ def cmd_eval(args: argparse.Namespace) -> int:
         )
     )
     return 0
+
+
+def _parse_amounts(text: str) -> dict[str, float]:
+    """``"focal=0.05,principal=0.01"`` -> ``{"focal": 0.05, "principal": 0.01}``."""
+    amounts: dict[str, float] = {}
+    for part in text.split(","):
+        name, _, value = part.partition("=")
+        name = name.strip()
+        if name not in ("focal", "principal", "distortion") or not value:
+            raise InputError(
+                f"--perturb-calibration: expected focal=F,principal=P,distortion=D, got {part!r}"
+            )
+        try:
+            amounts[name] = float(value)
+        except ValueError:
+            raise InputError(
+                f"--perturb-calibration: {name} must be a number, got {value!r}"
+            ) from None
+    return amounts
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -381,6 +414,14 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"network input long side in pixels (default: the adapter's, else 504); {rule}",
     )
     p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument(
+        "--perturb-calibration",
+        default=None,
+        metavar="focal=F,principal=P,distortion=D",
+        help="also run every method with a camera whose focal lengths change by F (relative), "
+        "principal point by P (fraction of the image size) and distortion parameters by D "
+        "(relative), and report both rows; scoring always uses the true camera",
+    )
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser(

@@ -23,7 +23,7 @@ from raytun3r_plugin.cameras.base import (
     pixel_grid,
     validate,
 )
-from raytun3r_plugin.cameras.builders import fisheye
+from raytun3r_plugin.cameras.builders import fisheye, perturbed
 from raytun3r_plugin.cameras.fisheye624 import Fisheye624
 from raytun3r_plugin.cameras.formats import load, save, to_colmap_line
 from raytun3r_plugin.cameras.fov import FOV
@@ -50,6 +50,7 @@ __all__ = [
     "Pinhole",
     "ThinPrismFisheye",
     "fisheye",
+    "perturbed",
     "from_dict",
     "load",
     "pixel_grid",

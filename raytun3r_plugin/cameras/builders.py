@@ -17,7 +17,7 @@ from raytun3r_plugin.cameras.kb import KannalaBrandt4
 from raytun3r_plugin.cameras.unified import DoubleSphere
 from raytun3r_plugin.errors import CameraError
 
-__all__ = ["FISHEYE_MODELS", "fisheye"]
+__all__ = ["FISHEYE_MODELS", "fisheye", "perturbed"]
 
 #: Lens models :func:`fisheye` builds.
 FISHEYE_MODELS = ("kb4", "ds")
@@ -113,3 +113,36 @@ def fisheye(
             max_fov_deg=fov_deg,
         )
     raise CameraError(f"fisheye: model must be one of {FISHEYE_MODELS}, got {model!r}")
+
+
+def perturbed(
+    camera: Camera, *, focal: float = 0.0, principal: float = 0.0, distortion: float = 0.0
+) -> Camera:
+    """``camera`` with a controlled calibration error: the rough calibration a user may have.
+
+    Args:
+        focal: relative change of fx and fy (0.05: 5 % longer focal lengths).
+        principal: shift of cx and cy as a fraction of the image width and height.
+        distortion: relative change of every parameter after the four intrinsics (k, xi,
+            alpha, ...).
+
+    Returns:
+        a camera of the same model, size and ``max_fov_deg``.
+
+    Raises:
+        CameraError: the perturbed parameters leave the model's domain (e.g. alpha > 1).
+    """
+    for name, value in (("focal", focal), ("principal", principal), ("distortion", distortion)):
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, numbers.Real)
+            or not math.isfinite(value)
+            or abs(value) >= 1.0
+        ):
+            raise CameraError(f"perturbed: {name} must be a number in (-1, 1), got {_short(value)}")
+    p = camera.params.detach().clone()
+    p[:2] = p[:2] * (1.0 + focal)
+    p[2] = p[2] + principal * camera.width
+    p[3] = p[3] + principal * camera.height
+    p[4:] = p[4:] * (1.0 + distortion)
+    return type(camera)(camera.width, camera.height, p, max_fov_deg=camera.max_fov_deg)
