@@ -607,13 +607,15 @@ def test_eval_with_a_perturbed_calibration_reports_both_rows(setup, capsys):
             "raytun3r",
             "--perturb-calibration",
             "focal=0.1,principal=0.02",
+            "--pair-stride",
+            "2",
         ]
     )
     assert code == 0
     out = capsys.readouterr().out
     assert "| raytun3r |" in out
     assert "| raytun3r (calibration focal +0.1, principal +0.02) |" in out
-    assert "trans_folded_deg" in out and "protocol:" in out
+    assert "trans_folded_deg" in out and "protocol: pair stride 2 (given)" in out
     assert (
         main(
             [

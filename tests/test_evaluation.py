@@ -12,12 +12,15 @@ from raytun3r_plugin import synthetic
 from raytun3r_plugin.apps.evaluation import (
     center_pinhole,
     center_pinhole_depth_to_fisheye,
+    choose_pair_stride,
     fisheye_to_center_pinhole,
     frame_windows,
     headline,
     run_method,
     score,
 )
+from raytun3r_plugin.datasets import Sequence
+from raytun3r_plugin.errors import InputError
 from tests.helpers import fisheye
 
 SIZE = 84
@@ -31,6 +34,28 @@ def seq():
 def test_frame_windows_cover_every_frame_once():
     assert frame_windows(list(range(7)), 3) == [[0, 1, 2], [3, 4, 5, 6]]
     assert frame_windows(list(range(6)), 3) == [[0, 1, 2], [3, 4, 5]]
+    # Stride 2: two interleaved runs, pairs two frames apart, every frame once.
+    assert frame_windows(list(range(8)), 3, 2) == [[0, 2, 4, 6], [1, 3, 5, 7]]
+    assert frame_windows(list(range(12)), 3, 2) == [[0, 2, 4], [6, 8, 10], [1, 3, 5], [7, 9, 11]]
+    with pytest.raises(InputError):
+        frame_windows(list(range(6)), 3, 0)
+
+
+def test_the_pair_stride_is_the_smallest_with_a_measurable_baseline():
+    camera = fisheye(SIZE, SIZE, 190.0)
+    positions = np.zeros((12, 3))
+    positions[:, 0] = 0.004 * np.arange(12)  # 4 mm per frame
+    poses = np.tile(np.eye(4), (12, 1, 1))
+    poses[:, :3, 3] = -positions  # cam_from_world of an unrotated camera at `positions`
+    seq = Sequence("line", camera, np.arange(12) / 30.0, poses)
+    chosen = choose_pair_stride(seq)
+    assert chosen["threshold"] == pytest.approx(0.05) and chosen["rule"] == "0.05 m"
+    assert chosen["stride"] == 4  # capped at a third of the frames (13 needed for 5 cm)
+    seq.depth = np.full((12, SIZE, SIZE), 0.5, np.float32)  # 3 % of 0.5 m = 15 mm: stride 4
+    assert choose_pair_stride(seq)["stride"] == 4
+    seq.depth = np.full((12, SIZE, SIZE), 0.2, np.float32)  # 6 mm: stride 2
+    chosen = choose_pair_stride(seq)
+    assert chosen["stride"] == 2 and chosen["median_baseline"] == pytest.approx(0.008)
 
 
 def test_center_pinhole_has_the_stated_field_of_view(seq):

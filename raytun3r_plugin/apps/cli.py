@@ -185,9 +185,29 @@ def cmd_eval(args: argparse.Namespace) -> int:
     )
     if seq.cam_from_world is None:
         raise InputError(f"{args.dataset}: the sequence has no ground-truth poses to score against")
+    from raytun3r_plugin.apps.evaluation import choose_pair_stride
+
+    if args.pair_stride == "auto":
+        chosen = choose_pair_stride(seq)
+        stride = chosen["stride"]
+        stride_note = (
+            f"pair stride {stride} (auto: smallest with a median ground-truth baseline of at "
+            f"least {chosen['rule']} = {chosen['threshold']:.3g}; it is {chosen['median_baseline']:.3g})"
+        )
+    else:
+        try:
+            stride = int(args.pair_stride)
+        except ValueError:
+            raise InputError(
+                f"--pair-stride must be 'auto' or an integer, got {args.pair_stride!r}"
+            ) from None
+        stride_note = f"pair stride {stride} (given)"
     methods = args.method.split(",")
     rows = [
-        {"method": method, **headline(score(seq, run_method(model, seq, method, adapter=adapter)))}
+        {
+            "method": method,
+            **headline(score(seq, run_method(model, seq, method, adapter=adapter, stride=stride))),
+        }
         for method in methods
     ]
     if args.perturb_calibration:
@@ -200,7 +220,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         label = ", ".join(f"{k} {v:+g}" for k, v in amounts.items())
         for method in methods:
             # Run with the rough camera, score against the true one (seq).
-            output = run_method(model, rough, method, adapter=adapter)
+            output = run_method(model, rough, method, adapter=adapter, stride=stride)
             rows.append(
                 {"method": f"{method} (calibration {label})", **headline(score(seq, output))}
             )
@@ -208,8 +228,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         f"{seq.name}: {len(seq)} frames at {seq.camera.width}x{seq.camera.height} px, camera {seq.camera!r}"
     )
     print(
-        "protocol: relative poses of consecutive frames within each 3-frame window (run_method's "
-        "default), the "
+        f"protocol: {stride_note}; relative poses of neighbouring views within each 3-view "
+        "window, the "
         f"same pairs for every method; pairs whose ground-truth baseline is under 1 mm are "
         f"skipped and counted ({rows[0]['skipped_pairs']} of "
         f"{rows[0]['pairs'] + rows[0]['skipped_pairs']}); trans_deg is the signed direction "
@@ -414,6 +434,13 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"network input long side in pixels (default: the adapter's, else 504); {rule}",
     )
     p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument(
+        "--pair-stride",
+        default="auto",
+        help="frames between the two views of a scored pair: an integer, or 'auto' (the "
+        "smallest stride whose median ground-truth baseline is 3%% of the median depth, or "
+        "5 cm without depth)",
+    )
     p.add_argument(
         "--perturb-calibration",
         default=None,

@@ -44,12 +44,56 @@ class MethodOutput:
     extras: dict = field(default_factory=dict)
 
 
-def frame_windows(indices: list[int], window: int) -> list[list[int]]:
-    """Non-overlapping windows of consecutive indices; a short tail joins the previous window."""
-    windows = [indices[k : k + window] for k in range(0, len(indices), window)]
-    if len(windows) > 1 and len(windows[-1]) < 2:
-        windows[-2].extend(windows.pop())
+def frame_windows(indices: list[int], window: int, stride: int = 1) -> list[list[int]]:
+    """Non-overlapping windows of ``window`` indices ``stride`` apart; a short tail joins the
+    previous window. With ``stride`` s the indices are split into s interleaved runs
+    (``indices[r::s]``), so every frame is in one window and scored pairs are s frames apart."""
+    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+        raise InputError(f"pair stride must be a positive integer, got {stride!r}")
+    windows: list[list[int]] = []
+    for start in range(min(stride, len(indices))):
+        run = indices[start::stride]
+        part = [run[k : k + window] for k in range(0, len(run), window)]
+        if len(part) > 1 and len(part[-1]) < 2:
+            part[-2].extend(part.pop())
+        windows.extend(part)
     return windows
+
+
+#: ``choose_pair_stride``: the baseline a pair needs, as a fraction of the median scene depth
+#: (or in metres without depth), for its relative pose to be measurable: at stride 1 a
+#: 30 Hz sequence moves about a centimetre, where pose targets and d_reproj stop depending on
+#: depth.
+MIN_BASELINE_FRACTION = 0.03
+MIN_BASELINE_M = 0.05
+
+
+def choose_pair_stride(seq, frames: list[int] | None = None, max_stride: int = 20) -> dict:
+    """The smallest frame stride whose median ground-truth baseline is measurable.
+
+    Returns ``{"stride", "median_baseline", "threshold", "rule"}``: the stride s is the smallest
+    with median |t| of the relative poses (k, k + s) at least :data:`MIN_BASELINE_FRACTION` x
+    the median ground-truth depth (or :data:`MIN_BASELINE_M` metres without depth), capped at
+    ``max_stride`` and at a third of the frames.
+    """
+    if seq.cam_from_world is None:
+        raise InputError(f"{seq.name}: no ground-truth poses to choose a pair stride from")
+    frames = list(range(len(seq))) if frames is None else list(frames)
+    poses = np.asarray(seq.cam_from_world, dtype=np.float64)[frames]
+    centres = np.einsum("nij,nj->ni", -np.transpose(poses[:, :3, :3], (0, 2, 1)), poses[:, :3, 3])
+    if seq.depth is not None and bool((seq.depth[frames] > 0).any()):
+        depth = seq.depth[frames]
+        threshold = MIN_BASELINE_FRACTION * float(np.median(depth[depth > 0]))
+        rule = f"{MIN_BASELINE_FRACTION:g} x median depth"
+    else:
+        threshold, rule = MIN_BASELINE_M, f"{MIN_BASELINE_M:g} m"
+    limit = max(1, min(max_stride, len(frames) // 3))
+    baseline = 0.0
+    for stride in range(1, limit + 1):
+        baseline = float(np.median(np.linalg.norm(centres[stride:] - centres[:-stride], axis=1)))
+        if baseline >= threshold:
+            break
+    return {"stride": stride, "median_baseline": baseline, "threshold": threshold, "rule": rule}
 
 
 def _input_images(seq, frames: list[int]) -> torch.Tensor:
@@ -127,8 +171,10 @@ def run_method(
     frames: list[int] | None = None,
     window: int = 3,
     components=None,
+    stride: int = 1,
 ) -> MethodOutput:
-    """Run ``method`` on ``frames`` of ``seq`` (images already at the network input size)."""
+    """Run ``method`` on ``frames`` of ``seq`` (images already at the network input size), in
+    windows of ``window`` frames ``stride`` apart (:func:`frame_windows`)."""
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; choose from {METHODS}")
     camera = seq.camera
@@ -145,7 +191,7 @@ def run_method(
     )
     try:
         with torch.no_grad():
-            for group in frame_windows(frames, window):
+            for group in frame_windows(frames, window, stride):
                 images = _input_images(seq, group)
                 if method == "center-ph":
                     prediction = predict(model, fisheye_to_center_pinhole(images, camera, pinhole))
