@@ -20,14 +20,13 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from raytun3r_plugin.patches.da3 import build_network  # noqa: E402
 
 import raytun3r_plugin as rt  # noqa: E402
 from raytun3r_plugin.baselines import inject_lora  # noqa: E402
 
 
 def main() -> None:
-    from overhead import fisheye, timed, trained_looking
+    from overhead import da3_small_with_a_pe, fisheye, timed, trained_looking
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", type=int, default=504)
@@ -35,10 +34,7 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=2)
     args = parser.parse_args()
 
-    torch.manual_seed(0)
-    vanilla = build_network("da3-small").eval()
-    with torch.no_grad():
-        vanilla.backbone.pretrained.pos_embed.normal_(0, 0.02)
+    vanilla = da3_small_with_a_pe()
     patched, lora = copy.deepcopy(vanilla), copy.deepcopy(vanilla)
     camera = fisheye(args.size)
     adapter = trained_looking(rt.Adapter.for_model(patched, camera))

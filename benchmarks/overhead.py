@@ -43,6 +43,15 @@ def trained_looking(adapter: rt.Adapter) -> rt.Adapter:
     return adapter
 
 
+def da3_small_with_a_pe() -> torch.nn.Module:
+    """da3-small in eval mode with a random PE table (its constructor leaves it at zero)."""
+    torch.manual_seed(0)
+    model = build_network("da3-small").eval()
+    with torch.no_grad():
+        model.backbone.pretrained.pos_embed.normal_(0, 0.02)
+    return model
+
+
 def timed(model, images) -> float:
     start = time.perf_counter()
     rt.predict(model, images)
@@ -56,10 +65,7 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=2)
     args = parser.parse_args()
 
-    torch.manual_seed(0)
-    plain = build_network("da3-small").eval()
-    with torch.no_grad():
-        plain.backbone.pretrained.pos_embed.normal_(0, 0.02)
+    plain = da3_small_with_a_pe()
     patched = copy.deepcopy(plain)
     print(
         f"torch {torch.__version__}, {torch.get_num_threads()} threads, da3-small, {args.views} views, {args.repeats} interleaved repeats"
