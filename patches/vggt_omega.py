@@ -353,5 +353,11 @@ SPEC = register(
         rope_classes=ROPE_CLASSES,
         rope_base_attribute=ROPE_BASE_ATTRIBUTE,
         check=check,
+        # The DINOv3 ViT, the frame and the inter-frame blocks; not the camera head's trunk.
+        transformer_blocks=(
+            "aggregator.patch_embed.blocks",
+            "aggregator.frame_blocks",
+            "aggregator.inter_frame_blocks",
+        ),
     )
 )

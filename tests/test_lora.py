@@ -194,7 +194,7 @@ def test_adapt_fits_the_lora_factors_with_the_same_objective(net, tmp_path):
     assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
 
 
-@pytest.mark.parametrize("family", ["da3", "vggt", "pi3", "pi3x"])
+@pytest.mark.parametrize("family", ["da3", "vggt", "pi3", "pi3x", "vggt_omega"])
 def test_lora_contract_on_every_backbone_that_declares_its_blocks(family):
     import importlib.util
 
