@@ -42,7 +42,13 @@ from raytun3r_plugin.registry import (
     UpstreamVersion,
     register,
 )
-from raytun3r_plugin.weights import StateSignature, load_into, read_checkpoint, strip_prefix
+from raytun3r_plugin.weights import (
+    StateSignature,
+    count_blocks,
+    load_into,
+    read_checkpoint,
+    strip_prefix,
+)
 
 FAMILY = "da3"
 UPSTREAM_MODULE = "depth_anything_3"
@@ -252,7 +258,7 @@ def identify(state: dict[str, torch.Tensor]) -> StateSignature | None:
     if pe is None:
         return None
     prefix = "backbone.pretrained.blocks."
-    depth = len({key[len(prefix) :].split(".")[0] for key in state if key.startswith(prefix)})
+    depth = count_blocks(state, prefix)
     has_rope = any(".attn.q_norm." in key for key in state if key.startswith(prefix))
     embed = int(pe.shape[-1])
     known = _KNOWN.get((embed, depth, has_rope))

@@ -50,7 +50,7 @@ from raytun3r_plugin.registry import (
     UpstreamVersion,
     register,
 )
-from raytun3r_plugin.weights import StateSignature, load_into, read_checkpoint
+from raytun3r_plugin.weights import StateSignature, count_blocks, load_into, read_checkpoint
 
 UPSTREAM_MODULE = "pi3"
 UPSTREAM_COMMIT = "9fa3ddb3f8d53041f8b2738df404f62223bbaa7b"
@@ -429,8 +429,7 @@ def identify(state: dict[str, torch.Tensor]) -> StateSignature | None:
     if pe is None or not any(key.startswith("point_decoder.") for key in state):
         return None
     name = "pi3x" if any(key.startswith(_PI3X_ONLY) for key in state) else "pi3"
-    prefix = "encoder.blocks."
-    depth = len({key[len(prefix) :].split(".")[0] for key in state if key.startswith(prefix)})
+    depth = count_blocks(state, "encoder.blocks.")
     multimodal = any(key.startswith(_MULTIMODAL_PREFIXES) for key in state)
     detail = f"encoder embed dim {int(pe.shape[-1])}, {depth} encoder blocks"
     if name == "pi3x":

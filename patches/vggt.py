@@ -43,7 +43,7 @@ from raytun3r_plugin.registry import (
     UpstreamVersion,
     register,
 )
-from raytun3r_plugin.weights import StateSignature, load_into, read_checkpoint
+from raytun3r_plugin.weights import StateSignature, count_blocks, load_into, read_checkpoint
 
 FAMILY = "vggt"
 UPSTREAM_MODULE = "vggt"
@@ -225,8 +225,7 @@ def identify(state: dict[str, torch.Tensor]) -> StateSignature | None:
     pe = state.get(_PE_KEY)
     if pe is None or "aggregator.camera_token" not in state:
         return None
-    prefix = "aggregator.frame_blocks."
-    depth = len({key[len(prefix) :].split(".")[0] for key in state if key.startswith(prefix)})
+    depth = count_blocks(state, "aggregator.frame_blocks.")
     detail = f"embed dim {int(pe.shape[-1])}, {depth} aggregator blocks"
     return StateSignature(FAMILY, SIZE_NAMES, detail, tuple(pe.shape))
 

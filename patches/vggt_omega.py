@@ -46,8 +46,9 @@ from raytun3r_plugin.registry import (
     PatchTarget,
     UpstreamVersion,
     register,
+    resolve_path,
 )
-from raytun3r_plugin.weights import StateSignature, load_into, read_checkpoint
+from raytun3r_plugin.weights import StateSignature, count_blocks, load_into, read_checkpoint
 
 FAMILY = "vggt_omega"
 UPSTREAM_MODULE = "vggt_omega"
@@ -230,9 +231,7 @@ def check(root: nn.Module) -> None:
             f"tensor; this patch only corrects RoPE (checked against {UPSTREAM})"
         )
     for path in ROPE_OWNERS:
-        rope = aggregator
-        for part in path.split(".")[1:]:
-            rope = getattr(rope, part, None)
+        rope = resolve_path(root, path)
         augmented = [name for name in _AUGMENTATIONS if getattr(rope, name, None) is not None]
         if augmented:
             raise UnsupportedUpstreamError(
@@ -308,8 +307,7 @@ def identify(state: dict[str, torch.Tensor]) -> StateSignature | None:
         return None
     embed = state.get("aggregator.camera_token")
     embed_dim = int(embed.shape[-1]) if embed is not None else 0
-    prefix = "aggregator.frame_blocks."
-    depth = len({key[len(prefix) :].split(".")[0] for key in state if key.startswith(prefix)})
+    depth = count_blocks(state, "aggregator.frame_blocks.")
     text = any(key.startswith("text_alignment_head.") for key in state)
     known = (_KNOWN_TEXT if text else _KNOWN).get((embed_dim, depth))
     detail = f"embed dim {embed_dim}, {depth} aggregator blocks, no PE table"

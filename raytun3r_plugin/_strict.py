@@ -42,17 +42,21 @@ _DTYPES = {
 }
 
 
-def quote(value: Any) -> str:
-    """``repr(value)`` cut to :data:`QUOTE_CHARS` characters (never builds a huge string)."""
+def quote(value: Any, limit: int = QUOTE_CHARS) -> str:
+    """``repr(value)`` cut to ``limit`` characters, never building a huge string: long strings
+    are cut before ``repr``, containers and integers of hundreds of digits are described."""
     if isinstance(value, str | bytes):
-        text = repr(value[: QUOTE_CHARS + 1])
+        text = repr(value[: limit + 1])
     elif isinstance(value, dict | list | tuple):
         text = f"<{type(value).__name__} of {len(value)} items>"
     elif isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 200:
         text = f"<integer of about {int(value.bit_length() * 0.30103)} digits>"
     else:
-        text = repr(value)
-    return text if len(text) <= QUOTE_CHARS else text[: QUOTE_CHARS - 3] + "..."
+        try:
+            text = repr(value)
+        except (ValueError, RecursionError):  # e.g. a numpy array of a huge nested object
+            text = f"<{type(value).__name__}>"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def strict_int(

@@ -206,6 +206,12 @@ def read_state_dict(path: str | os.PathLike | Checkpoint) -> dict[str, torch.Ten
     return read_checkpoint(path).state
 
 
+def count_blocks(state: dict[str, torch.Tensor], prefix: str) -> int:
+    """How many numbered blocks a state dict holds under ``prefix`` (e.g. ``"encoder.blocks."``:
+    the distinct first key parts after it), for telling model sizes apart from the keys alone."""
+    return len({key[len(prefix) :].split(".")[0] for key in state if key.startswith(prefix)})
+
+
 def strip_prefix(state: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
     """Remove ``prefix`` from keys that have it (checkpoints of wrapper classes add one)."""
     if not any(key.startswith(prefix) for key in state):

@@ -191,7 +191,8 @@ def inject_calibration_tokens(
             f"{spec.family}: expected {target.owner}.{target.attribute} and a ModuleList at "
             f"{target.blocks}, found {type(owner).__name__} / {type(blocks).__name__}"
         )
-    found = tuple(inspect.signature(method).parameters)[1:]
+    signature = inspect.signature(method)  # once: run_block binds every call against it
+    found = tuple(signature.parameters)[1:]
     if found != target.signature:
         raise UnsupportedUpstreamError(
             f"{spec.family}: {target.attribute} expected parameters {target.signature}, found {found}"
@@ -213,7 +214,7 @@ def inject_calibration_tokens(
 
     def run_block(*args: Any, **kwargs: Any) -> Any:
         live = owner_ref()
-        bound = inspect.signature(method).bind(live, *args, **kwargs)
+        bound = signature.bind(live, *args, **kwargs)
         bound.apply_defaults()
         call = dict(bound.arguments)
         call.pop(next(iter(call)))  # self

@@ -281,7 +281,7 @@ def inject_lora(
     if weights is None:
         spec, root = spec_for(model)
         weights = LoraWeights(shapes, r, alpha, backbone=spec.describe(root).name)
-    elif dict(zip(weights.paths, [tuple(s) for s in _shapes_of(weights)], strict=True)) != shapes:
+    elif dict(zip(weights.paths, _shapes_of(weights), strict=True)) != shapes:
         raise AdapterError(
             "the LoRA weights were made for other layers or sizes than this model's attn.qkv"
         )

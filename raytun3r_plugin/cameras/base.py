@@ -22,6 +22,7 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
+from raytun3r_plugin._strict import quote
 from raytun3r_plugin.errors import CameraError, CameraModelError
 
 __all__ = [
@@ -113,16 +114,7 @@ def _to_float(model: str, name: str, v: Any) -> float:
     try:
         return float(v)
     except (OverflowError, TypeError, ValueError):
-        raise param_error(model, name, f"must be a finite number, got {_short(v)}") from None
-
-
-def _short(v: Any) -> str:
-    text = (
-        repr(v)
-        if not isinstance(v, int) or abs(v) < 10**30
-        else f"an integer of {len(str(v))} digits"
-    )
-    return text if len(text) <= 80 else text[:77] + "..."
+        raise param_error(model, name, f"must be a finite number, got {quote(v)}") from None
 
 
 def pixel_grid(
@@ -158,7 +150,7 @@ def _as_points(x: Any, what: str, last: int) -> Tensor:
 def _check_size(name: str, value: Any) -> int:
     # bool is an int subclass; a float such as 512.0 is accepted only if integral.
     bad = CameraError(
-        f"camera {name} must be an integer in 1..{MAX_IMAGE_SIDE} pixels, got {_short(value)}"
+        f"camera {name} must be an integer in 1..{MAX_IMAGE_SIDE} pixels, got {quote(value)}"
     )
     if isinstance(value, bool):
         raise bad
@@ -267,7 +259,7 @@ class Camera:
         if max_fov_deg is not None:
             if isinstance(max_fov_deg, bool) or not isinstance(max_fov_deg, numbers.Real):
                 raise CameraError(
-                    f"{cls.__name__}: max_fov_deg must be a number, got {_short(max_fov_deg)}"
+                    f"{cls.__name__}: max_fov_deg must be a number, got {quote(max_fov_deg)}"
                 )
             max_fov_deg = _to_float(cls.__name__, "max_fov_deg", max_fov_deg)
             if not (math.isfinite(max_fov_deg) and 0.0 < max_fov_deg <= 360.0):
@@ -314,7 +306,7 @@ class Camera:
                         raise param_error(cls.__name__, n, f"must be a real number, got {v.dtype}")
                     vals.append(v.reshape(()).to(torch.float64))
                 elif isinstance(v, bool) or not isinstance(v, numbers.Real):
-                    raise param_error(cls.__name__, n, f"must be a number, got {_short(v)}")
+                    raise param_error(cls.__name__, n, f"must be a number, got {quote(v)}")
                 else:
                     vals.append(torch.tensor(_to_float(cls.__name__, n, v), dtype=torch.float64))
             if any(v.requires_grad for v in vals):
@@ -341,7 +333,7 @@ class Camera:
             for i, v in enumerate(seq):
                 name = names[i] if i < len(names) else f"#{i}"
                 if isinstance(v, bool) or not isinstance(v, numbers.Real):
-                    raise param_error(cls.__name__, name, f"must be a number, got {_short(v)}")
+                    raise param_error(cls.__name__, name, f"must be a number, got {quote(v)}")
                 floats.append(_to_float(cls.__name__, name, v))
             p = torch.tensor(floats, dtype=torch.float64)
         if p.ndim != 1 or p.shape[0] != len(names):
@@ -619,13 +611,13 @@ class Camera:
         """
         for name, s in (("sx", sx), ("sy", sy)):
             if isinstance(s, bool) or not isinstance(s, numbers.Real):
-                raise CameraError(f"scale {name} must be a positive finite number, got {_short(s)}")
+                raise CameraError(f"scale {name} must be a positive finite number, got {quote(s)}")
             try:
                 f = float(s)
             except OverflowError:
                 f = math.inf
             if not (math.isfinite(f) and f > 0):
-                raise CameraError(f"scale {name} must be a positive finite number, got {_short(s)}")
+                raise CameraError(f"scale {name} must be a positive finite number, got {quote(s)}")
         # A factor that leaves more than MAX_IMAGE_SIDE pixels is refused by the constructor;
         # refusing it here keeps round() away from huge floats.
         for name, side, s in (("width", self.width, sx), ("height", self.height, sy)):
@@ -656,10 +648,10 @@ class Camera:
         """
         for name, v in (("x0", x0), ("y0", y0)):
             if isinstance(v, bool) or not isinstance(v, numbers.Integral):
-                raise CameraError(f"crop {name} must be an integer, got {_short(v)}")
+                raise CameraError(f"crop {name} must be an integer, got {quote(v)}")
             if abs(v) > _MAX_CROP_OFFSET:
                 raise CameraError(
-                    f"crop {name} must be within +-{_MAX_CROP_OFFSET} pixels, got {_short(v)}"
+                    f"crop {name} must be within +-{_MAX_CROP_OFFSET} pixels, got {quote(v)}"
                 )
         w = _check_size("crop width", w)
         h = _check_size("crop height", h)
@@ -765,7 +757,7 @@ def from_dict(d: Mapping[str, Any]) -> Camera:
     # A list or dict here is unhashable: test the type before the dict lookup.
     if not isinstance(model, str) or model not in CAMERA_MODELS:
         raise CameraError(
-            f"camera description: field 'model': unknown camera model {_short(model)} "
+            f"camera description: field 'model': unknown camera model {quote(model)} "
             f"(known: {sorted(CAMERA_MODELS)})"
         )
     params = d["params"]

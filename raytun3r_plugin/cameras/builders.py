@@ -12,7 +12,8 @@ import math
 import numbers
 from collections.abc import Sequence
 
-from raytun3r_plugin.cameras.base import MAX_IMAGE_SIDE, Camera, _short
+from raytun3r_plugin._strict import quote
+from raytun3r_plugin.cameras.base import MAX_IMAGE_SIDE, Camera
 from raytun3r_plugin.cameras.kb import KannalaBrandt4
 from raytun3r_plugin.cameras.unified import DoubleSphere
 from raytun3r_plugin.errors import CameraError
@@ -82,7 +83,7 @@ def fisheye(
         raise CameraError(f"fisheye: size must be S or (width, height), got {size!r}") from None
     if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE):
         raise CameraError(
-            f"fisheye: size must be in 1..{MAX_IMAGE_SIDE} pixels per side, got {_short(width)} x {_short(height)}"
+            f"fisheye: size must be in 1..{MAX_IMAGE_SIDE} pixels per side, got {quote(width)} x {quote(height)}"
         )
     if isinstance(fov_deg, bool) or not isinstance(fov_deg, numbers.Real):
         raise CameraError(f"fisheye: fov_deg must be a number, got {fov_deg!r}")
@@ -139,7 +140,7 @@ def perturbed(
             or not math.isfinite(value)
             or abs(value) >= 1.0
         ):
-            raise CameraError(f"perturbed: {name} must be a number in (-1, 1), got {_short(value)}")
+            raise CameraError(f"perturbed: {name} must be a number in (-1, 1), got {quote(value)}")
     p = camera.params.detach().clone()
     p[:2] = p[:2] * (1.0 + focal)
     p[2] = p[2] + principal * camera.width

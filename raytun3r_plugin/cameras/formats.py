@@ -33,6 +33,7 @@ from typing import Any
 import yaml
 
 from raytun3r_plugin._io import atomic_write_text
+from raytun3r_plugin._strict import quote
 from raytun3r_plugin.cameras.base import Camera, from_dict
 from raytun3r_plugin.cameras.fisheye624 import Fisheye624
 from raytun3r_plugin.cameras.fov import FOV
@@ -60,19 +61,6 @@ MAX_NUMBER_CHARS = 64
 _SHORT = 80
 
 
-def _short(value: Any) -> str:
-    """``repr(value)`` cut to at most ~80 characters, so that no message repeats a huge value."""
-    if isinstance(value, (list, tuple, dict)) and len(value) > 20:
-        # Avoid building the whole repr of a large container just to cut it.
-        r = f"<{type(value).__name__} of {len(value)} items>"
-    else:
-        try:
-            r = repr(value)
-        except (ValueError, RecursionError):  # huge ints (Python 3.11 digit limit), deep lists
-            r = f"<{type(value).__name__}>"
-    return r if len(r) <= _SHORT else r[: _SHORT - 3] + "..."
-
-
 def _fail(path: PathLike, field: str, problem: str) -> CameraError:
     field = field if len(field) <= _SHORT else field[: _SHORT - 3] + "..."
     if len(problem) > 4 * _SHORT:
@@ -89,7 +77,7 @@ def _num(path: PathLike, field: str, value: Any) -> float:
             return float(value)
         except OverflowError:
             raise _fail(path, field, "number out of range") from None
-    raise _fail(path, field, f"expected a number, got {_short(value)}")
+    raise _fail(path, field, f"expected a number, got {quote(value, _SHORT)}")
 
 
 def _token_num(path: PathLike, field: str, token: str) -> float:
@@ -99,7 +87,7 @@ def _token_num(path: PathLike, field: str, token: str) -> float:
             return float(token)
         except ValueError:
             pass
-    raise _fail(path, field, f"expected a number, got {_short(token)}")
+    raise _fail(path, field, f"expected a number, got {quote(token, _SHORT)}")
 
 
 def _int(path: PathLike, field: str, value: Any) -> int:
@@ -107,14 +95,14 @@ def _int(path: PathLike, field: str, value: Any) -> int:
     if isinstance(value, float) and value.is_integer():
         value = int(value)
     if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
-        raise _fail(path, field, f"expected a positive integer, got {_short(value)}")
+        raise _fail(path, field, f"expected a positive integer, got {quote(value, _SHORT)}")
     return value
 
 
 def _token_int(path: PathLike, field: str, token: str) -> int:
     if re.fullmatch(r"[0-9]{1,9}", token):
         return _int(path, field, int(token))
-    raise _fail(path, field, f"expected a positive integer, got {_short(token)}")
+    raise _fail(path, field, f"expected a positive integer, got {quote(token, _SHORT)}")
 
 
 def _check_depth(path: PathLike, data: Any) -> None:
@@ -142,11 +130,13 @@ def _get(path: PathLike, d: Mapping[str, Any], key: str, field: str) -> Any:
 def _numbers(path: PathLike, value: Any, field: str, count: int, names: str) -> list[float]:
     if not isinstance(value, (list, tuple)):
         raise _fail(
-            path, field, f"expected a list of {count} numbers [{names}], got {_short(value)}"
+            path, field, f"expected a list of {count} numbers [{names}], got {quote(value, _SHORT)}"
         )
     if len(value) != count:
         raise _fail(
-            path, field, f"expected {count} values [{names}], got {len(value)}: {_short(value)}"
+            path,
+            field,
+            f"expected {count} values [{names}], got {len(value)}: {quote(value, _SHORT)}",
         )
     return [_num(path, f"{field}[{i}]", v) for i, v in enumerate(value)]
 
@@ -175,7 +165,7 @@ def _camera_index(path: PathLike, camera: str | int | None, names: list[str]) ->
     if camera is None:
         return 0
     if isinstance(camera, bool):
-        raise _fail(path, "camera", f"unknown camera id {_short(camera)}")
+        raise _fail(path, "camera", f"unknown camera id {quote(camera, _SHORT)}")
     if isinstance(camera, int):
         if 0 <= camera < len(names):
             return camera
@@ -185,14 +175,18 @@ def _camera_index(path: PathLike, camera: str | int | None, names: list[str]) ->
         m = re.fullmatch(r"(?:cam)?([0-9]{1,9})", camera.strip())
         if m and 0 <= int(m.group(1)) < len(names):
             return int(m.group(1))
-    raise _fail(path, "camera", f"unknown camera id {_short(camera)} (available: {_short(names)})")
+    raise _fail(
+        path,
+        "camera",
+        f"unknown camera id {quote(camera, _SHORT)} (available: {quote(names, _SHORT)})",
+    )
 
 
 # ---------------------------------------------------------------------------- raytun3r JSON
 def _read_own(path: PathLike, d: Mapping[str, Any], camera: str | int | None) -> Camera:
     if camera not in (None, 0, "0", "cam0"):
         raise _fail(
-            path, "camera", f"unknown camera id {_short(camera)} (the file holds one camera)"
+            path, "camera", f"unknown camera id {quote(camera, _SHORT)} (the file holds one camera)"
         )
     try:
         return from_dict(d)
@@ -224,7 +218,7 @@ def _read_basalt(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
         raise _fail(
             path,
             f"{base}.camera_type",
-            f"unsupported camera type {_short(ctype)} (supported: {sorted(_BASALT)})",
+            f"unsupported camera type {quote(ctype, _SHORT)} (supported: {sorted(_BASALT)})",
         )
     cls, keys = _BASALT[ctype]
     block = _get(path, entry, "intrinsics", f"{base}.intrinsics")
@@ -235,7 +229,7 @@ def _read_basalt(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
         raise _fail(
             path,
             f"{base}.intrinsics.{extra[0]}",
-            f"unexpected parameter for {_short(ctype)} (expected {list(keys)})",
+            f"unexpected parameter for {quote(ctype, _SHORT)} (expected {list(keys)})",
         )
     values = {
         k: _num(path, f"{base}.intrinsics.{k}", _get(path, block, k, f"{base}.intrinsics.{k}"))
@@ -245,7 +239,9 @@ def _read_basalt(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
         raise _fail(path, f"value0.resolution[{i}]", "is missing")
     wh = res[i]
     if not isinstance(wh, (list, tuple)) or len(wh) != 2:
-        raise _fail(path, f"value0.resolution[{i}]", f"expected [width, height], got {_short(wh)}")
+        raise _fail(
+            path, f"value0.resolution[{i}]", f"expected [width, height], got {quote(wh, _SHORT)}"
+        )
     w = _int(path, f"value0.resolution[{i}][0]", wh[0])
     h = _int(path, f"value0.resolution[{i}][1]", wh[1])
     return _build(path, cls, w, h, values, {k: f"{base}.intrinsics.{k}" for k in keys})
@@ -262,19 +258,25 @@ def _read_kalibr(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
         key = camera if camera in names else f"cam{camera}"
     else:
         raise _fail(
-            path, "camera", f"unknown camera id {_short(camera)} (available: {_short(names)})"
+            path,
+            "camera",
+            f"unknown camera id {quote(camera, _SHORT)} (available: {quote(names, _SHORT)})",
         )
     c = d[key]
     if not isinstance(c, Mapping):
         raise _fail(path, key, "expected a mapping")
     cam_model = _get(path, c, "camera_model", f"{key}.camera_model")
     if not isinstance(cam_model, str):
-        raise _fail(path, f"{key}.camera_model", f"expected a string, got {_short(cam_model)}")
+        raise _fail(
+            path, f"{key}.camera_model", f"expected a string, got {quote(cam_model, _SHORT)}"
+        )
     dist_model = c.get("distortion_model", "none")
     if dist_model is None:
         dist_model = "none"
     if not isinstance(dist_model, str):
-        raise _fail(path, f"{key}.distortion_model", f"expected a string, got {_short(dist_model)}")
+        raise _fail(
+            path, f"{key}.distortion_model", f"expected a string, got {quote(dist_model, _SHORT)}"
+        )
     # Kalibr's command line says "equi" for what its camchain files call "equidistant".
     dist_model = {"equi": "equidistant"}.get(dist_model, dist_model)
     res = _numbers(
@@ -300,7 +302,7 @@ def _read_kalibr(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
         if coeffs is None:
             return
         if not isinstance(coeffs, list):
-            raise _fail(path, dist_field, f"expected a list, got {_short(coeffs)}")
+            raise _fail(path, dist_field, f"expected a list, got {quote(coeffs, _SHORT)}")
         if any(_num(path, f"{dist_field}[{i}]", x) != 0.0 for i, x in enumerate(coeffs)):
             raise _fail(path, dist_field, "must be empty for distortion_model 'none'")
 
@@ -308,7 +310,7 @@ def _read_kalibr(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
         raise _fail(
             path,
             f"{key}.distortion_model",
-            f"unsupported distortion model {_short(dist_model)} (supported: none, radtan, equidistant)",
+            f"unsupported distortion model {quote(dist_model, _SHORT)} (supported: none, radtan, equidistant)",
         )
     if cam_model == "pinhole":
         fu, fv, pu, pv = _numbers(path, raw_intr, intr_field, 4, "fu fv pu pv")
@@ -369,7 +371,9 @@ def _read_kalibr(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
             no_dist()
             # xi form -> alpha form: alpha = xi / (1 + xi), f_alpha = f_xi / (1 + xi).
             if not (math.isfinite(xi) and xi >= 0.0):
-                raise _fail(path, fields["xi"], f"must be a finite number >= 0, got {_short(xi)}")
+                raise _fail(
+                    path, fields["xi"], f"must be a finite number >= 0, got {quote(xi, _SHORT)}"
+                )
             vals = {
                 "fx": fu / (1.0 + xi),
                 "fy": fv / (1.0 + xi),
@@ -388,7 +392,7 @@ def _read_kalibr(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
             raise _fail(
                 path,
                 f"{key}.distortion_model",
-                f"camera_model {_short(cam_model)} supports distortion_model none only",
+                f"camera_model {quote(cam_model, _SHORT)} supports distortion_model none only",
             )
         no_dist()
         first = ("xi", "alpha") if cam_model == "ds" else ("alpha", "beta")
@@ -400,7 +404,7 @@ def _read_kalibr(path: PathLike, d: Mapping[str, Any], camera: str | int | None)
     raise _fail(
         path,
         f"{key}.camera_model",
-        f"unsupported camera model {_short(cam_model)} (supported: pinhole, omni, ds, eucm)",
+        f"unsupported camera model {quote(cam_model, _SHORT)} (supported: pinhole, omni, ds, eucm)",
     )
 
 
@@ -540,7 +544,9 @@ def _read_camodocal(path: PathLike, d: Mapping[str, Any], camera: str | int | No
     name = d.get("camera_name")
     if camera not in (None, 0, "0") and camera != name:
         raise _fail(
-            path, "camera", f"unknown camera id {_short(camera)} (the file holds {_short(name)})"
+            path,
+            "camera",
+            f"unknown camera id {quote(camera, _SHORT)} (the file holds {quote(name, _SHORT)})",
         )
     mt = d["model_type"]
     key = mt.upper() if isinstance(mt, str) else None
@@ -548,7 +554,7 @@ def _read_camodocal(path: PathLike, d: Mapping[str, Any], camera: str | int | No
         raise _fail(
             path,
             "model_type",
-            f"unsupported model type {_short(mt)} (supported: {sorted(_CAMODOCAL)})",
+            f"unsupported model type {quote(mt, _SHORT)} (supported: {sorted(_CAMODOCAL)})",
         )
     cls, spec = _CAMODOCAL[key]
     w = _int(path, "image_width", _get(path, d, "image_width", "image_width"))
@@ -565,7 +571,7 @@ def _read_camodocal(path: PathLike, d: Mapping[str, Any], camera: str | int | No
             raise _fail(
                 path,
                 f"{g}.{extra[0]}",
-                f"unexpected parameter for model_type {_short(mt)} (expected {sorted(allowed)})",
+                f"unexpected parameter for model_type {quote(mt, _SHORT)} (expected {sorted(allowed)})",
             )
     values = {n: _num(path, f"{g}.{f}", _get(path, d[g], f, f"{g}.{f}")) for n, g, f in spec}
     # camodocal files also hold camera_name (a string); other top-level keys are ignored.
@@ -704,7 +710,9 @@ def _read_colmap(path: PathLike, text: str, camera: str | int | None) -> Camera:
             want = int(camera)
         if want is None or want not in ids:
             raise _fail(
-                path, "camera", f"unknown camera id {_short(camera)} (available: {_short(ids)})"
+                path,
+                "camera",
+                f"unknown camera id {quote(camera, _SHORT)} (available: {quote(ids, _SHORT)})",
             )
         idx = ids.index(want)
     lineno, tok = rows[idx]
@@ -714,7 +722,7 @@ def _read_colmap(path: PathLike, text: str, camera: str | int | None) -> Camera:
         raise _fail(
             path,
             f"{where} MODEL",
-            f"unsupported COLMAP camera model {_short(model)} (supported: {sorted(_COLMAP)})",
+            f"unsupported COLMAP camera model {quote(model, _SHORT)} (supported: {sorted(_COLMAP)})",
         )
     cls, names, convert = _COLMAP[model]
     if len(tok) < 4:
@@ -858,7 +866,11 @@ def _parse(path: Path) -> tuple[str, Any]:
     kind = _classify(d)
     if kind is None:
         keys = sorted(str(k) for k in d)[:8] if isinstance(d, Mapping) else None
-        found = f"top-level keys {_short(keys)}" if keys is not None else _short(type(d).__name__)
+        found = (
+            f"top-level keys {quote(keys, _SHORT)}"
+            if keys is not None
+            else quote(type(d).__name__, _SHORT)
+        )
         raise CameraError(
             f"{path}: unknown calibration format, found {found} (expected raytun3r JSON 'model', "
             "basalt 'value0', Kalibr 'cam0.camera_model', camodocal/OpenCV 'model_type', or "
