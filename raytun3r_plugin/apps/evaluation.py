@@ -1,4 +1,5 @@
-"""Scoring a method on a sequence (docs/conventions.md section 8): vanilla, Center-PH, raytun3r.
+"""Scoring a method on a sequence (docs/conventions.md section 8): vanilla, Center-PH, Multi-PH,
+raytun3r.
 
 Every method is run on the same frame windows and scored on the same pair list. The network sees
 non-overlapping windows of consecutive frames (``window`` views per forward); relative poses are
@@ -16,15 +17,21 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from raytun3r_plugin import metrics
+from raytun3r_plugin.baselines.multi_ph import (
+    multi_pinhole_views,
+    predict_multi_ph,
+    resample_to_view,
+    view_depth_to_fisheye,
+    virtual_pinhole,
+)
 from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.patching import apply
 from raytun3r_plugin.poses import relative_pose
 from raytun3r_plugin.prediction import predict
 
-METHODS = ("vanilla", "center-ph", "raytun3r")
+METHODS = ("vanilla", "center-ph", "multi-ph", "raytun3r")
 CENTER_PH_FOV_DEG = 110.0
 
 
@@ -103,33 +110,12 @@ def _input_images(seq, frames: list[int]) -> torch.Tensor:
 
 def center_pinhole(camera, fov_deg: float = CENTER_PH_FOV_DEG):
     """The virtual pinhole of Center-PH: same optical axis and size, ``fov_deg`` across the width."""
-    from raytun3r_plugin.cameras import Pinhole
-
-    focal = (camera.width / 2) / math.tan(math.radians(fov_deg) / 2)
-    return Pinhole(
-        camera.width,
-        camera.height,
-        {"fx": focal, "fy": focal, "cx": (camera.width - 1) / 2, "cy": (camera.height - 1) / 2},
-    )
+    return virtual_pinhole(camera, fov_deg)
 
 
 def fisheye_to_center_pinhole(images: torch.Tensor, camera, pinhole) -> torch.Tensor:
     """Resample fisheye images (..., 3, H, W) into the virtual pinhole view (bilinear)."""
-    rays, _ = pinhole.ray_table(dtype=torch.float64)
-    uv, valid = camera.project(rays)
-    grid = torch.stack(
-        ((2 * uv[..., 0] + 1) / camera.width - 1, (2 * uv[..., 1] + 1) / camera.height - 1), -1
-    )
-    grid = torch.where(valid[..., None], grid, torch.full_like(grid, 2.0)).float()
-    flat = images.reshape(-1, *images.shape[-3:])
-    out = F.grid_sample(
-        flat,
-        grid[None].expand(flat.shape[0], -1, -1, -1),
-        mode="bilinear",
-        padding_mode="zeros",
-        align_corners=False,
-    )
-    return out.reshape(images.shape)
+    return resample_to_view(images, camera, pinhole)
 
 
 def center_pinhole_depth_to_fisheye(
@@ -139,28 +125,7 @@ def center_pinhole_depth_to_fisheye(
 
     Returns range depth (..., H, W) (0 where uncovered) and the coverage mask (H, W).
     """
-    rays, valid = camera.ray_table(dtype=torch.float64)
-    uv, in_front = pinhole.project(rays)
-    inside = (
-        valid
-        & in_front
-        & (rays[..., 2] > 1e-6)
-        & (uv[..., 0] >= 0)
-        & (uv[..., 0] <= pinhole.width - 1)
-        & (uv[..., 1] >= 0)
-        & (uv[..., 1] <= pinhole.height - 1)
-    )
-    grid = torch.stack(
-        ((2 * uv[..., 0] + 1) / pinhole.width - 1, (2 * uv[..., 1] + 1) / pinhole.height - 1), -1
-    )
-    grid = torch.where(inside[..., None], grid, torch.zeros_like(grid)).float()
-    flat = depth_z.reshape(-1, 1, *depth_z.shape[-2:]).float()
-    sampled = F.grid_sample(
-        flat, grid[None].expand(flat.shape[0], -1, -1, -1), mode="bilinear", align_corners=False
-    )[:, 0]
-    range_depth = sampled / rays[..., 2].clamp_min(1e-6).float()
-    range_depth = torch.where(inside, range_depth, torch.zeros_like(range_depth))
-    return range_depth.reshape(*depth_z.shape[:-2], *range_depth.shape[-2:]), inside
+    return view_depth_to_fisheye(depth_z, camera, pinhole)
 
 
 def run_method(
@@ -183,6 +148,9 @@ def run_method(
     poses: list[tuple[list[int], np.ndarray]] = []
     coverage = 1.0
     pinhole = center_pinhole(camera) if method == "center-ph" else None
+    # Multi-PH's views (and its tilt rule's coverage search) once per sequence, not per window.
+    views = multi_pinhole_views(camera, fov_deg=CENTER_PH_FOV_DEG) if method == "multi-ph" else None
+    extras: dict = {}
     start = time.perf_counter()
     handle = (
         apply(model, camera, adapter, components=components, strict=False)
@@ -199,6 +167,19 @@ def run_method(
                         prediction.depth[0], camera, pinhole
                     )
                     coverage = float(covered.sum() / camera.valid_mask().sum())
+                elif method == "multi-ph":
+                    fused = predict_multi_ph(model, images, camera, views=views)
+                    depth[group] = fused.depth.float().numpy()
+                    poses.append((group, fused.cam_from_world.numpy()))
+                    coverage = fused.coverage
+                    extras["tilt_deg"] = fused.tilt_deg
+                    extras["forward_images"] = (
+                        extras.get("forward_images", 0) + fused.forward_images
+                    )
+                    extras["scale_fallbacks"] = extras.get("scale_fallbacks", 0) + int(
+                        fused.flagged.sum()
+                    )
+                    continue
                 else:
                     prediction = predict(model, images)
                     window_depth = prediction.depth[0]
@@ -208,7 +189,11 @@ def run_method(
         if handle is not None:
             handle.remove()
     return MethodOutput(
-        depth=depth, window_poses=poses, coverage=coverage, seconds=time.perf_counter() - start
+        depth=depth,
+        window_poses=poses,
+        coverage=coverage,
+        seconds=time.perf_counter() - start,
+        extras=extras,
     )
 
 
