@@ -32,7 +32,15 @@ DEFAULT_N_THETA = 8
 DEFAULT_N_R_ROPE = 20
 
 #: Corrections that can be switched on and off (docs/conventions.md section 5); tables are "pe" and "rope".
+#: Each is a key of every components dict (``adapter.components``, ``handle.components``).
 COMPONENTS = ("pe", "rope", "patch_resample", "border_tokens", "grid")
+#: Ablation switches (docs/components.md), off unless named: ``"pe_radial_only"`` applies only the
+#: radial PE table (needs ``"pe"``); ``"pe_naive_remap"`` samples the backbone's own PE table at
+#: the tokens' perspective (undistorted) positions instead of ``"pe"`` (excludes it). A components
+#: dict carries a switch only while it is on, so files and dicts without one keep their meaning.
+ABLATION_SWITCHES = ("pe_radial_only", "pe_naive_remap")
+#: Every name ``components=`` accepts.
+KNOWN_COMPONENTS = COMPONENTS + ABLATION_SWITCHES
 
 #: The largest adapter file :meth:`Adapter.load` reads (a default adapter is about 45 KB).
 MAX_FILE_BYTES = 16 * 2**20
@@ -76,24 +84,50 @@ def pe_fingerprint(pos_embed: torch.Tensor | None) -> str:
 def normalise_components(
     components: Mapping[str, bool] | list[str] | tuple[str, ...] | set[str] | None,
 ) -> dict[str, bool]:
-    """Turn a component list or mapping into ``{name: enabled}`` over :data:`COMPONENTS`."""
+    """Turn a component list or mapping into ``{name: enabled}``.
+
+    The result has every name of :data:`COMPONENTS` and, only while switched on, the
+    :data:`ABLATION_SWITCHES`. A mapping's missing corrections are on and its missing ablation
+    switches off; a list names exactly what is on; None is every correction, no ablation.
+
+    Raises:
+        AdapterError: an unknown name, a value that is not a bool, ``"pe_naive_remap"`` together
+            with ``"pe"`` (the remap replaces the PE correction), or ``"pe_radial_only"``
+            without ``"pe"`` (it modifies a correction that is off).
+    """
     if components is None:
         return dict.fromkeys(COMPONENTS, True)
+    if isinstance(components, str):
+        # A bare string would otherwise be read as a set of one-letter names.
+        components = [components]
+    unknown = set(components) - set(KNOWN_COMPONENTS)
+    if unknown:
+        raise AdapterError(
+            f"unknown components {sorted(map(str, unknown))}; known: {list(KNOWN_COMPONENTS)}"
+        )
     if isinstance(components, Mapping):
-        unknown = set(components) - set(COMPONENTS)
-        if unknown:
-            raise AdapterError(f"unknown components {sorted(unknown)}; known: {list(COMPONENTS)}")
         not_bool = [name for name, value in components.items() if not isinstance(value, bool)]
         if not_bool:
             raise AdapterError(
                 f"component {not_bool[0]!r} must be True or False, got {components[not_bool[0]]!r}"
             )
-        return {name: components.get(name, True) for name in COMPONENTS}
-    names = set(components)
-    unknown = names - set(COMPONENTS)
-    if unknown:
-        raise AdapterError(f"unknown components {sorted(unknown)}; known: {list(COMPONENTS)}")
-    return {name: name in names for name in COMPONENTS}
+        result = {name: components.get(name, True) for name in COMPONENTS}
+        result |= {name: True for name in ABLATION_SWITCHES if components.get(name, False)}
+    else:
+        names = set(components)
+        result = {name: name in names for name in COMPONENTS}
+        result |= {name: True for name in ABLATION_SWITCHES if name in names}
+    if result.get("pe_naive_remap") and result["pe"]:
+        raise AdapterError(
+            "components 'pe_naive_remap' and 'pe' exclude each other: the naive remap replaces "
+            "raytun3r's PE correction; switch 'pe' off (e.g. components=['pe_naive_remap', ...])"
+        )
+    if result.get("pe_radial_only") and not result["pe"]:
+        raise AdapterError(
+            "component 'pe_radial_only' restricts the 'pe' correction to its radial table, "
+            "but 'pe' is off; switch 'pe' on or leave 'pe_radial_only' out"
+        )
+    return result
 
 
 class Adapter(nn.Module):
@@ -290,9 +324,14 @@ class Adapter(nn.Module):
         components = strict_json(
             metadata["components"], "metadata 'components'", AdapterError, where
         )
-        if not isinstance(components, dict) or set(components) != set(COMPONENTS):
+        # The five corrections always; an ablation switch only in files written while it was on
+        # (so files from before the switches existed read with their old meaning).
+        if not isinstance(components, dict) or not set(COMPONENTS) <= set(components) <= set(
+            KNOWN_COMPONENTS
+        ):
             raise fail(
-                f"metadata 'components' must be an object with exactly the keys {list(COMPONENTS)}, got {quote(components)}"
+                f"metadata 'components' must be an object with exactly the keys {list(COMPONENTS)} "
+                f"(and optionally {list(ABLATION_SWITCHES)}), got {quote(components)}"
             )
         not_bool = [name for name, value in components.items() if not isinstance(value, bool)]
         if not_bool:
@@ -363,6 +402,7 @@ class Adapter(nn.Module):
         geometry: Any,
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
+        angular: bool | None = None,
     ) -> torch.Tensor:
         """The PE update ``t_r(rho) + rho d_theta(theta)`` of every patch token, (h w, C).
 
@@ -375,15 +415,21 @@ class Adapter(nn.Module):
             geometry: a :class:`raytun3r_plugin.geometry.SizeGeometry` (camera at the input
                 size), whose interpolation matrices spread the tables over the token grid.
             device, dtype: of the result (default: the tables' device, float32).
+            angular: include the angular term; False gives ``t_r(rho)`` alone (the
+                ``"pe_radial_only"`` ablation: the angular table is then outside the graph and
+                gets no gradient). None: as this adapter's own components say.
 
         Returns:
             (h * w, C) correction in PE units, tokens in row-major order of the patch grid.
         """
         device = self.pe["radial"].device if device is None else device
-        radial, angular = geometry.pe_weights(self.n_r, self.n_theta, device, dtype)
-        return radial @ self.pe["radial"].to(device, dtype) + angular @ self.pe["angular"].to(
-            device, dtype
-        )
+        if angular is None:
+            angular = not self.components.get("pe_radial_only", False)
+        radial_weights, angular_weights = geometry.pe_weights(self.n_r, self.n_theta, device, dtype)
+        correction = radial_weights @ self.pe["radial"].to(device, dtype)
+        if angular:
+            correction = correction + angular_weights @ self.pe["angular"].to(device, dtype)
+        return correction
 
     # ------------------------------------------------------------------ comparisons
     def same_as(self, other: Adapter) -> bool:

@@ -34,6 +34,10 @@ DEFAULT_MAX_STRETCH = 2.0
 # corrections then defer to upstream code, so a pinhole camera reproduces upstream bit for bit.
 IDENTITY_TOLERANCE_PX = 1e-6
 ASPECT_TOLERANCE = 0.01
+#: The naive PE remap's largest ray angle (degrees from the axis): a perspective projection
+#: exists only below 90 degrees and grows without bound towards it, so rays beyond this angle,
+#: and pixels outside the lens, are placed at this angle (docs/components.md).
+NAIVE_MAX_ANGLE_DEG = 80.0
 
 
 def camera_for_input(camera: Camera, height: int, width: int):
@@ -203,6 +207,74 @@ def patch_resample_grid(
     return normalised[None]
 
 
+def naive_pe_positions(
+    camera: Camera,
+    height: int,
+    width: int,
+    patch: int,
+    max_angle_deg: float = NAIVE_MAX_ANGLE_DEG,
+) -> torch.Tensor | None:
+    """Where the naive PE remap reads the backbone's PE table, (h*w, 2) as (column, row).
+
+    The ablation ``"pe_naive_remap"`` (docs/components.md): each token centre is undistorted to
+    the perspective image of the same intrinsics, ``c + (fx tan(a) dx, fy tan(a) dy)`` with
+    ``a`` the angle of its ray from the axis, clamped to ``max_angle_deg``, and ``d`` the ray's
+    unit image-plane direction (a pixel without a ray, outside the lens, is put at the clamp
+    angle in its own direction from the principal point). The undistorted points are then scaled
+    about the principal point, one factor for both axes, so that their extent fits the token
+    grid's, and expressed in token units: token (i, j) of the unchanged grid sits at (j, i).
+
+    Args:
+        camera: the camera at the input size (``height`` x ``width`` px).
+        height, width: input size in pixels, multiples of ``patch``.
+        patch: patch size in pixels.
+        max_angle_deg: the clamp angle, below 90 degrees.
+
+    Returns:
+        (h*w, 2) float64 fractional (column, row) positions in the h x w table, row-major like
+        the tokens, clamped to the grid; None when every position is within
+        :data:`IDENTITY_TOLERANCE_PX` (divided by ``patch``) of its own token (e.g. a pinhole
+        camera), so that upstream's table is used unchanged.
+    """
+    if not 0.0 < max_angle_deg < 90.0:
+        raise InputError(f"max_angle_deg must be in (0, 90) degrees, got {max_angle_deg}")
+    centres = token_centres(height, width, patch)
+    principal = torch.tensor([float(camera.cx), float(camera.cy)], dtype=torch.float64)
+    focal = torch.tensor([float(camera.fx), float(camera.fy)], dtype=torch.float64)
+    rays, valid = camera.unproject(centres)
+    rays = rays.to(torch.float64)
+    valid = valid.bool()
+    xy = rays[..., :2]
+    radius = xy.norm(dim=-1)
+    angle = torch.atan2(radius, rays[..., 2])
+    # Outside the lens there is no ray: the pixel's own direction in normalised coordinates.
+    offset = (centres - principal) / focal
+    offset_norm = offset.norm(dim=-1)
+    ray_direction = xy / radius.clamp_min(1e-300).unsqueeze(-1)
+    pixel_direction = offset / offset_norm.clamp_min(1e-300).unsqueeze(-1)
+    direction = torch.where(
+        (valid & (radius > 0)).unsqueeze(-1),
+        ray_direction,
+        torch.where((~valid & (offset_norm > 0)).unsqueeze(-1), pixel_direction, 0.0),
+    )
+    limit = math.radians(max_angle_deg)
+    angle = torch.where(valid, angle.clamp(max=limit), torch.full_like(angle, limit))
+    undistorted = principal + focal * torch.tan(angle).unsqueeze(-1) * direction
+    # One scale for both axes (the perspective image is not stretched), the largest that keeps
+    # the undistorted extent inside the token grid's on each axis.
+    grid_extent = (centres - principal).abs().amax(dim=0)
+    reached = (undistorted - principal).abs().amax(dim=0)
+    ratios = [float(g / r) for g, r in zip(grid_extent, reached, strict=True) if float(r) > 0]
+    scale = min(ratios) if ratios else 1.0
+    positions = principal + scale * (undistorted - principal)
+    if float((positions - centres).abs().max()) < IDENTITY_TOLERANCE_PX:
+        return None
+    rows, cols = height // patch, width // patch
+    column = ((positions[:, 0] + 0.5) / patch - 0.5).clamp(0.0, cols - 1)
+    row = ((positions[:, 1] + 0.5) / patch - 0.5).clamp(0.0, rows - 1)
+    return torch.stack((column, row), dim=-1)
+
+
 def resize_mask(mask: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     """An (H, W) bool mask at ``size = (h, w)``, nearest neighbour (it stays binary; unchanged
     when already that size). The one resize for scene masks: the patched model, ``apply``'s
@@ -318,6 +390,23 @@ class SizeGeometry:
             return radial.to(device=device, dtype=dtype), angular.to(device=device, dtype=dtype)
 
         return self._get(("pe", n_r, n_theta, device, dtype), build)
+
+    def naive_pe_grid(self, device, dtype) -> torch.Tensor | None:
+        """``grid_sample`` grid (1, h, w, 2), ``align_corners=True``, of :func:`naive_pe_positions`
+        over the (h, w) PE table of this input, or None when it is the identity."""
+
+        def build():
+            positions = naive_pe_positions(self.camera, self.height, self.width, self.patch)
+            if positions is None:
+                return None
+            rows, cols = self.height // self.patch, self.width // self.patch
+            # align_corners=True: -1 and 1 are the centres of the first and last table entries.
+            x = 2 * positions[:, 0] / (cols - 1) - 1 if cols > 1 else positions[:, 0] * 0
+            y = 2 * positions[:, 1] / (rows - 1) - 1 if rows > 1 else positions[:, 1] * 0
+            grid = torch.stack((x, y), dim=-1).reshape(1, rows, cols, 2)
+            return grid.to(device=device, dtype=dtype)
+
+        return self._get(("naive_pe", device, dtype), build)
 
     def rope_basis(self, n_bins: int, device, dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """Radial weights (hw, n_bins) and outward directions (hw, 2) in (y, x) order."""

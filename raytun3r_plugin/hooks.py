@@ -23,19 +23,41 @@ from raytun3r_plugin.rope import apply_rope_2d, displaced_positions
 
 
 def pe_interpolation(owner, state):
-    """Wrap ``interpolate_pos_encoding(x, w, h)``: add the adapter's PE correction to patch rows.
+    """Wrap ``interpolate_pos_encoding(x, w, h)``: the adapter's PE correction, or the naive remap.
 
     Upstream names are swapped (``w`` receives the image height); the table's first row is the
-    class slot and stays unchanged.
+    class slot and stays unchanged. With ``"pe"`` the adapter's correction is added to the patch
+    rows; with the ablation ``"pe_naive_remap"`` (never both) the patch rows are instead
+    upstream's own table sampled bilinearly at the tokens' undistorted positions
+    (:func:`raytun3r_plugin.geometry.naive_pe_positions`).
     """
 
     def interpolate_pos_encoding(original, x, w, h):
         table = original(x, w, h)
-        if not state.uses("pe"):
+        correct, remap = state.uses("pe"), state.uses("pe_naive_remap")
+        if not (correct or remap):
             return table
         geometry = state.geometry(w, h)
-        correction = state.pe_correction(geometry, table.device, torch.float32).to(table.dtype)
-        return torch.cat((table[:, :1], table[:, 1:] + correction), dim=1)
+        patches = table[:, 1:]
+        if remap:
+            grid = geometry.naive_pe_grid(table.device, table.dtype)
+            if grid is not None:
+                count, rows, cols = table.shape[0], geometry.height // geometry.patch, grid.shape[2]
+                image = patches.reshape(count, rows, cols, -1).permute(0, 3, 1, 2)
+                sampled = F.grid_sample(
+                    image,
+                    grid.expand(count, -1, -1, -1),
+                    mode="bilinear",
+                    padding_mode="border",
+                    align_corners=True,
+                )
+                patches = sampled.permute(0, 2, 3, 1).reshape(count, rows * cols, -1)
+            elif not correct:
+                return table  # the remap is the identity here (a pinhole camera)
+        if correct:
+            correction = state.pe_correction(geometry, table.device, torch.float32)
+            patches = patches + correction.to(table.dtype)
+        return torch.cat((table[:, :1], patches), dim=1)
 
     return interpolate_pos_encoding
 

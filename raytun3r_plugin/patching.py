@@ -161,8 +161,13 @@ class PatchState:
         return self.geometry_cache.at(int(height), int(width))
 
     def pe_correction(self, geometry: SizeGeometry, device, dtype) -> torch.Tensor:
-        """(hw, C) PE update t_r(rho) + rho d_theta(theta) for the current grid (:meth:`Adapter.pe_correction`)."""
-        return self.adapter.pe_correction(geometry, device, dtype)
+        """(hw, C) PE update t_r(rho) + rho d_theta(theta) for the current grid (:meth:`Adapter.pe_correction`).
+
+        The handle's components decide the angular term (``"pe_radial_only"`` drops it), not the
+        adapter's recorded ones: ``apply(..., components=...)`` overrides what the file says.
+        """
+        angular = not self.components.get("pe_radial_only", False)
+        return self.adapter.pe_correction(geometry, device, dtype, angular=angular)
 
     def rope_displacement(self, geometry: SizeGeometry, device, dtype) -> torch.Tensor:
         """(hw, 2) RoPE position displacement in (y, x) token units along the outward direction."""
@@ -523,8 +528,9 @@ def apply(
             the network input size on every forward. Defaults to the adapter's camera.
         adapter: an :class:`Adapter`, a path to an adapter file, or None for the parameter-free
             corrections only.
-        components: which corrections are on (``adapter.COMPONENTS``); defaults to the
-            adapter's recorded set, or all.
+        components: which corrections are on (``adapter.COMPONENTS``), plus any ablation
+            switch (``adapter.ABLATION_SWITCHES``: ``"pe_radial_only"``, ``"pe_naive_remap"``,
+            docs/components.md); defaults to the adapter's recorded set, or all corrections.
         strict: refuse an adapter fitted on other weights (PE fingerprint) or another camera.
         mask: optional (H, W) bool mask of valid pixels, combined with the camera's valid region.
         knee_deg, max_stretch: parameters of the fisheye-to-pinhole map and patch resampling.

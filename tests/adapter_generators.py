@@ -69,6 +69,15 @@ _CAMERA_VALUES = [
 ]
 
 
+def _components(rng: random.Random, names: tuple[str, ...]) -> dict[str, bool]:
+    """Random on/off corrections, sometimes with the ablation switch that fits them."""
+    components = {name: rng.random() < 0.7 for name in names}
+    if rng.random() < 0.3:
+        # "pe_radial_only" modifies "pe"; "pe_naive_remap" replaces it (docs/components.md).
+        components["pe_radial_only" if components["pe"] else "pe_naive_remap"] = True
+    return components
+
+
 def valid_adapter(rng: random.Random):
     """A random but valid adapter: sizes, tables, components, training record and camera."""
     import raytun3r_plugin as rt
@@ -87,7 +96,7 @@ def valid_adapter(rng: random.Random):
         n_theta=rng.randint(1, 10),
         n_r_rope=n_rope,
         camera=camera if rng.random() < 0.9 else None,
-        components={name: rng.random() < 0.7 for name in COMPONENTS},
+        components=_components(rng, COMPONENTS),
         training={"steps": rng.randint(0, 500), "final": {"reproj": rng.random()}},
     )
     generator = torch.Generator().manual_seed(rng.randrange(2**31))

@@ -119,6 +119,14 @@ def _rewrite(path, tensors=None, **metadata_changes):
         (dict(components="{not json"), "metadata 'components' is not valid JSON"),
         (dict(components='{"warp": true}'), "'components' must be an object with exactly the keys"),
         (dict(components="7"), "'components' must be an object with exactly the keys"),
+        (
+            dict(components=json.dumps(dict.fromkeys(COMPONENTS, True) | {"pe_angular": True})),
+            "'components' must be an object with exactly the keys",
+        ),
+        (
+            dict(components=json.dumps(dict.fromkeys(COMPONENTS, True) | {"pe_naive_remap": True})),
+            "'pe_naive_remap' and 'pe' exclude each other",
+        ),
         (dict(components="[[1]]"), "'components' must be an object with exactly the keys"),
         (
             dict(components=json.dumps(dict.fromkeys(COMPONENTS, True) | {"pe": "no"})),

@@ -20,7 +20,7 @@ from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 import raytun3r_plugin as rt  # noqa: E402
-from raytun3r_plugin.adapter import TABLE_LIMITS  # noqa: E402
+from raytun3r_plugin.adapter import TABLE_LIMITS, normalise_components  # noqa: E402
 from raytun3r_plugin.errors import AdapterError  # noqa: E402
 from tests.adapter_generators import adapter_bytes, mutate, valid_adapter  # noqa: E402
 
@@ -46,6 +46,7 @@ def test_valid_files_round_trip(rng, tmp_path_factory):
     loaded = rt.Adapter.load(path)
     assert loaded.same_as(adapter)
     assert loaded.training_info == adapter.training_info
+    assert loaded.components == adapter.components
 
 
 @settings(max_examples=400)
@@ -60,6 +61,8 @@ def test_any_mutation_loads_a_valid_adapter_or_raises_adapter_error(rng, tmp_pat
         assert bool(torch.isfinite(value).all())
         assert float(value.abs().max()) <= TABLE_LIMITS[name]
     assert all(isinstance(flag, bool) for flag in adapter.components.values())
+    # Whatever a file says, what loads is a consistent component set (no excluded pair).
+    assert normalise_components(adapter.components) == adapter.components
     if adapter.camera is not None:
         rays, valid = adapter.camera.unproject(adapter.camera.pixel_grid())
         assert bool(torch.isfinite(rays[valid]).all())
