@@ -47,6 +47,7 @@ from raytun3r_plugin.registry import (
     BackboneInfo,
     BackboneSpec,
     PatchTarget,
+    PromptTarget,
     UpstreamVersion,
     register,
 )
@@ -453,6 +454,24 @@ def _builder(name: str):
     return build
 
 
+#: Calibration tokens (Pi3 and Pi3X share the decoder loop of ``decode``): one token set per
+#: ``decoder`` BlockRope (36 at full size; even index: frame attention on (B*N, hw, C), odd:
+#: global attention on (B, N*hw, C)), inserted after the 5 register tokens. Each block's own
+#: ``forward`` is the runner; ``decode``'s N gives the frame count of the global layout. The
+#: DINOv2 encoder is not covered.
+PROMPT_TARGET = PromptTarget(
+    owner="decoder",
+    attribute="forward",
+    signature=("x", "xpos"),
+    blocks="decoder",
+    insert_at=5,
+    select=None,
+    pos_argument="xpos",
+    layout=("frame", "global"),
+    frames=("", "decode", "N"),
+)
+
+
 PI3_SPEC = register(
     BackboneSpec(
         family="pi3",
@@ -465,6 +484,7 @@ PI3_SPEC = register(
         rope_classes=ROPE_CLASSES,
         rope_base_attribute=ROPE_BASE_ATTRIBUTE,
         transformer_blocks=("encoder.blocks", "decoder"),
+        prompt_target=PROMPT_TARGET,
         check=_check("pi3"),
     )
 )
@@ -480,6 +500,7 @@ PI3X_SPEC = register(
         rope_classes=ROPE_CLASSES,
         rope_base_attribute=ROPE_BASE_ATTRIBUTE,
         transformer_blocks=("encoder.blocks", "decoder"),
+        prompt_target=PROMPT_TARGET,
         check=_check("pi3x"),
     )
 )

@@ -40,6 +40,7 @@ from raytun3r_plugin.registry import (
     BackboneInfo,
     BackboneSpec,
     PatchTarget,
+    PromptTarget,
     UpstreamVersion,
     register,
 )
@@ -244,6 +245,34 @@ def _build_vggt_1b(path=None) -> nn.Module:
 _build_vggt_1b.takes_checkpoint = True  # load_backbone passes the Checkpoint it has read
 
 
+#: Calibration tokens: one token set per aggregator block (24 frame, then 24 global blocks at
+#: full size), inserted after the camera token and the 4 register tokens (``patch_start_idx``).
+#: The two runners take B, S, P; each runs ``aa_block_size`` blocks, which must be 1 (upstream's
+#: value) for one token set per block. The DINO patch-embedding ViT is not covered.
+PROMPT_TARGET = PromptTarget(
+    owner="aggregator",
+    attribute="_process_frame_attention",
+    signature=("tokens", "B", "S", "P", "C", "frame_idx", "pos"),
+    blocks="aggregator.frame_blocks",
+    insert_at=5,
+    select="frame_idx",
+    tokens_argument="tokens",
+    sizes=("B", "S", "P"),
+    requires=(("aggregator.aa_block_size", 1),),
+    more=(
+        PromptTarget(
+            owner="aggregator",
+            attribute="_process_global_attention",
+            signature=("tokens", "B", "S", "P", "C", "global_idx", "pos"),
+            blocks="aggregator.global_blocks",
+            insert_at=5,
+            select="global_idx",
+            tokens_argument="tokens",
+            sizes=("B", "S", "P"),
+        ),
+    ),
+)
+
 SPEC = register(
     BackboneSpec(
         family=FAMILY,
@@ -260,6 +289,7 @@ SPEC = register(
             "aggregator.frame_blocks",
             "aggregator.global_blocks",
         ),
+        prompt_target=PROMPT_TARGET,
         check=check,
     )
 )

@@ -75,13 +75,29 @@ class PatchTarget:
 class PromptTarget:
     """Where a baseline inserts extra tokens before each transformer block (calibration tokens).
 
+    A *runner* is an upstream method that runs one block of ``blocks``; the baseline wraps it
+    (an instance attribute, removed again), widens its token and position arguments by the
+    extra tokens and cuts them out of every token tensor it returns.
+
     Attributes:
-        owner: dotted path of the module whose ``attribute`` runs one block on a (B, S, N, C)
-            token tensor with its (B, S, N, 2) positions (DA3's ``process_attention``).
+        owner: dotted path of the module whose ``attribute`` is the runner (DA3:
+            ``process_attention``). Ignored when ``select`` is None.
         attribute: that method; ``signature`` its parameter names after ``self``, as upstream.
         blocks: dotted path of the ``ModuleList`` of the blocks it runs (one token set each).
-        insert_at: token index the extra tokens go to (after the special tokens); they take the
-            position of token 0.
+        insert_at: token index of each frame the extra tokens go to (after the special
+            tokens); they take the position of the frame's token 0.
+        select: the argument that says which block runs: one of ``blocks`` (a module) or its
+            index (an int). None: the runner is ``attribute`` of each block itself.
+        tokens_argument, pos_argument: the arguments holding the tokens (..., C) and their
+            RoPE positions (..., 2) (``pos_argument`` None or the value None: no positions).
+        layout: how the tokens argument is laid out, per block (cycled over ``blocks``):
+            ``"frames"`` (B, S, N, C); ``"frame"`` (B*S, N, C); ``"global"`` (B, S*N, C).
+        sizes: the arguments giving B, S and N, for a runner that takes them (then ``layout`` is
+            not used, and the N argument is passed on as N + t).
+        frames: (owner path, method, argument) whose value is S while that method runs, for the
+            ``"global"`` layout ("" is the root).
+        requires: (dotted path, value) pairs the model must match (e.g. one block per runner call).
+        more: further runners; their blocks follow this one's in the token tensor.
     """
 
     owner: str
@@ -89,6 +105,18 @@ class PromptTarget:
     signature: tuple[str, ...]
     blocks: str
     insert_at: int = 1
+    select: str | None = "block"
+    tokens_argument: str = "x"
+    pos_argument: str | None = "pos"
+    layout: tuple[str, ...] = ("frames",)
+    sizes: tuple[str, ...] = ()
+    frames: tuple[str, str, str] | None = None
+    requires: tuple[tuple[str, Any], ...] = ()
+    more: tuple[PromptTarget, ...] = ()
+
+    def runners(self) -> tuple[PromptTarget, ...]:
+        """This runner and the ``more`` ones, in token-tensor order."""
+        return (self, *(runner for more in self.more for runner in more.runners()))
 
 
 @dataclass(frozen=True)
