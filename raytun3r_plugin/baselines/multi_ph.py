@@ -25,8 +25,11 @@ alone, and ``apps/evaluation.py`` builds it from the same functions.
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import torch
 import torch.nn.functional as F
@@ -138,6 +141,44 @@ def _rotated(rays: Tensor, rotation: Tensor | None) -> Tensor:
     return rays @ rotation.to(dtype=rays.dtype, device=rays.device).T
 
 
+_Table = TypeVar("_Table")
+
+
+def _cached(
+    build: Callable[[Camera, Pinhole, Tensor | None], _Table],
+) -> Callable[[Camera, Pinhole, Tensor | None], _Table]:
+    """Cache a geometry table per (fisheye, view, rotation) by value: every window of a sequence
+    asks for the same ones. Cameras whose parameters carry a graph are not cached. The cached
+    tensors are shared; nothing modifies them in place."""
+    cache = functools.lru_cache(maxsize=16)(
+        lambda camera, view, key: build(
+            camera, view, None if key is None else torch.tensor(key, dtype=torch.float64).view(3, 3)
+        )
+    )
+
+    @functools.wraps(build)
+    def tables(camera: Camera, view: Pinhole, rotation: Tensor | None = None) -> _Table:
+        if camera.requires_grad or view.requires_grad:
+            return build(camera, view, rotation)
+        key = None if rotation is None else tuple(rotation.double().flatten().tolist())
+        return cache(camera, view, key)
+
+    return tables
+
+
+@_cached
+def _view_sampling(camera: Camera, view: Pinhole, rotation: Tensor | None) -> Tensor:
+    """(h, w, 2) float32 ``grid_sample`` grid of the fisheye image for each view pixel."""
+    rays, _ = view.ray_table(dtype=torch.float64)
+    # A view pixel's ray in fisheye coordinates is R^T ray, i.e. the row vector ray @ R.
+    rays = rays if rotation is None else rays @ rotation.to(torch.float64)
+    uv, valid = camera.project(rays)
+    grid = torch.stack(
+        ((2 * uv[..., 0] + 1) / camera.width - 1, (2 * uv[..., 1] + 1) / camera.height - 1), -1
+    )
+    return torch.where(valid[..., None], grid, torch.full_like(grid, 2.0)).float()
+
+
 def resample_to_view(
     images: Tensor, camera: Camera, view: Pinhole, rotation: Tensor | None = None
 ) -> Tensor:
@@ -152,14 +193,7 @@ def resample_to_view(
     Returns:
         (..., 3, h, w) images of the view; pixels whose ray the fisheye does not see are black.
     """
-    rays, _ = view.ray_table(dtype=torch.float64)
-    # A view pixel's ray in fisheye coordinates is R^T ray, i.e. the row vector ray @ R.
-    rays = rays if rotation is None else rays @ rotation.to(torch.float64)
-    uv, valid = camera.project(rays)
-    grid = torch.stack(
-        ((2 * uv[..., 0] + 1) / camera.width - 1, (2 * uv[..., 1] + 1) / camera.height - 1), -1
-    )
-    grid = torch.where(valid[..., None], grid, torch.full_like(grid, 2.0)).float()
+    grid = _view_sampling(camera, view, rotation)
     flat = images.reshape(-1, *images.shape[-3:])
     out = F.grid_sample(
         flat,
@@ -171,6 +205,7 @@ def resample_to_view(
     return out.reshape(*images.shape[:-2], view.height, view.width)
 
 
+@_cached
 def view_validity(camera: Camera, view: Pinhole, rotation: Tensor | None = None) -> Tensor:
     """(h, w) bool: view pixels whose ray lands on a valid fisheye pixel (the rest is black)."""
     rays, _ = view.ray_table(dtype=torch.float64)
@@ -186,6 +221,7 @@ def view_validity(camera: Camera, view: Pinhole, rotation: Tensor | None = None)
     return inside & mask[index_r, index_c]
 
 
+@_cached
 def view_lookup(
     camera: Camera, view: Pinhole, rotation: Tensor | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -194,7 +230,8 @@ def view_lookup(
     Returns:
         uv (H, W, 2) float64 view pixel coordinates, q_z (H, W) float64 the cosine between the
         ray and the view's axis, and inside (H, W) bool: the fisheye pixel is valid, in front of
-        the view and its projection lies within the view's pixel centres.
+        the view and its projection lies within the view's pixel centres. Cached per (camera,
+        view, rotation); do not modify the tensors in place.
     """
     rays, valid = camera.ray_table(dtype=torch.float64)
     q = _rotated(rays, rotation)
@@ -211,6 +248,16 @@ def view_lookup(
     return uv, q[..., 2], inside
 
 
+@_cached
+def _fisheye_sampling(camera: Camera, view: Pinhole, rotation: Tensor | None) -> Tensor:
+    """(H, W, 2) float32 ``grid_sample`` grid of the view's maps for each fisheye pixel."""
+    uv, _, inside = view_lookup(camera, view, rotation)
+    grid = torch.stack(
+        ((2 * uv[..., 0] + 1) / view.width - 1, (2 * uv[..., 1] + 1) / view.height - 1), -1
+    )
+    return torch.where(inside[..., None], grid, torch.zeros_like(grid)).float()
+
+
 def view_depth_to_fisheye(
     depth_z: Tensor, camera: Camera, view: Pinhole, rotation: Tensor | None = None
 ) -> tuple[Tensor, Tensor]:
@@ -223,11 +270,8 @@ def view_depth_to_fisheye(
         range depth (..., H, W) (0 where the view does not cover the pixel) and the view's
         coverage mask (H, W) bool.
     """
-    uv, q_z, inside = view_lookup(camera, view, rotation)
-    grid = torch.stack(
-        ((2 * uv[..., 0] + 1) / view.width - 1, (2 * uv[..., 1] + 1) / view.height - 1), -1
-    )
-    grid = torch.where(inside[..., None], grid, torch.zeros_like(grid)).float()
+    grid = _fisheye_sampling(camera, view, rotation)
+    _, q_z, inside = view_lookup(camera, view, rotation)
     flat = depth_z.reshape(-1, 1, *depth_z.shape[-2:]).float()
     sampled = F.grid_sample(
         flat, grid[None].expand(flat.shape[0], -1, -1, -1), mode="bilinear", align_corners=False
