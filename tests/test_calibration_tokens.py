@@ -411,3 +411,40 @@ def test_pi3_global_blocks_need_decode_for_the_frame_count(family):
         model.decoder[1](x.reshape(1, 34, width), xpos=pos.reshape(1, 34, 2)),
         model.decoder[1].forward(x.reshape(1, 34, width), xpos=pos.reshape(1, 34, 2)),
     )
+
+
+@pytest.mark.parametrize("family", ["vggt", "pi3"])
+def test_adapt_fits_vggt_and_pi3_tokens(family, tmp_path):
+    from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+    from tests.backbones import make
+    from tests.test_losses import room_sequence
+
+    pytest.importorskip(family)
+    model = make(family)
+    camera = fisheye(84, 70, 190.0)
+    images, _, _ = room_sequence(camera, 5, step=0.35, yaw=0.06)
+    config = AdaptConfig(
+        steps=2,
+        input_size=84,
+        n_windows=3,
+        cache_dir=str(tmp_path / "cache"),
+        matcher_options={"border_px": 2},
+        seed=0,
+        components=[],
+        lr=1e-2,
+    )
+    with inject_calibration_tokens(model) as handle:
+        start = handle.tokens.tokens.detach().clone()
+        adapter = adapt(model, camera, images, config, tune=handle.tokens, progress=False)
+        moved = (handle.tokens.tokens.detach() - start).abs().sum(dim=(1, 2))
+        assert bool((moved > 0).all()), "every block's tokens are fitted"
+    assert adapter.is_zero()
+
+
+def test_a_family_without_a_prompt_target_refuses():
+    pytest.importorskip("vggt_omega")
+    from tests.backbones import make
+
+    model = make("vggt_omega")
+    with pytest.raises(UnsupportedUpstreamError, match="declares no place"):
+        inject_calibration_tokens(model)
