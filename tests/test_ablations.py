@@ -35,7 +35,9 @@ from tests.helpers import (
 )
 
 pytest.importorskip("depth_anything_3")
-from tests.backbones import make  # noqa: E402
+from tests.backbones import CASES, make  # noqa: E402
+
+CASES_BY_FAMILY = {case.family: case for case in CASES}
 
 H, W = 70, 84
 PATCH = 14
@@ -377,3 +379,36 @@ def test_remove_restores_the_model_bit_for_bit(net, images, camera, reference, c
     assert rt.handle_of(net) is None
     assert_same_snapshot(net, before)
     assert max_relative_difference(reference, outputs(net, images)) == 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Every backbone
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("family", [case.family for case in CASES])
+def test_switches_on_every_backbone(family):
+    case = CASES_BY_FAMILY[family]
+    pytest.importorskip(case.package)
+    net = make(family)
+    images = case.images()
+    height, width = case.size
+    reference = outputs(net, images)
+    before = snapshot(net)
+    fish = fisheye(width, height)
+    adapter = randomise_(rt.Adapter.for_model(net, fish))
+    naive = _run(net, images, fish, None, NAIVE)
+    identity = _run(net, images, pinhole(width, height), None, NAIVE)
+    radial = _run(net, images, fish, adapter, RADIAL_ONLY)
+    with torch.no_grad():
+        adapter.pe["angular"].zero_()
+    radial_again = _run(net, images, fish, adapter, RADIAL_ONLY)
+    assert max_relative_difference(reference, identity) == 0.0
+    if "pe" in case.inert:  # no absolute PE table: neither switch has anything to act on
+        assert max_relative_difference(reference, naive) == 0.0
+        assert max_relative_difference(reference, radial) == 0.0
+    else:
+        assert max_relative_difference(reference, naive) > 1e-4
+        assert max_relative_difference(reference, radial) > 1e-4
+    assert max_relative_difference(radial, radial_again) == 0.0
+    assert_same_snapshot(net, before)
