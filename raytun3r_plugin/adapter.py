@@ -88,7 +88,8 @@ def normalise_components(
 
     The result has every name of :data:`COMPONENTS` and, only while switched on, the
     :data:`ABLATION_SWITCHES`. A mapping's missing corrections are on and its missing ablation
-    switches off; a list names exactly what is on; None is every correction, no ablation.
+    switches off; a list names exactly what is on (a single name is a list of one); None is
+    every correction, no ablation.
 
     Raises:
         AdapterError: an unknown name, a value that is not a bool, ``"pe_naive_remap"`` together
