@@ -4,7 +4,8 @@
   transformer blocks (declared per family as ``BackboneSpec.transformer_blocks``), reversible
   like :func:`raytun3r_plugin.apply` and saved in PEFT's layout.
 - :mod:`raytun3r_plugin.baselines.calibration_tokens`: learned tokens inserted before every
-  block (VPT-deep), where a family declares ``BackboneSpec.prompt_target`` (DA3).
+  block (VPT-deep), where a family declares ``BackboneSpec.prompt_target`` (DA3, VGGT, Pi3,
+  Pi3X).
 - :mod:`raytun3r_plugin.baselines.multi_ph`: Multi-PH, five virtual pinhole views (Center-PH's
   plus four tilted ones) through the unpatched model, depth and pose fused back to the fisheye.
 
