@@ -6,6 +6,7 @@ component ablation (``--ablations``).
     python benchmarks/components.py --ablations        # the ablation rows (docs/components.md)
     python benchmarks/components.py --ablations --refit  # ... plus one fit per learned row
     python benchmarks/components.py --ablations --refit --sequences 4  # means over 4 sequences
+    python benchmarks/components.py --ablations --baselines  # ... plus Multi-PH, LoRA, tokens
 
 Prints one row per component set: vanilla, each correction alone, and all of them. With
 ``--dev-sequences N`` the rows are means over N sequences of every (camera, scene) cell of the
@@ -17,7 +18,10 @@ alone, naive remap of the PE, radial PE only, radial + angular PE, RoPE only, fu
 demo's sequence: each with the zero adapter and, for rows with learned tables, with the adapter
 fitted on frames 0-23 by the demo's configuration (all components on, then evaluated under the
 row's switches); ``--refit`` adds, per learned row, an adapter fitted with only that row's
-components on (as the paper's rows were trained).
+components on (as the paper's rows were trained); ``--baselines`` adds Multi-PH and LoRA and
+calibration tokens fitted with the same objective, windows, optimiser and steps (the demo's
+configuration with ``components=[]``, on the unpatched model). ``params``: the trainable
+parameters a row uses.
 """
 
 from __future__ import annotations
@@ -67,7 +71,55 @@ def score_sets(model, seq, held_out: list[int]) -> dict[str, dict[str, float]]:
     return scores
 
 
-def ablation_rows(model, seed: int, refit: bool) -> list[dict]:
+def _row_parameters(adapter, components: list[str]) -> int:
+    """Trainable parameters of ``adapter`` that the switches ``components`` read."""
+    counts = adapter.num_parameters()
+    pe = counts["pe"] if "pe" in components else 0
+    if "pe_radial_only" in components:
+        pe = adapter.pe["radial"].numel()
+    return pe + (counts["rope"] if "rope" in components else 0)
+
+
+def baseline_rows(model, seq, held_out: list[int], n_adapt: int, cache: str) -> list[dict]:
+    """Multi-PH, and LoRA and calibration tokens fitted like raytun3r's tables (the demo's
+    configuration, ``components=[]``: the unpatched model), scored on ``held_out``."""
+    from raytun3r_plugin.adaptation.train import adapt
+    from raytun3r_plugin.apps.demo import DEMO_LR, DEMO_STEPS, adapt_config
+    from raytun3r_plugin.baselines import inject_calibration_tokens, inject_lora
+
+    rows = [
+        {
+            "configuration": "Multi-PH (5 pinhole views)",
+            "components": "-",
+            "adapter": "-",
+            "params": 0,
+            **headline(score(seq, run_method(model, seq, "multi-ph", frames=held_out))),
+        }
+    ]
+    config = adapt_config(
+        seq.camera.width, DEMO_STEPS, lr=DEMO_LR, seed=0, cache_dir=cache, components=[]
+    )
+    for label, inject, weights in (
+        ("LoRA (r = 8, alpha = 16)", inject_lora, "weights"),
+        ("calibration tokens (t = 4)", inject_calibration_tokens, "tokens"),
+    ):
+        with inject(model) as handle:
+            tuned = getattr(handle, weights)
+            adapt(model, seq.camera, seq.images[:n_adapt], config, progress=False, tune=tuned)
+            output = run_method(model, seq, "vanilla", frames=held_out)
+        rows.append(
+            {
+                "configuration": label,
+                "components": "-",
+                "adapter": "fitted (same objective)",
+                "params": tuned.num_parameters(),
+                **headline(score(seq, output)),
+            }
+        )
+    return rows
+
+
+def ablation_rows(model, seed: int, refit: bool, baselines: bool = False) -> list[dict]:
     """The ``--ablations`` rows on one demo sequence (frames 0-23 fitted, 24-35 scored)."""
     from raytun3r_plugin.adaptation.train import adapt
     from raytun3r_plugin.apps.demo import DEMO_LR, DEMO_STEPS, adapt_config
@@ -87,6 +139,7 @@ def ablation_rows(model, seed: int, refit: bool) -> list[dict]:
             "configuration": "vanilla (unpatched)",
             "components": "-",
             "adapter": "-",
+            "params": 0,
             **headline(score(seq, run_method(model, seq, "vanilla", frames=held_out))),
         }
     ]
@@ -109,29 +162,38 @@ def ablation_rows(model, seed: int, refit: bool) -> list[dict]:
         for label, components, learned in ABLATION_ROWS:
             names = " + ".join(components) if components != list(COMPONENTS) else "all five"
             base = {"configuration": label, "components": names}
-            rows.append({**base, "adapter": "none", **scored(None, components)})
+            rows.append({**base, "adapter": "none", "params": 0, **scored(None, components)})
             if learned:
                 rows.append(
-                    {**base, "adapter": "demo fit (all on)", **scored(demo_fit, components)}
+                    {
+                        **base,
+                        "adapter": "demo fit (all on)",
+                        "params": _row_parameters(demo_fit, components),
+                        **scored(demo_fit, components),
+                    }
                 )
                 if refit and components != list(COMPONENTS):
+                    refitted = fit(components)
                     rows.append(
                         {
                             **base,
                             "adapter": "fitted for the row",
-                            **scored(fit(components), components),
+                            "params": _row_parameters(refitted, components),
+                            **scored(refitted, components),
                         }
                     )
+        if baselines:
+            rows += baseline_rows(model, seq, held_out, n_adapt, cache)
     return rows
 
 
-def ablation_table(model, refit: bool, sequences: int) -> str:
+def ablation_table(model, refit: bool, sequences: int, baselines: bool = False) -> str:
     """Means of :func:`ablation_rows` over the demo's sequences (seeds 1000, 1001, ...), with on
     how many of them a row's d_reproj and AbsRel are below vanilla's."""
-    per_sequence = [ablation_rows(model, 1000 + k, refit) for k in range(sequences)]
+    per_sequence = [ablation_rows(model, 1000 + k, refit, baselines) for k in range(sequences)]
     rows = []
     for index, first in enumerate(per_sequence[0]):
-        row = {key: first[key] for key in ("configuration", "components", "adapter")}
+        row = {key: first[key] for key in ("configuration", "components", "adapter", "params")}
         for key in ABLATION_METRICS:
             row[key] = sum(s[index][key] for s in per_sequence) / len(per_sequence)
         if index and sequences > 1:
@@ -140,7 +202,7 @@ def ablation_table(model, refit: bool, sequences: int) -> str:
                 for key in ("d_reproj_px", "abs_rel")
             )
         rows.append(row)
-    columns = ["configuration", "components", "adapter", *ABLATION_METRICS]
+    columns = ["configuration", "components", "adapter", "params", *ABLATION_METRICS]
     return format_table(rows, columns + (["lower_than_vanilla"] if sequences > 1 else []))
 
 
@@ -168,12 +230,17 @@ def main() -> None:
         action="store_true",
         help="with --ablations: also fit one adapter per learned row with only its components",
     )
+    parser.add_argument(
+        "--baselines",
+        action="store_true",
+        help="with --ablations: also Multi-PH, and LoRA and calibration tokens fitted alike",
+    )
     args = parser.parse_args()
     model, description = default_network()
     print(f"network: {description}")
     if args.ablations:
         began = time.perf_counter()
-        table = ablation_table(model, args.refit, args.sequences)
+        table = ablation_table(model, args.refit, args.sequences, args.baselines)
         seeds = f"seed{'s' if args.sequences > 1 else ''} 1000-{999 + args.sequences}"
         print(
             f"{args.sequences} demo sequence(s) (indoor, KB4 190 deg, 112 px, {seeds}): frames "
