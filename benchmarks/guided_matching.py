@@ -78,21 +78,14 @@ def predicted_flow(camera, depth: torch.Tensor, rotation, translation) -> np.nda
 
 
 def _warped_patches(gray, uv, jacobian, radius: int) -> np.ndarray:
+    """(M, (2 r + 1)^2) grey levels of patches centred at ``uv`` whose offsets are mapped by the
+    (M, 2, 2) ``jacobian`` (bilinear, edge-clamped; one map row per match)."""
     steps = np.arange(-radius, radius + 1, dtype=np.float32)
     offsets = np.stack(np.meshgrid(steps, steps, indexing="xy"), axis=-1).reshape(-1, 2)
-    points = uv[:, None, :] + np.einsum("mij,kj->mki", jacobian, offsets)
-    h, w = gray.shape
-    p = points.reshape(-1, 2)
-    u, v = np.clip(p[:, 0], 0.0, w - 1.001), np.clip(p[:, 1], 0.0, h - 1.001)
-    u0, v0 = u.astype(np.int64), v.astype(np.int64)
-    fu, fv = u - u0, v - v0
-    values = (
-        gray[v0, u0] * (1 - fu) * (1 - fv)
-        + gray[v0, u0 + 1] * fu * (1 - fv)
-        + gray[v0 + 1, u0] * (1 - fu) * fv
-        + gray[v0 + 1, u0 + 1] * fu * fv
+    points = (uv[:, None, :] + np.einsum("mij,kj->mki", jacobian, offsets)).astype(np.float32)
+    return cv2.remap(
+        gray, points[..., 0], points[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
     )
-    return values.reshape(uv.shape[0], -1).astype(np.float32)
 
 
 def warped_check(gray_i, gray_j, uv_i, uv_j, flow, radius=3, zncc_min=0.8, margin=0.2):
