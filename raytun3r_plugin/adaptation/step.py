@@ -19,6 +19,7 @@ from torch import nn
 from raytun3r_plugin.adaptation.config import AdaptConfig
 from raytun3r_plugin.adaptation.losses import (
     backproject,
+    depth_parallax_px,
     fit_translation_scale,
     pe_correction_grid,
     pe_energy,
@@ -50,6 +51,7 @@ __all__ = [
     "problem_window_terms",
     "regulariser_scale",
     "window_of_step",
+    "window_parallax",
     "window_terms",
 ]
 
@@ -208,6 +210,62 @@ def window_terms(
     if config.pose_source == "model":
         terms["pose"] = torch.stack(pose_terms).mean() if pose_terms else zero
     return terms, {"n_matches": n_matches, "n_pose": len(pose_terms)}
+
+
+def window_parallax(
+    model: nn.Module, adapter: Adapter, problem: AdaptationProblem, config: AdaptConfig
+) -> list[float]:
+    """Median depth parallax (px per unit log depth, :func:`depth_parallax_px`) of each window's
+    matches, NaN for a window without a pair that has a usable pose target.
+
+    Each used frame is predicted once, alone, through ``model`` patched with ``adapter``; each
+    pair's translation is scaled to that depth as the fit scales it (:func:`_targets_pose`).
+    """
+    camera = problem.layout.camera
+    frames = sorted({frame for window, _ in problem.windows for frame in window.frames})
+    with (
+        torch.no_grad(),
+        apply(
+            model,
+            problem.layout.native_camera,
+            adapter,
+            components=config.components,
+            strict=False,
+            mask=problem.mask,
+        ),
+    ):
+        depth = {
+            frame: predict(model, problem.inputs[frame][None, None]).depth[0, 0] for frame in frames
+        }
+    medians = []
+    with torch.no_grad():
+        for window, pairs in problem.windows:
+            values = []
+            for pair in pairs:
+                if pair.rotation is None or pair.uv_i.shape[0] == 0:
+                    continue
+                frame_depth = depth[window.frames[pair.a]].double()
+                sampled = sample_bilinear(frame_depth, pair.uv_i.double())
+                usable = torch.isfinite(sampled) & (sampled > 0)
+                if not usable.any():
+                    continue
+                points = backproject(
+                    sampled[usable], pair.rays_i[usable].double(), config.depth_convention
+                )
+                pose = _targets_pose(
+                    pair,
+                    frame_depth,
+                    pair.uv_i.double(),
+                    pair.uv_j.double(),
+                    pair.confidence.double(),
+                    pair.rays_i.double(),
+                    pair.rays_j.double(),
+                    camera,
+                    config,
+                )
+                values.append(float(depth_parallax_px(points, pose, camera).median()))
+            medians.append(float(torch.tensor(values).median()) if values else math.nan)
+    return medians
 
 
 # --------------------------------------------------------------------------------------------
