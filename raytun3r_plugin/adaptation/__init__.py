@@ -63,3 +63,11 @@ __all__ += [
     "read_loss_log",
     "scene_mask",
 ]
+
+# Rough calibration (issue 18).
+from raytun3r_plugin.adaptation.intrinsics import (  # noqa: E402
+    IntrinsicsReport,
+    refine_intrinsics,
+)
+
+__all__ += ["IntrinsicsReport", "refine_intrinsics"]

@@ -98,6 +98,19 @@ class AdaptConfig:
         guard: stop a fit whose depth collapses and roll the tables back to the last healthy
             check (:func:`depth_health`), every ``guard_every`` steps.
         guard_every: steps between two collapse checks.
+        min_parallax_px: self-supervised fit only: before fitting, drop every window whose
+            matches move less than this many input pixels per unit log depth (median over the
+            window, at the fit's own translation scale and the starting adapter's depth;
+            :func:`~raytun3r_plugin.adaptation.step.window_parallax`): such matches cannot tell
+            near from far, and fitting to them moved the tables by noise and smoothness alone
+            (outdoors at 112 px: d_reproj rose on every sequence). When no window is left the
+            fit stops at once with the verdict "no signal" and the tables stay as they started.
+            0 keeps every window. docs/adaptation.md section 6.
+        refine_intrinsics: before fitting, refine the camera's focal and first distortion term
+            jointly with the pairs' relative poses from the adaptation set's matches
+            (:func:`~raytun3r_plugin.adaptation.intrinsics.refine_intrinsics`, docs/intrinsics.md)
+            and fit (and save) the adapter with the refined camera. Off by default; when off it
+            is left out of :meth:`to_dict` so existing identities and checkpoints are unchanged.
     """
 
     steps: int = 300
@@ -124,6 +137,8 @@ class AdaptConfig:
     pe_regulariser: str = "relative"
     guard: bool = True
     guard_every: int = 25
+    min_parallax_px: float = 0.3
+    refine_intrinsics: bool = False
 
     def __post_init__(self) -> None:
         if isinstance(self.weights, Mapping):
@@ -146,6 +161,8 @@ class AdaptConfig:
             ("robust_px", self.robust_px is None or self.robust_px > 0),
             ("pe_regulariser", self.pe_regulariser in PE_REGULARISERS),
             ("guard_every", self.guard_every >= 1),
+            ("min_parallax_px", self.min_parallax_px >= 0),
+            ("refine_intrinsics", isinstance(self.refine_intrinsics, bool)),
         )
         for name, ok in checks:
             if not ok:
@@ -153,7 +170,12 @@ class AdaptConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (``AdaptConfig(**d)`` rebuilds it)."""
-        return asdict(self)
+        out = asdict(self)
+        # Only recorded when on: the identity (and so every checkpoint and adapter file) of a
+        # configuration that does not use it stays what it was before the field existed.
+        if not self.refine_intrinsics:
+            del out["refine_intrinsics"]
+        return out
 
     @classmethod
     def supervised(cls, **changes: Any) -> AdaptConfig:

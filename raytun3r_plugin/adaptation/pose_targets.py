@@ -53,6 +53,7 @@ __all__ = [
     "camera_focal_px",
     "estimate_relative_pose",
     "rotation_error_deg",
+    "tangent_sampson_error",
     "translation_direction_error_deg",
     "unproject_pixels",
 ]
@@ -217,6 +218,32 @@ def _sampson_of(E: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
 def _tangent_sampson(R: np.ndarray, t: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
     """Signed tangent-Sampson error (radians) of unit rays ``f1 -> f2`` under (R, t)."""
     return _sampson_of(_essentials(R, t), f1, f2)
+
+
+def tangent_sampson_error(
+    R: np.ndarray, t: np.ndarray, f1: np.ndarray, f2: np.ndarray
+) -> np.ndarray:
+    """Signed tangent-Sampson error of unit-ray matches under a relative pose, radians.
+
+    The error minimised by the pose polish (module docstring, step 5), public for the
+    modules that score or refine against the same residual (e.g.
+    :mod:`raytun3r_plugin.adaptation.intrinsics`).
+
+    Args:
+        R: ``(3, 3)`` rotation ``cam_j_from_cam_i``.
+        t: ``(3,)`` translation direction (any non-zero length; the error is scale-free).
+        f1, f2: ``(N, 3)`` unit rays of the matches in frames ``i`` and ``j``.
+
+    Returns:
+        ``(N,)`` float64: ``f2^T E f1`` over its tangent-plane gradient norm (``E = [t]_x R``),
+        to first order the angle between each ray and its epipolar great circle.
+    """
+    return _tangent_sampson(
+        np.asarray(R, np.float64),
+        np.asarray(t, np.float64),
+        np.asarray(f1, np.float64),
+        np.asarray(f2, np.float64),
+    )
 
 
 def _depths(

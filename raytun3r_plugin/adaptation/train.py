@@ -221,8 +221,10 @@ def adapt(
         The fitted :class:`Adapter` (camera: the camera of the frames, cropped if the input
         layout needed a crop); ``adapter.training_info`` records the steps done, the final
         losses (mean over the last pass over the windows), the segment, the input layout and the
-        configuration. On Ctrl-C the adapter of the last completed step is saved (with a
-        checkpoint) and returned, with ``training_info["interrupted"] = True``.
+        configuration; with ``config.refine_intrinsics``, ``training_info["intrinsics"]`` is the
+        :class:`~raytun3r_plugin.adaptation.intrinsics.IntrinsicsReport` (as a dict) and the
+        adapter's camera the refined one. On Ctrl-C the adapter of the last completed step is
+        saved (with a checkpoint) and returned, with ``training_info["interrupted"] = True``.
 
     Baselines:
         ``tune``: a module whose parameters are fitted *instead of* the adapter's tables (e.g.
@@ -249,6 +251,18 @@ def adapt(
         else copy.deepcopy(adapter)
     )
     problem = prepare_problem(camera, frames, config, adapter.patch_size, mask=mask, depth=depth)
+    intrinsics = None
+    if config.refine_intrinsics:
+        from raytun3r_plugin.adaptation.intrinsics import refine_intrinsics
+
+        # Rough calibration first: the matches and targets are then recomputed with the refined
+        # camera, so the rays, targets and the adapter's camera all agree with it.
+        camera, report = refine_intrinsics(camera, problem.adaptation)
+        intrinsics = report.to_dict()
+        if report.refined:
+            problem = prepare_problem(
+                camera, frames, config, adapter.patch_size, mask=mask, depth=depth
+            )
     problem.pe_scale = regulariser_scale(model, config)
     adapter.camera = problem.layout.native_camera
     if tune is not None:
@@ -338,6 +352,8 @@ def adapt(
     adapter.training_info = _training_info(
         config, problem, completed, history, interrupted, time.perf_counter() - began, start
     )
+    if intrinsics is not None:
+        adapter.training_info["intrinsics"] = intrinsics
     if guard is not None:
         adapter.training_info["guard"] = guard.report()
     adapter.training_info["verdict"] = fit_verdict(adapter, history, problem, guard)
