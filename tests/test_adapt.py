@@ -62,7 +62,8 @@ def _quiet_da3():
 
 
 def config(cache_dir, **changes) -> AdaptConfig:
-    # The collapse guard adds forwards of its own; the tests of it switch it on.
+    # The collapse guard and the parallax gate add forwards of their own; their tests switch
+    # them on.
     base = dict(
         steps=3,
         input_size=84,
@@ -72,6 +73,7 @@ def config(cache_dir, **changes) -> AdaptConfig:
         matcher_options={"border_px": 2},
         seed=0,
         guard=False,
+        min_parallax_px=0.0,
     )
     base.update(changes)
     return AdaptConfig(**base)
@@ -500,3 +502,47 @@ def test_bad_mask_is_refused_before_anything_is_written(
         )
     assert not out.parent.exists() and handle_of(model) is None
     assert all(torch.equal(before[name], value) for name, value in model.state_dict().items())
+
+
+def test_depth_parallax_is_the_reprojection_shift_per_log_depth():
+    from raytun3r_plugin.adaptation.losses import depth_parallax_px
+    from raytun3r_plugin.cameras import Pinhole
+
+    camera = Pinhole(64, 64, {"fx": 50.0, "fy": 50.0, "cx": 31.5, "cy": 31.5})
+    points = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 8.0]], dtype=torch.float64)
+    sideways = torch.eye(4, dtype=torch.float64)
+    sideways[0, 3] = 0.1  # 10 cm to the side: u = cx + f (x + b) / z
+    step = 0.05
+    expected = 50.0 * 0.1 / points[:, 2] * (1 - math.exp(-step)) / step
+    assert torch.allclose(depth_parallax_px(points, sideways, camera, step), expected, rtol=1e-9)
+    # Without translation a depth change moves nothing: such matches say nothing about depth.
+    still = torch.eye(4, dtype=torch.float64)
+    assert torch.equal(
+        depth_parallax_px(points, still, camera), torch.zeros(2, dtype=torch.float64)
+    )
+
+
+def test_parallax_gate_keeps_moving_windows_and_stops_a_fit_without_signal(
+    camera, frames, cache_dir
+):
+    model = build_tiny_network()
+    ungated = adapt(model, camera, frames, config(cache_dir), progress=False)
+    gated = adapt(model, camera, frames, config(cache_dir, min_parallax_px=0.3), progress=False)
+    gate = gated.training_info["parallax_gate"]
+    # This hand-held room moves enough everywhere: every window is kept, the fit is the same.
+    assert gate["windows_dropped"] == 0 and gate["windows_kept"] == 3
+    assert all(m is not None and m > 0.3 for m in gate["window_median_px"])
+    assert same_tables(tables(gated), tables(ungated))
+    assert "parallax_gate" not in ungated.training_info
+    # A threshold no window reaches: no step, tables as they started, the verdict says why.
+    weights = {k: v.clone() for k, v in model.state_dict().items()}
+    stopped = adapt(model, camera, frames, config(cache_dir, min_parallax_px=1e6), progress=False)
+    assert stopped.training_info["steps"] == 0
+    assert stopped.training_info["parallax_gate"]["windows_kept"] == 0
+    assert stopped.training_info["verdict"]["status"] == "no signal"
+    assert "NO SIGNAL" in stopped.training_info["verdict"]["summary"]
+    assert all(not v.abs().any() for v in tables(stopped).values())
+    assert handle_of(model) is None
+    assert all(torch.equal(weights[k], v) for k, v in model.state_dict().items())
+    with pytest.raises(InputError, match="min_parallax_px"):
+        AdaptConfig(min_parallax_px=-1.0)

@@ -121,10 +121,12 @@ def fit_verdict(
     history: list[dict[str, Any]],
     problem: AdaptationProblem,
     guard: _CollapseGuard | None,
+    parallax: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """What a finished fit did, in one word and one sentence.
 
-    ``status``: ``"collapsed"`` (the guard stopped it and restored earlier tables),
+    ``status``: ``"no signal"`` (the parallax gate, ``parallax``, dropped every window: the
+    matches cannot tell near from far, so no step was taken), ``"collapsed"`` (the guard stopped it and restored earlier tables),
     ``"diverged"`` (non-finite losses, more than 10 % skipped steps, or a last pass with a loss
     above twice the first pass's), ``"did nothing"`` (the PE correction stayed below 1 % of the
     backbone's PE rms and the RoPE table below 0.01 token) or ``"ok"``.
@@ -144,7 +146,16 @@ def fit_verdict(
     first_mean = float(np.mean(first)) if first else float("nan")
     last_mean = float(np.mean(last)) if last else float("nan")
     size = f"PE correction {100 * relative:.1f} % of the PE rms, RoPE shift up to {rope:.3f} token"
-    if guard is not None and guard.tripped is not None:
+    if parallax is not None and parallax["windows_kept"] == 0:
+        status = "no signal"
+        finite = [m for m in parallax["window_median_px"] if m is not None]
+        summary = (
+            f"NO SIGNAL: the matches of all {parallax['windows_dropped']} windows move less than "
+            f"{parallax['min_parallax_px']} px per unit log depth (largest window median "
+            f"{max(finite, default=0.0):.3f} px; far points only, or no translation), so they "
+            "cannot tell near from far; no step taken, tables left as they started"
+        )
+    elif guard is not None and guard.tripped is not None:
         status = "collapsed"
         summary = (
             f"COLLAPSED at step {guard.tripped['step']} (log-depth correlation {guard.tripped['correlation']:.2f}, "

@@ -218,12 +218,14 @@ def window_parallax(
     """Median depth parallax (px per unit log depth, :func:`depth_parallax_px`) of each window's
     matches, NaN for a window without a pair that has a usable pose target.
 
-    Each used frame is predicted once, alone, through ``model`` patched with ``adapter``; each
+    Each used frame is predicted once, alone, through ``model`` patched with ``adapter`` (frozen,
+    in eval mode, restored afterwards); each
     pair's translation is scaled to that depth as the fit scales it (:func:`_targets_pose`).
     """
     camera = problem.layout.camera
     frames = sorted({frame for window, _ in problem.windows for frame in window.frames})
     with (
+        _frozen(model),
         torch.no_grad(),
         apply(
             model,

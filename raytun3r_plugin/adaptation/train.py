@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import os
 import sys
 import time
@@ -87,6 +88,7 @@ from raytun3r_plugin.adaptation.step import (
     objective_value,
     regulariser_scale,
     window_of_step,
+    window_parallax,
     window_terms,
 )
 from raytun3r_plugin.adapter import Adapter
@@ -265,6 +267,21 @@ def adapt(
             )
     problem.pe_scale = regulariser_scale(model, config)
     adapter.camera = problem.layout.native_camera
+    parallax = None
+    if depth is None and config.min_parallax_px > 0:
+        # Measured with the starting tables, before any checkpoint is restored, so a resumed run
+        # keeps the same windows.
+        medians = window_parallax(model, adapter, problem, config)
+        keep = [not median < config.min_parallax_px for median in medians]  # NaN: no evidence
+        parallax = {
+            "min_parallax_px": config.min_parallax_px,
+            "window_median_px": [round(m, 4) if math.isfinite(m) else None for m in medians],
+            "windows_kept": sum(keep),
+            "windows_dropped": len(keep) - sum(keep),
+        }
+        problem.windows = [
+            window for window, kept in zip(problem.windows, keep, strict=True) if kept
+        ]
     if tune is not None:
         for table in adapter.parameters():
             table.requires_grad_(False)
@@ -296,7 +313,7 @@ def adapt(
     # The thresholds are read here, at call time, so patching this module's constants takes effect.
     guard = (
         _CollapseGuard(problem, GUARD_MIN_CORRELATION, GUARD_SPREAD_RANGE)
-        if config.guard and tune is None
+        if config.guard and tune is None and problem.windows
         else None
     )
     completed, interrupted, began = start, False, time.perf_counter()
@@ -316,7 +333,7 @@ def adapt(
             try:
                 if guard is not None:
                     guard.check(model, adapter, start)
-                for step in range(start, config.steps):
+                for step in range(start, config.steps if problem.windows else start):
                     record = adaptation_step(model, adapter, optimizer, problem, config, step)
                     completed = step + 1
                     history.append(record)
@@ -356,7 +373,9 @@ def adapt(
         adapter.training_info["intrinsics"] = intrinsics
     if guard is not None:
         adapter.training_info["guard"] = guard.report()
-    adapter.training_info["verdict"] = fit_verdict(adapter, history, problem, guard)
+    if parallax is not None:
+        adapter.training_info["parallax_gate"] = parallax
+    adapter.training_info["verdict"] = fit_verdict(adapter, history, problem, guard, parallax)
     if tune is not None:
         tuned = {
             "module": type(tune).__name__,
