@@ -1,7 +1,10 @@
-"""The synthetic fisheye benchmark (issue 7): vanilla vs Center-PH vs raytun3r on held-out
-sequences of three lenses (KB4 120, KB4 185, double sphere 195 deg), indoor and outdoor.
+"""The synthetic fisheye benchmark (issues 7, 15): vanilla vs Center-PH vs Multi-PH vs raytun3r
+(and, with --baselines, LoRA and calibration tokens fitted on the same frames) on held-out
+sequences of three lenses (KB4 120, KB4 185, double sphere 195 deg), indoor and outdoor; every
+row with its trainable parameters and time per frame relative to vanilla.
 
     python benchmarks/fisheye_synthetic.py [--out runs/bench] [--readme README.md]
+    python benchmarks/fisheye_synthetic.py --sequences 1 --baselines lora,caltok
     python benchmarks/fisheye_synthetic.py --development --out runs/dev   # seeds 80000+, for choosing settings
 
 With --readme the table replaces the block between the README's bench markers, so the README
@@ -15,6 +18,7 @@ import re
 from pathlib import Path
 
 from raytun3r_plugin.apps.benchmark import (
+    BASELINES,
     DEVELOPMENT_SEED,
     HELD_OUT_SEED,
     SEQUENCES_PER_CELL,
@@ -39,6 +43,11 @@ def main() -> None:
     )
     parser.add_argument("--readme", default=None)
     parser.add_argument(
+        "--baselines",
+        default="",
+        help=f"comma-separated baselines to fit and score per sequence: {', '.join(BASELINES)}",
+    )
+    parser.add_argument(
         "--development",
         action="store_true",
         help="development seeds (80000+) instead of the held-out ones; never with --readme",
@@ -58,6 +67,7 @@ def main() -> None:
         network=description,
         progress=False,
         base_seed=DEVELOPMENT_SEED if args.development else HELD_OUT_SEED,
+        baselines=tuple(name for name in args.baselines.split(",") if name),
     )
     print(table)
     if args.readme:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -86,3 +87,122 @@ def test_targets_met_needs_every_metric_lower_in_the_mean():
         row("DS 195", "outdoor", "raytun3r, no adapter", 2, 1.0, 0.10),
     ]
     assert targets_met(summarise(rows)) == ["KB4 120 indoor"]
+
+
+def test_unknown_baseline_is_refused_and_order_is_fixed():
+    from raytun3r_plugin.apps.benchmark import check_baselines
+    from raytun3r_plugin.errors import InputError
+
+    assert check_baselines(["caltok", "lora", "lora"]) == ("lora", "caltok")
+    with pytest.raises(InputError, match="unknown baseline"):
+        check_baselines(["lora", "adapter"])
+
+
+def test_params_summary_stays_an_integer():
+    rows = [
+        {**row("KB4 120", "indoor", "raytun3r", seed, 1.0, 0.2), "params": 3604} for seed in (1, 2)
+    ]
+    assert summarise(rows)[0]["params"] == 3604
+
+
+@pytest.fixture(scope="module")
+def tiny_bench(tmp_path_factory):
+    """The tiny benchmark (1 sequence, 6 + 4 frames, 3 steps) with and without the baselines."""
+    pytest.importorskip("depth_anything_3")
+    import torch
+
+    from raytun3r_plugin.apps.benchmark import run_benchmark
+    from raytun3r_plugin.apps.demo import default_network
+
+    torch.manual_seed(0)
+    model, _ = default_network()
+    settings = {
+        "size": 84,
+        "n_adapt": 6,
+        "n_eval": 4,
+        "steps": 3,
+        "sequences": 1,
+        "cameras": CAMERAS[-1:],
+        "scenes": ("indoor",),
+    }
+    results, tables = {}, {}
+    for key, baselines in (("plain", ()), ("baselines", ("caltok", "lora"))):
+        out = tmp_path_factory.mktemp(key)
+        tables[key] = run_benchmark(model, out, baselines=baselines, **settings)
+        results[key] = json.loads((out / "results.json").read_text()), out
+    return model, results, tables
+
+
+def test_bench_rows_have_params_and_time_relative_to_vanilla(tiny_bench):
+    from raytun3r_plugin.adapter import Adapter
+    from raytun3r_plugin.baselines import CalibrationTokens, LoraWeights
+
+    model, results, _ = tiny_bench
+    data, out = results["baselines"]
+    rows = {r["method"]: r for r in data["sequences"]}
+    assert list(rows) == [
+        "vanilla",
+        "center-ph",
+        "multi-ph",
+        "raytun3r, no adapter",
+        "raytun3r",
+        "raytun3r, supervised",
+        "lora",
+        "calibration tokens",
+    ]
+    assert rows["vanilla"]["x_vanilla"] == 1.0
+    for r in rows.values():
+        assert r["ms_per_frame"] > 0
+        assert r["x_vanilla"] == pytest.approx(r["ms_per_frame"] / rows["vanilla"]["ms_per_frame"])
+    for name in ("vanilla", "center-ph", "multi-ph", "raytun3r, no adapter"):
+        assert rows[name]["params"] == 0
+    # Multi-PH runs five images per frame: never as cheap as vanilla's one.
+    assert rows["multi-ph"]["x_vanilla"] > 1.5
+    stem = out / "DS_195_indoor_90000"
+    adapter = Adapter.load(f"{stem}.safetensors")
+    assert rows["raytun3r"]["params"] == adapter.num_parameters()["total"] > 0
+    supervised = Adapter.load(f"{stem}_supervised.safetensors")
+    assert rows["raytun3r, supervised"]["params"] == supervised.num_parameters()["total"]
+    lora = LoraWeights.load(f"{stem}_lora")
+    assert rows["lora"]["params"] == sum(p.numel() for p in lora.parameters()) > 0
+    tokens = CalibrationTokens.load(f"{stem}_caltok.safetensors")
+    assert rows["calibration tokens"]["params"] == tokens.tokens.numel() > 0
+    # The fits changed what they tune (3 steps are enough to move it off the start).
+    assert float(lora.lora_B[0].detach().abs().max()) > 0
+    assert rows["lora"]["adapt_s"] > 0 and rows["calibration tokens"]["adapt_s"] > 0
+    # The baselines were removed after scoring: the model is unhooked again.
+    from raytun3r_plugin.baselines import inject_calibration_tokens, inject_lora
+
+    inject_lora(model).remove()
+    inject_calibration_tokens(model).remove()
+
+
+def test_baselines_are_off_by_default_and_change_neither_targets_nor_gap(tiny_bench):
+    _, results, tables = tiny_bench
+    plain, with_baselines = results["plain"][0], results["baselines"][0]
+    assert {r["method"] for r in plain["sequences"]}.isdisjoint({"lora", "calibration tokens"})
+    assert "| multi-ph |" in tables["plain"] and "| lora |" not in tables["plain"]
+    assert "| lora |" in tables["baselines"] and "| calibration tokens |" in tables["baselines"]
+    assert plain["target_met_cells"] == with_baselines["target_met_cells"]
+    assert (
+        plain["target_met_cells_vs_zero_adapter"]
+        == with_baselines["target_met_cells_vs_zero_adapter"]
+    )
+    shared = {r["method"]: r for r in plain["summary"]}
+    for r in with_baselines["summary"]:
+        if r["method"] in shared:
+            assert ("gap_closed" in r) == ("gap_closed" in shared[r["method"]])
+            for key in (
+                "d_reproj_px",
+                "abs_rel",
+                "params",
+                *(["gap_closed"] * ("gap_closed" in r)),
+            ):
+                assert r[key] == pytest.approx(shared[r["method"]][key], nan_ok=True)
+        else:
+            assert "gap_closed" not in r
+    # The header's target lines are the same text.
+    assert (
+        tables["plain"].split("Target", 1)[1].split("\n")[0]
+        == (tables["baselines"].split("Target", 1)[1].split("\n")[0])
+    )

@@ -320,12 +320,43 @@ def test_bench_quick(tmp_path, capsys, monkeypatch):
     assert {r["method"] for r in results["sequences"]} == {
         "vanilla",
         "center-ph",
+        "multi-ph",
         "raytun3r, no adapter",
         "raytun3r",
         "raytun3r, supervised",
     }
     assert "gap_closed" in out and "Target (below 'raytun3r, no adapter' on both)" in out
     assert all(r["sequences"] == 1 for r in results["summary"])
+    # Multi-PH is scored on every sequence; the baselines only on request.
+    assert "| multi-ph |" in out and "| lora |" not in out
+    assert "| params | ms_per_frame | x_vanilla |" in out
+
+
+def test_bench_quick_with_baselines(tmp_path, capsys):
+    assert main(["bench", "--quick", "--baselines", "lora,caltok", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "| lora |" in out and "| calibration tokens |" in out
+    results = json.loads((tmp_path / "results.json").read_text())
+    rows = {r["method"]: r for r in results["sequences"]}
+    assert rows["vanilla"]["x_vanilla"] == 1.0 and rows["multi-ph"]["params"] == 0
+    assert rows["lora"]["params"] > rows["calibration tokens"]["params"] > 0
+    assert (tmp_path / "DS_195_indoor_90000_lora" / "adapter_model.safetensors").is_file()
+
+
+def test_bench_refuses_an_unknown_baseline_before_loading_anything(tmp_path, capsys):
+    assert main(["bench", "--quick", "--baselines", "lora,peft", "--out", str(tmp_path)]) == 2
+    assert "unknown baseline" in capsys.readouterr().err
+    assert not (tmp_path / "results.json").exists()
+
+
+def test_eval_help_lists_every_method(capsys):
+    from raytun3r_plugin.apps.evaluation import METHODS
+
+    with pytest.raises(SystemExit):
+        main(["eval", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for method in METHODS:
+        assert method in text.split("--method METHOD")[-1].split("--adapter")[0]
 
 
 def test_demo_runs_on_the_built_in_default(tmp_path, capsys):

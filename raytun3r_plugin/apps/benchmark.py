@@ -1,9 +1,12 @@
-"""Synthetic fisheye benchmark: vanilla vs Center-PH vs raytun3r, nothing downloaded.
+"""Synthetic fisheye benchmark: vanilla vs Center-PH vs Multi-PH vs raytun3r, nothing downloaded.
 
 Held-out synthetic sequences (seeds the default network never saw) through three lenses, indoor
 and outdoor. For each sequence raytun3r fits an adapter on the first frames (default adaptation:
-30 windows) and every method is scored on the remaining frames, on the same pair list.
-Used by ``benchmarks/fisheye_synthetic.py`` and ``raytun3r bench``.
+30 windows) and every method is scored on the remaining frames, on the same pair list. With
+``baselines`` LoRA and calibration tokens are fitted on the same frames with the same objective,
+windows and steps (the tables held at zero, no parameter-free corrections) and scored alike.
+Every row carries its trainable parameters and its inference time per frame relative to
+vanilla's on the same sequence. Used by ``benchmarks/fisheye_synthetic.py`` and ``raytun3r bench``.
 """
 
 from __future__ import annotations
@@ -11,11 +14,14 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from raytun3r_plugin.apps.demo import adapt_config, supervised_config
 from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
+from raytun3r_plugin.errors import InputError
 
 HELD_OUT_SEED = 90_000  # training of the default network uses seeds far below this
 #: Development sequences: the benchmark's cameras and scenes at other seeds, for choosing settings
@@ -42,6 +48,11 @@ SUPERVISED = "raytun3r, supervised"
 #: that sequence (on 30 development sequences the no-adapter patch lost to vanilla in d_reproj on
 #: 2 and in AbsRel on 2; README, component table).
 SEQUENCES_PER_CELL = 5
+#: ``run_benchmark(baselines=...)`` keys -> the method name of their rows. Each adds a fit per
+#: sequence, so they are off by default; they never enter ``gap_closed`` or the targets.
+BASELINES = {"lora": "lora", "caltok": "calibration tokens"}
+#: Columns whose per-cell summary is an integer (the same count on every sequence of a cell).
+INTEGER_COLUMNS = ("params",)
 COLUMNS = [
     "camera",
     "scene",
@@ -53,6 +64,9 @@ COLUMNS = [
     "delta_1.25",
     "coverage",
     "adapt_s",
+    "params",
+    "ms_per_frame",
+    "x_vanilla",
 ]
 
 
@@ -129,7 +143,8 @@ def summarise(
         summary = {"camera": camera, "scene": scene, "method": method, "sequences": len(members)}
         for key in numeric:
             values = [float(m[key]) for m in members if not math.isnan(float(m.get(key, math.nan)))]
-            summary[key] = sum(values) / len(values) if values else math.nan
+            mean = sum(values) / len(values) if values else math.nan
+            summary[key] = round(mean) if key in INTEGER_COLUMNS and values else mean
         if method != reference:
             by_seed = {m["seed"]: m for m in cells.get((camera, scene, reference), [])}
             paired = [(m, by_seed[m["seed"]]) for m in members if m["seed"] in by_seed]
@@ -157,6 +172,26 @@ def targets_met(
     return met
 
 
+def check_baselines(baselines: Iterable[str]) -> tuple[str, ...]:
+    """``baselines`` (keys of :data:`BASELINES`, any order, repeats dropped) as a tuple in
+    :data:`BASELINES`' order; raises :class:`InputError` on an unknown key."""
+    names = tuple(baselines)
+    unknown = [name for name in names if name not in BASELINES]
+    if unknown:
+        raise InputError(f"unknown baseline(s) {unknown}; choose from {list(BASELINES)}")
+    return tuple(name for name in BASELINES if name in names)
+
+
+def timed_row(model, seq, method: str, frames: list[int], adapter=None) -> dict:
+    """:func:`headline` scores of ``method`` on ``frames`` plus ``ms_per_frame``: wall time of
+    :func:`run_method` (the forward passes, with Multi-PH's resampling and fusion and the
+    patch's apply/remove; not the scoring) per scored frame, in milliseconds."""
+    start = time.perf_counter()
+    output = run_method(model, seq, method, adapter=adapter, frames=frames)
+    seconds = time.perf_counter() - start
+    return {**headline(score(seq, output)), "ms_per_frame": 1000.0 * seconds / len(frames)}
+
+
 def sequence_rows(
     model,
     camera,
@@ -170,30 +205,43 @@ def sequence_rows(
     steps: int,
     out: Path,
     progress: bool = False,
+    baselines: tuple[str, ...] = (),
 ) -> list[dict]:
-    """The rows of one held-out sequence: vanilla, Center-PH, the zero adapter, an adapter
-    fitted self-supervised on its first ``n_adapt`` frames and one fitted to their ground-truth
-    depth (the upper bound; both written to ``out``); all scored on the rest."""
+    """The rows of one held-out sequence: vanilla, Center-PH, Multi-PH, the zero adapter, an
+    adapter fitted self-supervised on its first ``n_adapt`` frames and one fitted to their
+    ground-truth depth (the upper bound; both written to ``out``), then the ``baselines``
+    (:data:`BASELINES`: LoRA, calibration tokens) fitted like the first adapter with the
+    tables at zero and ``components=[]``; all scored on the rest.
+
+    Every row has ``params`` (trainable parameters of what was fitted; 0 without a fit),
+    ``ms_per_frame`` (:func:`timed_row`) and ``x_vanilla`` (its ``ms_per_frame`` over vanilla's
+    on this sequence)."""
     from raytun3r_plugin import synthetic
     from raytun3r_plugin.adaptation.train import adapt
+    from raytun3r_plugin.baselines import inject_calibration_tokens, inject_lora
 
+    baselines = check_baselines(baselines)
     seq = synthetic.render_sequence(scene, camera, n_frames=n_adapt + n_eval, seed=seed)
     held_out = list(range(n_adapt, len(seq)))
     cell = {"camera": label, "scene": scene, "seed": seed}
+    # One untimed window first: the first forward of a process pays one-off set-up costs that
+    # would otherwise make vanilla, the time reference, look slow.
+    run_method(model, seq, "vanilla", frames=held_out[:3])
     rows = []
-    for method in ("vanilla", "center-ph"):
+    for method in ("vanilla", "center-ph", "multi-ph"):
         rows.append(
             {
                 **cell,
                 "method": method,
-                **headline(score(seq, run_method(model, seq, method, frames=held_out))),
+                **timed_row(model, seq, method, held_out),
                 "adapt_s": math.nan,
+                "params": 0,
             }
         )
     # The patch with a zero adapter: the parameter-free corrections alone, so the table shows
     # what the fitted tables add on top of them.
-    zero = headline(score(seq, run_method(model, seq, "raytun3r", frames=held_out)))
-    rows.append({**cell, "method": ZERO_ADAPTER, **zero, "adapt_s": math.nan})
+    zero = timed_row(model, seq, "raytun3r", held_out)
+    rows.append({**cell, "method": ZERO_ADAPTER, **zero, "adapt_s": math.nan, "params": 0})
     start = time.perf_counter()
     path = out / f"{label.replace(' ', '_')}_{scene}_{seed}.safetensors"
     adapter = adapt(
@@ -210,10 +258,9 @@ def sequence_rows(
         {
             **cell,
             "method": "raytun3r",
-            **headline(
-                score(seq, run_method(model, seq, "raytun3r", adapter=adapter, frames=held_out))
-            ),
+            **timed_row(model, seq, "raytun3r", held_out, adapter=adapter),
             "adapt_s": seconds,
+            "params": adapter.num_parameters()["total"],
         }
     )
     start = time.perf_counter()
@@ -232,12 +279,51 @@ def sequence_rows(
         {
             **cell,
             "method": SUPERVISED,
-            **headline(
-                score(seq, run_method(model, seq, "raytun3r", adapter=supervised, frames=held_out))
-            ),
+            **timed_row(model, seq, "raytun3r", held_out, adapter=supervised),
             "adapt_s": seconds,
+            "params": supervised.num_parameters()["total"],
         }
     )
+    inject: dict[str, Callable[[Any], Any]] = {
+        "lora": inject_lora,
+        "caltok": inject_calibration_tokens,
+    }
+    for name in baselines:
+        # The baseline runs on the unpatched model (components=[]): what it learns is all it adds.
+        with inject[name](model) as handle:
+            module = handle.weights if name == "lora" else handle.tokens
+            start = time.perf_counter()
+            adapt(
+                model,
+                camera,
+                seq.images[:n_adapt],
+                adapt_config(size, steps, seed=0, components=[]),
+                out_path=path.with_name(f"{path.stem}_{name}.safetensors"),
+                resume=False,
+                progress=progress,
+                tune=module,
+            )
+            seconds = time.perf_counter() - start
+            # Saved in the baseline's own format, as the adapters are: PEFT's folder for LoRA.
+            module.save(
+                path.with_name(f"{path.stem}_lora")
+                if name == "lora"
+                else path.with_name(f"{path.stem}_caltok.safetensors")
+            )
+            # Scored as "vanilla" because the baseline lives in the model's hooks, not in a patch.
+            scored = timed_row(model, seq, "vanilla", held_out)
+        rows.append(
+            {
+                **cell,
+                "method": BASELINES[name],
+                **scored,
+                "adapt_s": seconds,
+                "params": module.num_parameters(),
+            }
+        )
+    reference = rows[0]["ms_per_frame"]
+    for row in rows:
+        row["x_vanilla"] = row["ms_per_frame"] / reference
     return rows
 
 
@@ -255,12 +341,16 @@ def run_benchmark(
     network: str = "",
     progress: bool = False,
     base_seed: int = HELD_OUT_SEED,
+    baselines: tuple[str, ...] = (),
 ) -> str:
     """Run every (camera, scene) on ``sequences`` held-out sequences; return the markdown table.
 
     The table shows means over each cell's sequences; ``out_dir`` also gets every per-sequence
-    row (``results.json``) and the table (``results.md``).
+    row (``results.json``) and the table (``results.md``). ``baselines``: keys of
+    :data:`BASELINES` (``("lora", "caltok")``) whose rows are added, each a fit per sequence;
+    they enter neither ``gap_closed`` nor the targets.
     """
+    baselines = check_baselines(baselines)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows, began = [], time.perf_counter()
@@ -281,6 +371,7 @@ def run_benchmark(
                     steps=steps,
                     out=out,
                     progress=progress,
+                    baselines=baselines,
                 )
                 print(
                     f"[{time.perf_counter() - began:6.0f} s] {spec.label} {scene} seed {seed}: done",
@@ -320,10 +411,20 @@ def run_benchmark(
     header = (
         f"Network: {network or 'see model card'}; input {size}x{size} px; {sequences} {'held-out' if base_seed == HELD_OUT_SEED else 'development'} sequences per camera and scene "
         f"(seeds {base_seed} + 100 k + 10 camera + scene); per sequence {n_adapt} adaptation frames "
-        f"(30 windows, {steps} steps) and {n_eval} scored frames.\n"
+        f"(30 windows, {steps} steps) and {n_eval} scored frames"
+        + (
+            f"; baselines {', '.join(BASELINES[b] for b in baselines)} fitted on the same frames with the same "
+            "objective, windows and steps (raytun3r's tables at zero, no parameter-free corrections)"
+            if baselines
+            else ""
+        )
+        + ".\n"
         "Each row is the mean over the cell's sequences. rot/trans: relative-pose errors (deg, signed translation direction) on consecutive scored pairs; "
         "d_reproj: px with GT pose and a robust per-pair scale; AbsRel, delta<1.25: per-image median scale, "
         "range depth, sky excluded; coverage: fraction of the fisheye's valid pixels with a depth; adapt_s: wall time of adaptation; "
+        "params: trainable parameters (0: nothing fitted); ms_per_frame: wall time of the scored forward passes per frame "
+        "(Multi-PH with its resampling and fusion); x_vanilla: that over vanilla's on the same sequence, in the same run; "
+        "multi-ph: five pinhole views per frame through the unpatched model, fused back to the fisheye; "
         f"'{ZERO_ADAPTER}': the patch without fitting (parameter-free corrections only); '{SUPERVISED}': the same tables fitted to the "
         "adaptation frames' ground-truth depth (upper bound); gap_closed: the fraction of the mean-AbsRel gap between the zero adapter and the "
         "supervised fit that the self-supervised fit closes; lower_than_X: on how many sequences the metric is below X's.\n"

@@ -279,9 +279,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from raytun3r_plugin.apps.benchmark import CAMERAS, SEQUENCES_PER_CELL, run_benchmark
+    from raytun3r_plugin.apps.benchmark import (
+        CAMERAS,
+        SEQUENCES_PER_CELL,
+        check_baselines,
+        run_benchmark,
+    )
     from raytun3r_plugin.apps.demo import default_network
 
+    # Checked before the network loads, so a typo fails at once.
+    baselines = check_baselines(
+        name.strip() for name in (args.baselines or "").split(",") if name.strip()
+    )
     model, description = default_network()
     if args.quick:
         table = run_benchmark(
@@ -295,6 +304,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             cameras=CAMERAS[-1:],
             scenes=("indoor",),
             network=description,
+            baselines=baselines,
         )
     else:
         table = run_benchmark(
@@ -303,6 +313,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             sequences=args.sequences or SEQUENCES_PER_CELL,
             network=description,
             progress=True,
+            baselines=baselines,
         )
     print(table)
     return 0
@@ -424,7 +435,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--method",
         default="vanilla,center-ph,raytun3r",
-        help="comma-separated: vanilla, center-ph, raytun3r",
+        help="comma-separated: vanilla, center-ph, multi-ph, raytun3r",
     )
     p.add_argument("--adapter", default=None)
     p.add_argument(
@@ -465,7 +476,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser(
-        "bench", help="the synthetic fisheye benchmark (vanilla vs Center-PH vs raytun3r)"
+        "bench",
+        help="the synthetic fisheye benchmark (vanilla vs Center-PH vs Multi-PH vs raytun3r)",
     )
     p.add_argument("--out", default="runs/bench")
     p.add_argument(
@@ -475,6 +487,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="held-out sequences per camera and scene (default 5)",
     )
     p.add_argument("--quick", action="store_true")
+    p.add_argument(
+        "--baselines",
+        default="",
+        metavar="lora,caltok",
+        help="also fit and score these baselines per sequence (comma-separated: lora = LoRA r=8, "
+        "caltok = calibration tokens t=4), on the adaptation frames and objective of raytun3r's "
+        "fit; each adds a fit per sequence",
+    )
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser(
