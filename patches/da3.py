@@ -9,6 +9,10 @@ Hook map (docs/backbones.md), all patched per instance on the ``DepthAnything3Ne
   continuous-angle version;
 * patch tokenisation: ``backbone.pretrained.patch_embed.forward(x)``;
 * prediction grid: ``head._add_pos_embed(x, W, H, ratio)`` (DualDPT; also DPT / GSDPT).
+
+The nested model (``NestedDepthAnything3Net``: an any-view ``da3`` and a metric ``da3_metric``
+network) is a second spec, ``da3nested``, whose two branches are each patched as a DA3 net; the
+adapter goes to the ``da3`` branch only (docs/backbones.md, "The nested model").
 """
 
 from __future__ import annotations
@@ -83,6 +87,8 @@ SIZE_NAMES = (
     "da3metric-large",
     "da3-large-1.1",
     "da3-giant-1.1",
+    "da3nested-giant-large",
+    "da3nested-giant-large-1.1",
 )
 #: Releases that reuse an architecture (same config, new weights): name -> DA3 config name.
 NAME_ALIASES = {
@@ -90,12 +96,16 @@ NAME_ALIASES = {
     "da3-giant-1.1": "da3-giant",
     "da3nested-giant-large-1.1": "da3nested-giant-large",
 }
-#: Names of the nested model (two networks; raytun3r has no builder for it, see docs/backbones.md).
+#: Names of the nested model (an any-view da3-giant and a da3metric-large in one
+#: ``NestedDepthAnything3Net``; patched through :data:`NESTED_SPEC`).
 NESTED_NAMES = ("da3nested-giant-large", "da3nested-giant-large-1.1")
+NESTED_FAMILY = "da3nested"
+#: The nested model's patch roots: (attribute, family); the first is the main (adapter) branch.
+NESTED_BRANCHES = (("da3", FAMILY), ("da3_metric", FAMILY))
 #: Modules some DA3 configs import beyond the ``[da3]`` extra -> what to pip install.
 _EXTRA_MODULES = {"evo": "pip install evo  (or: pip install 'raytun3r[da3-giant]')"}
 #: Which configs need which of those modules (da3-giant's Gaussian-splat adapter imports evo).
-_NEEDS = {"da3-giant": ("evo",)}
+_NEEDS = {"da3-giant": ("evo",), "da3nested-giant-large": ("evo",)}
 
 
 def recognise(model: nn.Module) -> nn.Module | None:
@@ -110,6 +120,35 @@ def recognise(model: nn.Module) -> nn.Module | None:
     if type(model).__module__.startswith(UPSTREAM_MODULE) and inner is not None and is_net(inner):
         return inner
     return None
+
+
+def recognise_nested(model: nn.Module) -> nn.Module | None:
+    """The ``NestedDepthAnything3Net``, bare or inside the ``DepthAnything3`` API wrapper."""
+
+    def is_nested(module) -> bool:
+        return type(module).__name__ == "NestedDepthAnything3Net" and type(
+            module
+        ).__module__.startswith(UPSTREAM_MODULE)
+
+    if is_nested(model):
+        return model
+    inner = getattr(model, "model", None)
+    if (
+        type(model).__module__.startswith(UPSTREAM_MODULE)
+        and inner is not None
+        and is_nested(inner)
+    ):
+        return inner
+    return None
+
+
+def describe_nested(root: nn.Module) -> BackboneInfo:
+    """The nested model as the adapter sees it: exactly its main (``da3``) network.
+
+    So an adapter fitted on ``model.da3`` (whose forward is differentiable; upstream's nested
+    forward scales the depth in place) is an adapter of the nested model, and the other way round.
+    """
+    return describe(root.da3)
 
 
 def describe(root: nn.Module) -> BackboneInfo:
@@ -203,7 +242,25 @@ TARGETS = (
 def predict(root: nn.Module, images: torch.Tensor, **kwargs) -> Prediction:
     """Run a DA3 network on images in [0, 1]; DA3 itself wants ImageNet-normalised input."""
     images = as_batched_images(images, root.backbone.pretrained.patch_size)
+    return _prediction(root(imagenet_normalise(images), **kwargs))
+
+
+def predict_nested(root: nn.Module, images: torch.Tensor, **kwargs) -> Prediction:
+    """Run the nested model on images in [0, 1]: the ``da3`` depth and pose in metres.
+
+    Upstream's own forward does the metric alignment (the ``da3_metric`` depth scaled by the
+    predicted focal length / 300, a least-squares scale of the ``da3`` depth and translation
+    onto it, sky set to far); ``extras["metric_scale"]`` is that scale (a 0-d tensor).
+    """
+    images = as_batched_images(images, root.da3.backbone.pretrained.patch_size)
     output = root(imagenet_normalise(images), **kwargs)
+    prediction = _prediction(output)
+    if "scale_factor" in output:
+        prediction.extras["metric_scale"] = torch.tensor(float(output["scale_factor"]))
+    return prediction
+
+
+def _prediction(output) -> Prediction:
     extras = {key: output[key] for key in ("intrinsics",) if key in output}
     if "extrinsics" not in output:
         raise InputError("this DA3 network has no camera decoder: it predicts no pose")
@@ -404,6 +461,59 @@ def build_tiny_network(
             torch.random.set_rng_state(generator_state)
 
 
+def build_tiny_nested_network(
+    embed_dim: int = 64, metric_embed_dim: int = 48, seed: int | None = 0
+) -> nn.Module:
+    """A small ``NestedDepthAnything3Net`` of DA3's own classes (for tests).
+
+    The ``da3`` branch is :func:`build_tiny_network`; the ``da3_metric`` branch is built as
+    ``da3metric-large`` is: a DINOv2 ViT without RoPE, q/k-norm or alternating attention, no
+    camera token, a DPT head with a sky head. The metric sky head's last bias is negative, so
+    (ReLU) no pixel is sky and upstream's alignment has pixels to fit.
+    """
+    _import_upstream()
+    from depth_anything_3.model.da3 import DepthAnything3Net, NestedDepthAnything3Net
+    from depth_anything_3.model.dinov2.dinov2 import DinoV2
+    from depth_anything_3.model.dinov2.vision_transformer import DinoVisionTransformer
+    from depth_anything_3.model.dpt import DPT
+
+    generator_state = torch.random.get_rng_state()
+    if seed is not None:
+        torch.manual_seed(seed)
+    try:
+        main = build_tiny_network(embed_dim=embed_dim, seed=None)
+        backbone = DinoV2.__new__(DinoV2)
+        nn.Module.__init__(backbone)
+        backbone.name, backbone.out_layers = "vits", [0, 1, 2, 3]
+        backbone.alt_start = backbone.qknorm_start = backbone.rope_start = -1
+        backbone.cat_token = False
+        backbone.pretrained = DinoVisionTransformer(
+            img_size=518,
+            patch_size=14,
+            embed_dim=metric_embed_dim,
+            depth=4,
+            num_heads=2,
+            mlp_ratio=4,
+            alt_start=-1,
+            qknorm_start=-1,
+            rope_start=-1,
+            cat_token=False,
+        )
+        nn.init.trunc_normal_(backbone.pretrained.pos_embed, std=0.02)
+        nn.init.trunc_normal_(backbone.pretrained.cls_token, std=0.02)
+        head = DPT(dim_in=metric_embed_dim, output_dim=1, features=16, out_channels=[8, 16, 32, 32])
+        with torch.no_grad():
+            head.scratch.sky_output_conv2[-1].bias.fill_(-1.0)
+        nested = NestedDepthAnything3Net.__new__(NestedDepthAnything3Net)
+        nn.Module.__init__(nested)  # upstream's __init__ builds from configs (official sizes only)
+        nested.da3 = main
+        nested.da3_metric = DepthAnything3Net(backbone, head).eval()
+        return nested.eval()
+    finally:
+        if seed is not None:
+            torch.random.set_rng_state(generator_state)
+
+
 def _builders() -> dict:
     builders = {name: _builder(name) for name in SIZE_NAMES}
     try:  # the network raytun3r trains and ships (patches/da3_default.py)
@@ -432,6 +542,19 @@ def quiet_info() -> Iterator[None]:
         logger.level = level
 
 
+#: The nested model: both networks patched by one ``apply`` as DA3 nets (``branches``). A
+#: composite of the da3 family: its builders are da3's (``load_backbone("da3nested-giant-large",
+#: path)``), and it offers no LoRA / calibration-token baseline (those tune one network).
+NESTED_SPEC = BackboneSpec(
+    family=NESTED_FAMILY,
+    upstream=UPSTREAM,
+    recognise=recognise_nested,
+    describe=describe_nested,
+    targets=(),
+    predict=predict_nested,
+    branches=NESTED_BRANCHES,
+)
+
 SPEC = register(
     BackboneSpec(
         family=FAMILY,
@@ -452,5 +575,6 @@ SPEC = register(
             insert_at=1,  # after the cls/camera slot
         ),
         quiet=quiet_info,
+        composites=(NESTED_SPEC,),
     )
 )

@@ -48,6 +48,7 @@ from raytun3r_plugin.registry import (
     BackboneInfo,
     BackboneSpec,
     PatchTarget,
+    branch_roots,
     resolve_targets,
     spec_for,
 )
@@ -91,7 +92,11 @@ _PART_COPY_HINT = (
 
 
 class PatchState:
-    """What the installed wrappers read at run time (one per patched model)."""
+    """What the installed wrappers read at run time (one per patch root of a patched model).
+
+    A model of several networks (``BackboneSpec.branches``) has one state per branch, all with
+    the same camera and components; only the main branch's state carries the adapter.
+    """
 
     def __init__(
         self,
@@ -293,11 +298,13 @@ class RaytunHandle:
         spec: BackboneSpec,
         state: PatchState,
         installed: list[_Installed],
+        states: tuple[PatchState, ...] = (),
     ):
         self._model = weakref.ref(model)
         self._root = weakref.ref(root)
         self.spec = spec
-        self._state = state
+        self._state = state  # the main branch's (the adapter's); one per branch in _states
+        self._states = states or (state,)
         self._installed = installed
         self._removed = False
 
@@ -366,7 +373,7 @@ class RaytunHandle:
     @contextlib.contextmanager
     def disabled(self) -> Iterator[None]:
         """Plain upstream behaviour inside the block (in this thread / context only)."""
-        token = _DISABLED.set(_DISABLED.get() | {id(self._state)})
+        token = _DISABLED.set(_DISABLED.get() | {id(state) for state in self._states})
         try:
             yield
         finally:
@@ -391,6 +398,7 @@ class RaytunHandle:
         twin._root = weakref.ref(copy.deepcopy(self.root, memo))
         twin.spec = self.spec
         twin._state = copy.deepcopy(self._state, memo)
+        twin._states = tuple(copy.deepcopy(state, memo) for state in self._states)
         twin._installed = [
             _Installed(
                 weakref.ref(copy.deepcopy(owner, memo)),
@@ -559,24 +567,53 @@ def apply(
 
     spec, root = spec_for(model)
     info = spec.describe(root)
+    # (path, spec, patch root, description) per patch root, the main one (the adapter's) first.
+    branches = [
+        (path, branch_spec, branch, branch_spec.describe(branch) if spec.branches else info)
+        for path, branch_spec, branch in branch_roots(spec, root)
+    ]
     if adapter is not None:
+        if spec.branches:
+            _check_branch_width(adapter, spec, branches)
         _check_adapter(adapter, info, camera, strict)
     wanted = _components_for(components, adapter)
 
     try:
         _LOCK.acquire()
         return _apply_locked(
-            model, root, spec, info, camera, adapter, wanted, mask, knee_deg, max_stretch
+            model, root, spec, branches, camera, adapter, wanted, mask, knee_deg, max_stretch
         )
     finally:
         _release()
+
+
+def _check_branch_width(adapter: Adapter, spec: BackboneSpec, branches: list) -> None:
+    """Refuse, naming the branches, an adapter that is not sized for a branched model's main one.
+
+    Its learned tables have the width of one network; they are applied to the main branch only.
+    """
+    main_path, _spec, _root, main = branches[0]
+    if adapter.embed_dim == main.embed_dim:
+        return
+    widths = ", ".join(f"'{path}' {info.embed_dim}" for path, _s, _r, info in branches)
+    other = [path for path, _s, _r, info in branches[1:] if info.embed_dim == adapter.embed_dim]
+    why = (
+        f"that is the width of the branch '{other[0]}', but"
+        if other
+        else "which matches none of its branches; and"
+    )
+    raise AdapterError(
+        f"adapter has embed_dim {adapter.embed_dim} and this {spec.family} model's branches have "
+        f"{widths}: {why} the adapter of a {spec.family} model is fitted for and applied to its "
+        f"main branch '{main_path}' (the other branches take the parameter-free corrections only)"
+    )
 
 
 def _apply_locked(
     model: nn.Module,
     root: nn.Module,
     spec: BackboneSpec,
-    info: BackboneInfo,
+    branches: list[tuple[str, BackboneSpec, nn.Module, BackboneInfo]],
     camera: Camera,
     adapter: Adapter | None,
     wanted: dict[str, bool],
@@ -605,20 +642,39 @@ def _apply_locked(
             f"{type(model).__name__} is already patched ({existing!r}); call remove() first"
         )
 
-    if spec.check is not None:
+    if spec.branches and spec.check is not None:
         spec.check(root)
     hooks = {hook for hook, served in HOOK_COMPONENTS.items() if any(wanted.get(c) for c in served)}
-    resolved = resolve_targets(spec, root, hooks)
-    state = PatchState(
-        camera, adapter, wanted, info, mask, knee_deg, max_stretch, model=model, spec=spec
-    )
-    for target, path, owner in resolved:
+    # Every branch is checked and resolved before any wrapper is built, and every wrapper built
+    # before any is installed: one failing branch leaves all of them untouched.
+    states: list[PatchState] = []
+    resolved: list[tuple[PatchTarget, str, Any, PatchState]] = []
+    for index, (branch_path, branch_spec, branch, info) in enumerate(branches):
+        if branch_spec.check is not None:
+            branch_spec.check(branch)
+        found = resolve_targets(branch_spec, branch, hooks)
+        # Only the main branch gets the adapter: its learned tables have that network's width.
+        state = PatchState(
+            camera,
+            adapter if index == 0 else None,
+            wanted,
+            info,
+            mask,
+            knee_deg,
+            max_stretch,
+            model=model,
+            spec=branch_spec,
+        )
+        states.append(state)
+        prefix = f"{branch_path}." if branch_path else ""
+        resolved += [(target, prefix + path, owner, state) for target, path, owner in found]
+    for target, path, owner, _state in resolved:
         current = owner.__dict__.get(target.attribute)
         if getattr(current, WRAPPER_MARK, False):
             raise AlreadyAppliedError(f"{path}.{target.attribute} is already wrapped by raytun3r")
     # Build every replacement before installing any, so a build error changes nothing.
     planned = []
-    for target, _path, owner in resolved:
+    for target, _path, owner, state in resolved:
         previous = owner.__dict__.get(target.attribute, _NOTSET)
         planned.append((owner, target.attribute, _Wrapper(owner, target, state, previous)))
 
@@ -630,7 +686,7 @@ def _apply_locked(
     try:
         for owner, attribute, replacement in planned:
             _install(installed, owner, attribute, replacement)
-        handle = RaytunHandle(model, root, spec, state, installed)
+        handle = RaytunHandle(model, root, spec, states[0], installed, tuple(states))
         _register(model, handle)
         return handle
     except BaseException:

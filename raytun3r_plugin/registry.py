@@ -203,6 +203,17 @@ class BackboneSpec:
             baselines that tune those blocks (:mod:`raytun3r_plugin.baselines`) read them.
             Empty: the family offers no such baseline.
         prompt_target: where the calibration-token baseline inserts its tokens, or None.
+        branches: for a model made of several networks, ``(path, family)`` per patch root: the
+            dotted path from the root to one network and the registered family whose spec
+            patches it (its targets, checks and ``describe``). One ``apply`` patches them all
+            under one handle. The first is the *main* branch: ``describe(root)`` must describe
+            it, and it alone receives an adapter's learned tables; the others receive the
+            parameter-free corrections. A spec with branches declares no ``targets`` of its own.
+            Empty (the default): the root is the one patch root.
+        composites: specs of models made of several networks of this family (DA3's nested
+            model), each with ``branches``. They are part of the family, not families of their
+            own: :func:`specs` lists the family once, :func:`spec_for` tries them before the
+            family's own ``recognise``, and their builders are the family's.
     """
 
     family: str
@@ -218,13 +229,15 @@ class BackboneSpec:
     quiet: Callable[[], AbstractContextManager] | None = None
     transformer_blocks: tuple[str, ...] = ()
     prompt_target: PromptTarget | None = None
+    branches: tuple[tuple[str, str], ...] = ()
+    composites: tuple[BackboneSpec, ...] = ()
 
 
 _SPECS: dict[str, BackboneSpec] = {}
 _BUILTINS_LOADED = False
 
 
-def _validate(spec: BackboneSpec) -> None:
+def _validate(spec: BackboneSpec, parent: BackboneSpec | None = None) -> None:
     """Refuse a spec whose parts contradict each other (PEFT's ``register_peft_method`` checks)."""
     where = f"backbone spec {spec.family!r}"
     if not isinstance(spec.family, str) or not spec.family:
@@ -235,6 +248,20 @@ def _validate(spec: BackboneSpec) -> None:
         raise BackboneRegistrationError(
             f"{where}: upstream must be an UpstreamVersion, got {type(spec.upstream).__name__}"
         )
+    if spec.branches:
+        _validate_branches(spec, where, parent)
+        return
+    for composite in spec.composites:
+        if not composite.branches or composite.builders or composite.composites:
+            raise BackboneRegistrationError(
+                f"{where}: composite {composite.family!r} must declare branches, and no builders "
+                "or composites of its own"
+            )
+        if composite.family == spec.family or composite.family in _SPECS:
+            raise BackboneRegistrationError(
+                f"{where}: composite {composite.family!r} reuses a registered family name"
+            )
+        _validate(composite, spec)
     if not spec.targets:
         raise BackboneRegistrationError(f"{where}: declares no patch targets")
     seen: set[tuple[str, str]] = set()
@@ -259,6 +286,25 @@ def _validate(spec: BackboneSpec) -> None:
             raise BackboneRegistrationError(
                 f"{where}: no rope target patches one of the rope_classes ({', '.join(spec.rope_classes)}), "
                 "so no RoPE instance could count as covered"
+            )
+
+
+def _validate_branches(spec: BackboneSpec, where: str, parent: BackboneSpec | None) -> None:
+    """A spec of several networks: distinct paths, each patched by a registered plain family
+    (or by ``parent``, the family it is a composite of, being registered with it)."""
+    if spec.targets:
+        raise BackboneRegistrationError(
+            f"{where}: declares branches and targets; a branched spec patches through its branches only"
+        )
+    paths = [path for path, _family in spec.branches]
+    if len(set(paths)) != len(paths) or not all(isinstance(p, str) and p for p in paths):
+        raise BackboneRegistrationError(f"{where}: branch paths must be distinct, got {paths}")
+    for path, family in spec.branches:
+        other = parent if parent is not None and family == parent.family else _SPECS.get(family)
+        if other is None or other.branches:
+            raise BackboneRegistrationError(
+                f"{where}: branch {path!r} names family {family!r}, which is not a registered "
+                "spec without branches (register it first)"
             )
 
 
@@ -320,13 +366,39 @@ def spec_for(model: nn.Module) -> tuple[BackboneSpec, nn.Module]:
     """The registered spec that recognises ``model`` and the root module to patch."""
     _load_builtins()
     for spec in _SPECS.values():
-        root = spec.recognise(model)
-        if root is not None:
-            return spec, root
+        for candidate in (*spec.composites, spec):
+            root = candidate.recognise(model)
+            if root is not None:
+                return candidate, root
     known = ", ".join(f"{s.family} ({s.upstream})" for s in _SPECS.values())
     raise UnsupportedUpstreamError(
         f"no raytun3r patch recognises a {type(model).__module__}.{type(model).__qualname__}; supported: {known}"
     )
+
+
+def branch_roots(spec: BackboneSpec, root: nn.Module) -> list[tuple[str, BackboneSpec, nn.Module]]:
+    """``(path, spec, module)`` of every patch root of ``root``, the main one first.
+
+    A spec without branches has one: ``("", spec, root)``. For a branched spec each declared
+    branch must be found and recognised by its family, else :class:`UnsupportedUpstreamError`.
+    """
+    if not spec.branches:
+        return [("", spec, root)]
+    found = []
+    for path, family in spec.branches:
+        branch_spec = _SPECS[family]
+        node = resolve_path(root, path)
+        branch = branch_spec.recognise(node) if isinstance(node, nn.Module) else None
+        if branch is None:
+            what = (
+                "nothing" if node is None else f"{type(node).__module__}.{type(node).__qualname__}"
+            )
+            raise _refuse(
+                spec,
+                f"{spec.family}: expected a {family} network at '{path}' of {type(root).__qualname__}, found {what}",
+            )
+        found.append((path, branch_spec, branch))
+    return found
 
 
 def resolve_path(root: nn.Module, path: str) -> Any:

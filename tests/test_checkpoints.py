@@ -210,7 +210,11 @@ def test_file_of_another_family_is_refused_before_building(small, tmp_path, monk
         rt.load_backbone("vggt-1b", bare)
 
 
-def test_nested_checkpoint_is_recognised_and_refused(tmp_path):
+def test_nested_checkpoint_is_recognised_and_built_as_nested(tmp_path, monkeypatch):
+    """The nested file names its builder; another size's name is refused before building.
+
+    (Loading a real, tiny nested model end to end: tests/test_nested_da3.py.)
+    """
     state = {
         "model.da3." + k.removeprefix("model."): v
         for k, v in _fake_da3_state(1536, 40, rope=True).items()
@@ -219,13 +223,28 @@ def test_nested_checkpoint_is_recognised_and_refused(tmp_path):
     save_file(state, str(tmp_path / "model.safetensors"))
     record = describe_checkpoint(tmp_path)
     assert record["family"] == "da3" and record["name"] == "da3nested-giant-large"
-    assert record["load"] is None
-    with pytest.raises(WeightsError, match="'da3nested-giant-large', which raytun3r cannot build"):
+    assert record["load"] == f"raytun3r_plugin.load_backbone('da3nested-giant-large', '{tmp_path}')"
+
+    class Built(Exception):
+        pass
+
+    def build(name):
+        raise Built(name)
+
+    monkeypatch.setattr(da3_patch, "build_network", build)
+    monkeypatch.setitem(da3_patch._NEEDS, "da3nested-giant-large", ())
+    with pytest.raises(Built, match="^da3nested-giant-large$"):
         rt.load_backbone(None, tmp_path)
     with pytest.raises(
         WeightsError, match="'da3-large', but the tensors are da3nested-giant-large"
     ):
         rt.load_backbone("da3-large", tmp_path)
+    with pytest.raises(
+        WeightsError, match="'da3nested-giant-large', but the tensors are da3-large"
+    ):
+        small = _fake_da3_state(1024, 24, rope=True)
+        save_file(small, str(tmp_path / "model.safetensors"))
+        rt.load_backbone("da3nested-giant-large", tmp_path)
 
 
 def test_built_models_record_their_name():
@@ -332,6 +351,9 @@ def test_da3_giant_without_evo_is_a_missing_dependency_before_reading(tmp_path):
         MissingDependencyError, match=r"'evo'.*pip install evo.*raytun3r\[da3-giant\]"
     ):
         rt.load_backbone("da3-giant-1.1", tmp_path / "not-read.safetensors")
+    # The nested model holds a da3-giant: same dependency, also refused before reading.
+    with pytest.raises(MissingDependencyError, match=r"'evo'"):
+        rt.load_backbone("da3nested-giant-large-1.1", tmp_path / "not-read.safetensors")
 
 
 # ---------------------------------------------------------------------------------------------
