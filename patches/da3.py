@@ -308,9 +308,10 @@ def identify(state: dict[str, torch.Tensor]) -> StateSignature | None:
         k.startswith("da3_metric.") for k in state
     ):
         pe = state["da3.backbone.pretrained.pos_embed"]
-        return StateSignature(
-            FAMILY, NESTED_NAMES, "nested: a da3-giant and a da3metric-large", tuple(pe.shape)
-        )
+        metric = state.get("da3_metric.backbone.pretrained.pos_embed")
+        widths = f"embed dims {pe.shape[-1]} and {'?' if metric is None else metric.shape[-1]}"
+        detail = f"nested: an any-view da3 and a metric da3 ({widths})"
+        return StateSignature(FAMILY, NESTED_NAMES, detail, tuple(pe.shape))
     pe = state.get("backbone.pretrained.pos_embed")
     if pe is None:
         return None
