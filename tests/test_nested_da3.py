@@ -352,3 +352,46 @@ def test_weights_command_says_what_the_file_is_and_how_to_load_it(folder, capsys
     assert main(["weights", str(folder)]) == 0
     text = capsys.readouterr().out
     assert "da3nested-giant-large" in text and "load_backbone('da3nested-giant-large'" in text
+
+
+# ---------------------------------------------------------------------------------------------
+# Registration of branched specs, and what the nested model does not offer
+# ---------------------------------------------------------------------------------------------
+
+
+def test_register_refuses_inconsistent_branched_specs(monkeypatch):
+    import dataclasses
+
+    from raytun3r_plugin.errors import BackboneRegistrationError
+
+    monkeypatch.setattr(registry, "_SPECS", dict(registry.specs()))  # register into a copy
+    da3 = registry.specs()["da3"]
+    nested = da3_patch.NESTED_SPEC
+    bad = {
+        "declares branches and targets": dataclasses.replace(nested, targets=da3.targets),
+        "branch paths must be distinct": dataclasses.replace(
+            nested, branches=(("da3", "da3"), ("da3", "da3"))
+        ),
+        "names family 'nope'": dataclasses.replace(nested, branches=(("da3", "nope"),)),
+    }
+    for message, spec in bad.items():
+        with pytest.raises(BackboneRegistrationError, match=message):
+            registry.register(dataclasses.replace(spec, family="other"))
+    with pytest.raises(BackboneRegistrationError, match="reuses a registered family name"):
+        registry.register(
+            dataclasses.replace(da3, composites=(dataclasses.replace(nested, family="vggt"),)),
+            overwrite=True,
+        )
+    with pytest.raises(BackboneRegistrationError, match="must declare branches"):
+        registry.register(
+            dataclasses.replace(da3, composites=(dataclasses.replace(nested, branches=()),)),
+            overwrite=True,
+        )
+
+
+def test_single_network_baselines_are_refused_on_the_nested_model(net):
+    from raytun3r_plugin.baselines.lora import lora_targets
+
+    with pytest.raises(UnsupportedUpstreamError, match="da3nested: declares no transformer blocks"):
+        lora_targets(net)
+    assert lora_targets(net.da3)  # the branch alone is a plain DA3 net
