@@ -5,7 +5,6 @@ bad input, and that an accepted camera never breaks the patched forward."""
 from __future__ import annotations
 
 import math
-import time
 
 import pytest
 import torch
@@ -203,21 +202,27 @@ def test_domain_boundaries_that_are_excluded_are_refused(build):
 
 
 # ------------------------------------------------------------------------ cost and caching
-def test_validation_is_cheap_and_cached_for_repeated_builds():
+def test_round_trip_check_runs_once_per_camera_key(monkeypatch):
+    # The cost (about 1.3 ms per new camera, 0.03 ms per cached build on the project's machine)
+    # is a benchmark's business; what a test can hold is that repeated builds of the same camera
+    # (one resized copy per forward) do not run the round trip again, while validate() does.
     camera = REAL["aria_f624"]()  # the most expensive model to invert
-    C.validate(camera)
-    start = time.perf_counter()
-    for _ in range(20):
+    calls = []
+    original = type(camera).round_trip_error
+
+    def counting(self):
+        calls.append(self.key())
+        return original(self)
+
+    monkeypatch.setattr(type(camera), "round_trip_error", counting)
+    for _ in range(5):
         C.validate(camera)
-    uncached = (time.perf_counter() - start) / 20
-    start = time.perf_counter()
-    for _ in range(200):
-        camera.resized(320, 240)
-    cached = (time.perf_counter() - start) / 200
-    # Measured 1.3 ms uncached and 0.03 ms cached on the project's CPU machine; generous
-    # margins for a loaded machine.
-    assert uncached < 10e-3
-    assert cached < 1e-3
+    assert len(calls) == 5
+    calls.clear()
+    first = camera.resized(320, 240)
+    for _ in range(50):
+        assert camera.resized(320, 240) == first
+    assert len(calls) <= 1  # at most the first build of that size, none after it
 
 
 def test_differentiable_camera_is_validated_on_detached_values():
