@@ -56,6 +56,32 @@ def test_seeds_are_held_out_distinct_and_keep_the_first_sequences():
     ]
 
 
+def test_a_partial_run_scores_the_full_runs_sequences(monkeypatch, tmp_path):
+    from raytun3r_plugin.apps import benchmark
+
+    seeds = []
+
+    class Stop(Exception):
+        pass
+
+    def record(model, camera, label, scene, seed, **kwargs):
+        seeds.append((label, scene, seed))
+        if len(seeds) == 2:
+            raise Stop
+        return []
+
+    monkeypatch.setattr(benchmark, "sequence_rows", record)
+    with pytest.raises(Stop):
+        benchmark.run_benchmark(
+            None, tmp_path, cameras=(CAMERAS[2],), scenes=("outdoor",), sequences=2
+        )
+    # DS 195 (camera 2), outdoor (scene 1): the seeds of that cell in the full benchmark.
+    assert seeds == [
+        ("DS 195", "outdoor", sequence_seed(2, 1, 0)),
+        ("DS 195", "outdoor", sequence_seed(2, 1, 1)),
+    ]
+
+
 def test_summarise_means_per_cell_and_counts_paired_wins():
     rows = [
         row("KB4 120", "indoor", "vanilla", 1, 1.0, 0.20),

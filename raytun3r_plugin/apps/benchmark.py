@@ -354,9 +354,13 @@ def run_benchmark(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows, began = [], time.perf_counter()
-    for camera_index, spec in enumerate(cameras):
+    for position, spec in enumerate(cameras):
         camera = make_camera(spec, size)
-        for scene_index, scene in enumerate(scenes):
+        # A sequence's seed is that of its cell in the full benchmark, so a run over some of the
+        # cameras or scenes scores the same sequences as the full run does.
+        camera_index = CAMERAS.index(spec) if spec in CAMERAS else position
+        for place, scene in enumerate(scenes):
+            scene_index = SCENES.index(scene) if scene in SCENES else place
             for k in range(sequences):
                 seed = sequence_seed(camera_index, scene_index, k, base_seed)
                 rows += sequence_rows(
