@@ -78,6 +78,27 @@ def _frozen(model: nn.Module) -> Iterator[None]:
 # --------------------------------------------------------------------------------------------
 
 
+@contextmanager
+def _evaluated(
+    model: nn.Module, adapter: Adapter, problem: AdaptationProblem, config: AdaptConfig
+) -> Iterator[None]:
+    """``model`` frozen, in eval mode, without gradients and patched with ``adapter`` as the fit
+    patches it; everything restored afterwards."""
+    with (
+        _frozen(model),
+        torch.no_grad(),
+        apply(
+            model,
+            problem.layout.native_camera,
+            adapter,
+            components=config.components,
+            strict=False,
+            mask=problem.mask,
+        ),
+    ):
+        yield
+
+
 def _subset(pair: _Pair, max_matches: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
     count = pair.uv_i.shape[0]
     if max_matches and count > max_matches:
@@ -219,23 +240,12 @@ def window_parallax(
     matches, NaN for a window without a pair that has a usable pose target.
 
     Each used frame is predicted once, alone, through ``model`` patched with ``adapter`` (frozen,
-    in eval mode, restored afterwards); each
-    pair's translation is scaled to that depth as the fit scales it (:func:`_targets_pose`).
+    in eval mode, restored afterwards); each pair's translation is scaled to that depth as the fit
+    scales it (:func:`_targets_pose`).
     """
     camera = problem.layout.camera
     frames = sorted({frame for window, _ in problem.windows for frame in window.frames})
-    with (
-        _frozen(model),
-        torch.no_grad(),
-        apply(
-            model,
-            problem.layout.native_camera,
-            adapter,
-            components=config.components,
-            strict=False,
-            mask=problem.mask,
-        ),
-    ):
+    with _evaluated(model, adapter, problem, config):
         depth = {
             frame: predict(model, problem.inputs[frame][None, None]).depth[0, 0] for frame in frames
         }
@@ -393,18 +403,7 @@ def objective_value(
         raise AlreadyAppliedError("objective_value needs an unpatched model")
     problem = dataclasses.replace(problem, pe_scale=regulariser_scale(model, config))
     sums: dict[str, float] = {}
-    with (
-        _frozen(model),
-        torch.no_grad(),
-        apply(
-            model,
-            problem.layout.native_camera,
-            adapter,
-            components=config.components,
-            strict=False,
-            mask=problem.mask,
-        ),
-    ):
+    with _evaluated(model, adapter, problem, config):
         for index in range(len(problem.windows)):
             generator = torch.Generator().manual_seed(int(seed) * 7_919 + index)
             terms, _ = problem_window_terms(model, adapter, problem, config, index, generator)
