@@ -395,3 +395,46 @@ def test_single_network_baselines_are_refused_on_the_nested_model(net):
     with pytest.raises(UnsupportedUpstreamError, match="da3nested: declares no transformer blocks"):
         lora_targets(net)
     assert lora_targets(net.da3)  # the branch alone is a plain DA3 net
+
+
+@pytest.mark.slow
+def test_full_size_nested_model_in_the_hub_layout_loads_patches_and_predicts(
+    tmp_path, monkeypatch, images
+):
+    """The real da3nested-giant-large at full size (a ViT-g and a ViT-L, about 1.4 B parameters,
+    5.6 GB in float32), saved as the hub folder holds it, through load_backbone and one apply."""
+    import sys
+    import types
+    from importlib.util import find_spec
+
+    if find_spec("evo") is None:
+        # DA3 imports evo.core.trajectory (pose alignment) when its giant config is built and no
+        # forward calls it; a stand-in module lets the real network be built where evo is absent.
+        trajectory = types.ModuleType("evo.core.trajectory")
+        trajectory.PosePath3D = object
+        for name, module in (
+            ("evo", types.ModuleType("evo")),
+            ("evo.core", types.ModuleType("evo.core")),
+            ("evo.core.trajectory", trajectory),
+        ):
+            monkeypatch.setitem(sys.modules, name, module)
+        monkeypatch.setitem(da3_patch._NEEDS, "da3nested-giant-large", ())
+    folder = tmp_path / "DA3NESTED-GIANT-LARGE"
+    folder.mkdir()
+    built = da3_patch.build_network("da3nested-giant-large")
+    save_model(_Wrapper(built), str(folder / "model.safetensors"))
+    config = {"model_name": "da3nested-giant-large", "config": {"anyview": {}, "metric": {}}}
+    (folder / "config.json").write_text(json.dumps(config))
+    del built
+    loaded = rt.load_backbone(None, folder)
+    assert loaded.raytun3r_name == "da3nested-giant-large"
+    spec, root = spec_for(loaded)
+    assert spec.family == "da3nested" and root is loaded
+    assert spec.describe(root).embed_dim == 1536  # the adapter's width: the ViT-g branch
+    assert loaded.da3_metric.backbone.pretrained.embed_dim == 1024
+    with rt.apply(loaded, fisheye()) as handle:
+        assert handle.patched.count("DinoVisionTransformer.interpolate_pos_encoding") == 2
+        prediction = rt.predict(loaded, images)
+    assert torch.isfinite(prediction.depth).all() and (prediction.depth > 0).all()
+    assert "metric_scale" in prediction.extras
+    assert handle_of(loaded) is None
