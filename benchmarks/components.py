@@ -83,9 +83,8 @@ def _row_parameters(adapter, components: list[str]) -> int:
 def baseline_rows(model, seq, held_out: list[int], n_adapt: int, cache: str) -> list[dict]:
     """Multi-PH, and LoRA and calibration tokens fitted like raytun3r's tables (the demo's
     configuration, ``components=[]``: the unpatched model), scored on ``held_out``."""
-    from raytun3r_plugin.adaptation.train import adapt
+    from raytun3r_plugin.apps.benchmark import fitted_baseline
     from raytun3r_plugin.apps.demo import DEMO_LR, DEMO_STEPS, adapt_config
-    from raytun3r_plugin.baselines import inject_calibration_tokens, inject_lora
 
     rows = [
         {
@@ -99,13 +98,11 @@ def baseline_rows(model, seq, held_out: list[int], n_adapt: int, cache: str) -> 
     config = adapt_config(
         seq.camera.width, DEMO_STEPS, lr=DEMO_LR, seed=0, cache_dir=cache, components=[]
     )
-    for label, inject, weights in (
-        ("LoRA (r = 8, alpha = 16)", inject_lora, "weights"),
-        ("calibration tokens (t = 4)", inject_calibration_tokens, "tokens"),
+    for label, name in (
+        ("LoRA (r = 8, alpha = 16)", "lora"),
+        ("calibration tokens (t = 4)", "caltok"),
     ):
-        with inject(model) as handle:
-            tuned = getattr(handle, weights)
-            adapt(model, seq.camera, seq.images[:n_adapt], config, progress=False, tune=tuned)
+        with fitted_baseline(model, seq.camera, seq.images[:n_adapt], name, config) as (tuned, _):
             output = run_method(model, seq, "vanilla", frames=held_out)
         rows.append(
             {

@@ -113,26 +113,31 @@ def _subset(pair: _Pair, max_matches: int, generator: torch.Generator) -> tuple[
     return pair.uv_i, pair.uv_j, pair.confidence, pair.rays_i, pair.rays_j
 
 
-def _targets_pose(
+def _matched_points(
+    depth_i: torch.Tensor, uv_i: torch.Tensor, rays_i: torch.Tensor, convention: str
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(M, 3) points of the matches in camera i at the predicted depth, and (M,) where that depth
+    is usable (finite, positive; the other points sit at depth 1)."""
+    depth = sample_bilinear(depth_i, uv_i)
+    usable = torch.isfinite(depth) & (depth > 0)
+    points = backproject(torch.where(usable, depth, torch.ones_like(depth)), rays_i, convention)
+    return points, usable
+
+
+def _pose_scaled_to(
     pair: _Pair,
-    depth_i: torch.Tensor,
-    uv_i: torch.Tensor,
+    points: torch.Tensor,
+    usable: torch.Tensor,
     uv_j: torch.Tensor,
     confidence: torch.Tensor,
-    rays_i: torch.Tensor,
     rays_j: torch.Tensor,
     camera: Camera,
     config: AdaptConfig,
 ) -> torch.Tensor:
-    """``cam_j_from_cam_i`` from the MAGSAC++ target, translation scaled to the predicted depth
+    """``cam_j_from_cam_i`` from the MAGSAC++ target, translation scaled to ``points``
     (``config.scale``: pixel-optimal and detached, or the differentiable least-squares scale)."""
-    depth = sample_bilinear(depth_i, uv_i)
-    usable = torch.isfinite(depth) & (depth > 0)
-    points = backproject(
-        torch.where(usable, depth, torch.ones_like(depth)), rays_i, config.depth_convention
-    )
-    rotation = pair.rotation.to(depth_i.dtype)
-    direction = pair.direction.to(depth_i.dtype)
+    rotation = pair.rotation.to(points.dtype)
+    direction = pair.direction.to(points.dtype)
     scale = fit_translation_scale(
         points[usable], rays_j[usable], rotation, direction, confidence[usable]
     )
@@ -147,8 +152,25 @@ def _targets_pose(
             robust_px=config.robust_px or 1.0,
             initial=scale.detach(),
         )
-    pose = torch.eye(4, dtype=depth_i.dtype)
+    pose = torch.eye(4, dtype=points.dtype)
     return torch.cat((torch.cat((rotation, (scale * direction)[:, None]), dim=1), pose[3:]), dim=0)
+
+
+def _targets_pose(
+    pair: _Pair,
+    depth_i: torch.Tensor,
+    uv_i: torch.Tensor,
+    uv_j: torch.Tensor,
+    confidence: torch.Tensor,
+    rays_i: torch.Tensor,
+    rays_j: torch.Tensor,
+    camera: Camera,
+    config: AdaptConfig,
+) -> torch.Tensor:
+    """``cam_j_from_cam_i`` from the MAGSAC++ target, translation scaled to the predicted depth
+    (:func:`_pose_scaled_to`)."""
+    points, usable = _matched_points(depth_i, uv_i, rays_i, config.depth_convention)
+    return _pose_scaled_to(pair, points, usable, uv_j, confidence, rays_j, camera, config)
 
 
 def window_terms(
@@ -256,25 +278,25 @@ def window_parallax(
             for pair in pairs:
                 if pair.rotation is None or pair.uv_i.shape[0] == 0:
                     continue
-                frame_depth = depth[window.frames[pair.a]].double()
-                sampled = sample_bilinear(frame_depth, pair.uv_i.double())
-                usable = torch.isfinite(sampled) & (sampled > 0)
+                points, usable = _matched_points(
+                    depth[window.frames[pair.a]].double(),
+                    pair.uv_i.double(),
+                    pair.rays_i.double(),
+                    config.depth_convention,
+                )
                 if not usable.any():
                     continue
-                points = backproject(
-                    sampled[usable], pair.rays_i[usable].double(), config.depth_convention
-                )
-                pose = _targets_pose(
+                pose = _pose_scaled_to(
                     pair,
-                    frame_depth,
-                    pair.uv_i.double(),
+                    points,
+                    usable,
                     pair.uv_j.double(),
                     pair.confidence.double(),
-                    pair.rays_i.double(),
                     pair.rays_j.double(),
                     camera,
                     config,
                 )
+                points = points[usable]
                 values.append(float(depth_parallax_px(points, pose, camera).median()))
             medians.append(float(torch.tensor(values).median()) if values else math.nan)
     return medians

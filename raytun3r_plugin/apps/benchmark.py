@@ -14,7 +14,8 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -192,6 +193,38 @@ def timed_row(model, seq, method: str, frames: list[int], adapter=None) -> dict:
     return {**headline(score(seq, output)), "ms_per_frame": 1000.0 * seconds / len(frames)}
 
 
+@contextmanager
+def fitted_baseline(
+    model, camera, frames, name: str, config, *, out_path=None, progress: bool = False
+) -> Iterator[tuple[Any, float]]:
+    """Inject the baseline ``name`` (a key of :data:`BASELINES`) into ``model`` and fit it like
+    raytun3r's tables (``adapt(..., tune=)`` with ``config``, normally ``components=[]``: the
+    unpatched model); yields ``(module, seconds of fitting)`` while it is in the model, so the
+    caller scores it (as ``"vanilla"``: it lives in the model's hooks, not in a patch), and
+    removes it on exit."""
+    from raytun3r_plugin.adaptation.train import adapt
+    from raytun3r_plugin.baselines import inject_calibration_tokens, inject_lora
+
+    inject, attribute = {
+        "lora": (inject_lora, "weights"),
+        "caltok": (inject_calibration_tokens, "tokens"),
+    }[name]
+    with inject(model) as handle:
+        module = getattr(handle, attribute)
+        start = time.perf_counter()
+        adapt(
+            model,
+            camera,
+            frames,
+            config,
+            out_path=out_path,
+            resume=False,
+            progress=progress,
+            tune=module,
+        )
+        yield module, time.perf_counter() - start
+
+
 def sequence_rows(
     model,
     camera,
@@ -218,7 +251,6 @@ def sequence_rows(
     on this sequence)."""
     from raytun3r_plugin import synthetic
     from raytun3r_plugin.adaptation.train import adapt
-    from raytun3r_plugin.baselines import inject_calibration_tokens, inject_lora
 
     baselines = check_baselines(baselines)
     seq = synthetic.render_sequence(scene, camera, n_frames=n_adapt + n_eval, seed=seed)
@@ -284,33 +316,22 @@ def sequence_rows(
             "params": supervised.num_parameters()["total"],
         }
     )
-    inject: dict[str, Callable[[Any], Any]] = {
-        "lora": inject_lora,
-        "caltok": inject_calibration_tokens,
-    }
     for name in baselines:
-        # The baseline runs on the unpatched model (components=[]): what it learns is all it adds.
-        with inject[name](model) as handle:
-            module = handle.weights if name == "lora" else handle.tokens
-            start = time.perf_counter()
-            adapt(
-                model,
-                camera,
-                seq.images[:n_adapt],
-                adapt_config(size, steps, seed=0, components=[]),
-                out_path=path.with_name(f"{path.stem}_{name}.safetensors"),
-                resume=False,
-                progress=progress,
-                tune=module,
-            )
-            seconds = time.perf_counter() - start
+        with fitted_baseline(
+            model,
+            camera,
+            seq.images[:n_adapt],
+            name,
+            adapt_config(size, steps, seed=0, components=[]),
+            out_path=path.with_name(f"{path.stem}_{name}.safetensors"),
+            progress=progress,
+        ) as (module, seconds):
             # Saved in the baseline's own format, as the adapters are: PEFT's folder for LoRA.
             module.save(
                 path.with_name(f"{path.stem}_lora")
                 if name == "lora"
                 else path.with_name(f"{path.stem}_caltok.safetensors")
             )
-            # Scored as "vanilla" because the baseline lives in the model's hooks, not in a patch.
             scored = timed_row(model, seq, "vanilla", held_out)
         rows.append(
             {
