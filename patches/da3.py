@@ -18,6 +18,7 @@ adapter goes to the ``da3`` branch only (docs/backbones.md, "The nested model").
 from __future__ import annotations
 
 import os
+import sys
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -189,6 +190,43 @@ def _prepare_rope(owner, state):
     return prepare_rope
 
 
+#: ``depth_anything_3.model.dinov2.vision_transformer``: from this many views on, upstream moves
+#: a reference view to the front of the tokens (not of the RoPE positions); read at call time.
+REFERENCE_THRESHOLD = "THRESH_FOR_REF_SELECTION"
+
+
+def _reference_view(owner, state):
+    """Keep a rig's per-view RoPE positions with their views through DA3's view reordering.
+
+    From ``THRESH_FOR_REF_SELECTION`` views on, ``_get_intermediate_layers_not_chunked`` picks a
+    reference view (``ref_view_strategy``, default ``"saddle_balanced"``) and moves its tokens
+    to the front, but leaves the frame blocks' RoPE positions in input order: harmless when
+    every view has the same positions, wrong for a rig whose cameras displace them differently.
+    Only then (a rig, RoPE tables whose displacements differ between views) the reference is
+    the first view (``"first"``), which keeps tokens and positions together; docs/rigs.md.
+    """
+    module = sys.modules.get(type(owner).__module__)
+
+    def run(original, x, n=1, export_feat_layers=[], **kwargs):  # noqa: B006 (upstream's default)
+        threshold = getattr(module, REFERENCE_THRESHOLD, 3)
+        if (
+            state.rig
+            and state.uses("rope")
+            and x.ndim == 5
+            and x.shape[1] >= threshold
+            and kwargs.get("cam_token") is None
+            and kwargs.get("ref_view_strategy", "saddle_balanced") != "first"
+        ):
+            displacement = state.rope_displacement_views(
+                x.shape[-2], x.shape[-1], x.device, torch.float32
+            )
+            if not bool((displacement == displacement[:1]).all()):
+                kwargs["ref_view_strategy"] = "first"
+        return original(x, n, export_feat_layers, **kwargs)
+
+    return run
+
+
 TARGETS = (
     PatchTarget(
         name="pe_interpolation",
@@ -207,6 +245,15 @@ TARGETS = (
         signature=("B", "S", "H", "W", "device"),
         owner_classes=("DinoVisionTransformer",),
         build=_prepare_rope,
+    ),
+    PatchTarget(
+        name="rope_reference_view",
+        hook="rope",
+        owners=("backbone.pretrained",),
+        attribute="_get_intermediate_layers_not_chunked",
+        signature=("x", "n", "export_feat_layers", "kwargs"),
+        owner_classes=("DinoVisionTransformer",),
+        build=_reference_view,
     ),
     PatchTarget(
         name="rope_angles",

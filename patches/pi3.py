@@ -304,6 +304,7 @@ PI3X_TARGETS = (
         signature=("hidden_states", "image", "patch_h", "patch_w"),
         owner_classes=("ConvHead",),
         build=conv_head_uv,
+        per_view=False,  # upstream builds one uv grid for the whole batch
     ),
 )
 

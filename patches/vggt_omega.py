@@ -199,6 +199,7 @@ TARGETS = (
         signature=("H", "W"),
         owner_classes=("RopePositionEmbedding",),
         build=_normalised_rope,
+        per_view=False,  # one (sin, cos) table for every frame upstream
     ),
     PatchTarget(
         name="patch_embedding",

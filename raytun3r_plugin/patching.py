@@ -21,7 +21,7 @@ import inspect
 import math
 import threading
 import weakref
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -33,6 +33,7 @@ from raytun3r_plugin.errors import (
     AdapterError,
     AlreadyAppliedError,
     CameraError,
+    InputError,
     NotAppliedError,
     PatchedCopyError,
 )
@@ -41,6 +42,7 @@ from raytun3r_plugin.geometry import (
     DEFAULT_MAX_STRETCH,
     GeometryCache,
     SizeGeometry,
+    map_is_identity,
     resize_mask,
 )
 from raytun3r_plugin.registry import (
@@ -91,11 +93,35 @@ _PART_COPY_HINT = (
 )
 
 
+class View:
+    """One camera of a multi-camera (rig) forward: what the hooks read for the views it owns.
+
+    ``apply(model, [camera_a, camera_b], [adapter_a, adapter_b])`` makes one per position of
+    the list; view ``s`` of every forward (the ``S`` axis of the (B, S, 3, H, W) input) is
+    position ``s % V`` (docs/rigs.md). Positions with the same camera share one geometry cache.
+    """
+
+    __slots__ = ("adapter", "camera", "geometry_cache", "mask")
+
+    def __init__(self, camera: Camera, adapter: Adapter | None, mask, geometry_cache):
+        self.camera = camera
+        self.adapter = adapter
+        self.mask = mask
+        self.geometry_cache = geometry_cache
+
+    def __repr__(self) -> str:
+        return f"View({self.camera!r}, adapter={'yes' if self.adapter is not None else 'none'})"
+
+
 class PatchState:
     """What the installed wrappers read at run time (one per patch root of a patched model).
 
     A model of several networks (``BackboneSpec.branches``) has one state per branch, all with
     the same camera and components; only the main branch's state carries the adapter.
+
+    A rig (``views`` of different cameras or adapters) keeps one :class:`View` per position;
+    ``camera``, ``adapter``, ``mask`` and :meth:`geometry` are then the first view's, and the
+    hooks ask :meth:`view_rows` and the ``*_views`` methods for the per-view values.
     """
 
     def __init__(
@@ -109,6 +135,7 @@ class PatchState:
         max_stretch: float,
         model: nn.Module | None = None,
         spec: BackboneSpec | None = None,
+        views: tuple[tuple[Camera, Adapter | None, torch.Tensor | None], ...] = (),
     ):
         self.camera = camera
         self.adapter = adapter
@@ -120,8 +147,36 @@ class PatchState:
         # The backbone's declared facts (e.g. its RoPE frequency attribute) for the hook builders.
         self.spec = spec
         self.geometry_cache = GeometryCache(camera, info.patch_size, mask, knee_deg, max_stretch)
+        self.views = self._views(views or ((camera, adapter, mask),))
         # Weak: the state is reachable from the model's own wrappers.
         self._model = weakref.ref(model) if model is not None else None
+
+    def _views(self, given) -> tuple[View, ...]:
+        caches: list[tuple[Camera, Any, GeometryCache]] = [
+            (self.camera, self.mask, self.geometry_cache)
+        ]
+        views = []
+        for camera, adapter, mask in given:
+            cache = next(
+                (c for cam, m, c in caches if _same_camera(cam, camera) and _same_mask(m, mask)),
+                None,
+            )
+            if cache is None:
+                cache = GeometryCache(
+                    camera, self.info.patch_size, mask, self.knee_deg, self.max_stretch
+                )
+                caches.append((camera, mask, cache))
+            views.append(View(camera, adapter, mask, cache))
+        return tuple(views)
+
+    @property
+    def rig(self) -> bool:
+        """True when the views differ (camera, mask or adapter): the hooks then work per view."""
+        first = self.views[0]
+        return any(
+            view.geometry_cache is not first.geometry_cache or view.adapter is not first.adapter
+            for view in self.views[1:]
+        )
 
     def __deepcopy__(self, memo: dict) -> PatchState:
         """The state of a deep copy of the patched model: its own adapter, fresh caches and locks.
@@ -145,6 +200,13 @@ class PatchState:
         twin.geometry_cache = GeometryCache(
             twin.camera, twin.info.patch_size, twin.mask, twin.knee_deg, twin.max_stretch
         )
+        # The memo keeps an adapter shared by several views shared in the copy.
+        twin.views = twin._views(
+            tuple(
+                (view.camera, copy.deepcopy(view.adapter, memo), copy.deepcopy(view.mask, memo))
+                for view in self.views
+            )
+        )
         twin._model = weakref.ref(memo[id(model)])
         return twin
 
@@ -157,9 +219,11 @@ class PatchState:
         if not self.components.get(component, False) or not self.active:
             return False
         if component == "pe":
-            return self.adapter is not None
+            return any(view.adapter is not None for view in self.views)
         if component == "rope":
-            return self.adapter is not None and self.adapter.rope is not None
+            return any(
+                view.adapter is not None and view.adapter.rope is not None for view in self.views
+            )
         return True
 
     def geometry(self, height: int, width: int) -> SizeGeometry:
@@ -176,8 +240,81 @@ class PatchState:
 
     def rope_displacement(self, geometry: SizeGeometry, device, dtype) -> torch.Tensor:
         """(hw, 2) RoPE position displacement in (y, x) token units along the outward direction."""
-        weights, direction = geometry.rope_basis(self.adapter.n_r_rope, device, dtype)
-        return (weights @ self.adapter.rope["radial"].to(device, dtype))[:, None] * direction
+        return _rope_displacement(self.adapter, geometry, device, dtype)
+
+    # ---- per-view values of a rig (docs/rigs.md) ----------------------------------------
+
+    def view_rows(self, rows: int, where: str, device=None) -> torch.Tensor:
+        """(rows,) view index of each image of a call whose images are (B S) in upstream order.
+
+        Raises :class:`InputError` when ``rows`` is not a multiple of the rig's view count: the
+        call then cannot be laid out as whole rigs (a head that splits the views into chunks
+        whose size the view count does not divide, or a forward of the wrong view count).
+        """
+        count = len(self.views)
+        if rows % count:
+            raise InputError(
+                f"{where}: a call over {rows} images is not a whole number of rigs of {count} views "
+                f"(a rig forward takes S = {count} x T views per sample, in the order of apply's "
+                f"camera list; a head that runs the views in chunks of 8 needs a view count that "
+                f"divides 8 once S > 8)"
+            )
+        return torch.arange(rows, device=device) % count
+
+    def check_views(self, frames: int, where: str) -> None:
+        """Refuse a forward whose per-sample view count ``frames`` is not a multiple of the rig's."""
+        count = len(self.views)
+        if frames % count:
+            raise InputError(
+                f"{where}: {frames} views per sample, but the model is patched for a rig of "
+                f"{count} cameras: pass S = {count} x T views, view s taken by camera s % {count}"
+            )
+
+    def geometry_views(self, height: int, width: int) -> list[SizeGeometry]:
+        """The :class:`SizeGeometry` of each view at the input size (shared between equal cameras)."""
+        return [view.geometry_cache.at(int(height), int(width)) for view in self.views]
+
+    def pe_correction_views(self, height: int, width: int, device, dtype) -> torch.Tensor:
+        """(V, hw, C) PE update of each view (zero for a view without an adapter)."""
+        angular = not self.components.get("pe_radial_only", False)
+        corrections = []
+        for view, geometry in zip(self.views, self.geometry_views(height, width), strict=True):
+            if view.adapter is None:
+                hw = (geometry.height // geometry.patch) * (geometry.width // geometry.patch)
+                corrections.append(torch.zeros(hw, self.info.embed_dim, device=device, dtype=dtype))
+            else:
+                corrections.append(
+                    view.adapter.pe_correction(geometry, device, dtype, angular=angular)
+                )
+        return torch.stack(corrections)
+
+    def rope_displacement_views(self, height: int, width: int, device, dtype) -> torch.Tensor:
+        """(V, hw, 2) RoPE displacement of each view (zero without an adapter's RoPE table)."""
+        return torch.stack(
+            [
+                _rope_displacement(view.adapter, geometry, device, dtype)
+                for view, geometry in zip(
+                    self.views, self.geometry_views(height, width), strict=True
+                )
+            ]
+        )
+
+
+def _rope_displacement(
+    adapter: Adapter | None, geometry: SizeGeometry, device, dtype
+) -> torch.Tensor:
+    """(hw, 2) displacement by ``adapter``'s RoPE table; zero without an adapter or table."""
+    if adapter is None or adapter.rope is None:
+        hw = (geometry.height // geometry.patch) * (geometry.width // geometry.patch)
+        return torch.zeros(hw, 2, device=device, dtype=dtype)
+    weights, direction = geometry.rope_basis(adapter.n_r_rope, device, dtype)
+    return (weights @ adapter.rope["radial"].to(device, dtype))[:, None] * direction
+
+
+def _same_mask(a: torch.Tensor | None, b: torch.Tensor | None) -> bool:
+    if a is None or b is None:
+        return a is b
+    return a.shape == b.shape and bool(torch.equal(a, b))
 
 
 class _NotSet:
@@ -326,11 +463,28 @@ class RaytunHandle:
 
     @property
     def camera(self):
+        """The camera (of a rig: its first camera; all of them in :attr:`cameras`)."""
         return self._state.camera
 
     @property
     def adapter(self) -> Adapter | None:
+        """The adapter (of a rig: its first camera's; all of them in :attr:`adapters`)."""
         return self._state.adapter
+
+    @property
+    def cameras(self) -> tuple:
+        """One camera per view position of the rig (one entry for a single camera)."""
+        return tuple(view.camera for view in self._state.views)
+
+    @property
+    def adapters(self) -> tuple[Adapter | None, ...]:
+        """One adapter (or None) per view position, like :attr:`cameras`."""
+        return tuple(view.adapter for view in self._state.views)
+
+    @property
+    def is_rig(self) -> bool:
+        """True when the views have different cameras, masks or adapters (docs/rigs.md)."""
+        return self._state.rig
 
     @property
     def components(self) -> dict[str, bool]:
@@ -419,7 +573,8 @@ class RaytunHandle:
 
     def __repr__(self) -> str:
         status = "active" if self.is_active else "removed"
-        return f"RaytunHandle({self.spec.family}, {status}, camera={self.camera!r}, components={[k for k, v in self.components.items() if v]})"
+        cameras = f"cameras={list(self.cameras)!r}" if self.is_rig else f"camera={self.camera!r}"
+        return f"RaytunHandle({self.spec.family}, {status}, {cameras}, components={[k for k, v in self.components.items() if v]})"
 
 
 def _undo(installed: list[_Installed]) -> None:
@@ -519,12 +674,12 @@ def _checked_mask(mask: Any, camera: Camera) -> torch.Tensor:
 
 def apply(
     model: nn.Module,
-    camera: Camera | None = None,
-    adapter: Adapter | str | None = None,
+    camera: Camera | Sequence[Camera] | None = None,
+    adapter: Adapter | str | Sequence[Adapter | str | None] | None = None,
     *,
     components: Mapping[str, bool] | list[str] | None = None,
     strict: bool = True,
-    mask: torch.Tensor | None = None,
+    mask: torch.Tensor | Sequence[torch.Tensor | None] | None = None,
     knee_deg: float = DEFAULT_KNEE_DEG,
     max_stretch: float = DEFAULT_MAX_STRETCH,
 ) -> RaytunHandle:
@@ -534,36 +689,27 @@ def apply(
         model: a supported backbone instance (see ``raytun3r_plugin.registry.specs()``).
         camera: the camera of the native images (a ``raytun3r_plugin.cameras.Camera``); rescaled to
             the network input size on every forward. Defaults to the adapter's camera.
+            A list makes a **rig** (docs/rigs.md): view ``s`` of every forward is taken by
+            ``camera[s % V]``, so a forward over ``T`` instants of a ``V``-camera rig passes
+            ``S = V * T`` views in the order ``(t0 cam0, t0 cam1, ..., t1 cam0, ...)``. All
+            cameras of a rig need one aspect ratio (the views share one input size).
         adapter: an :class:`Adapter`, a path to an adapter file, or None for the parameter-free
-            corrections only.
+            corrections only. With a camera list: one per camera (None for a camera without
+            one), or a single adapter for every camera. Defaults to none.
         components: which corrections are on (``adapter.COMPONENTS``), plus any ablation
             switch (``adapter.ABLATION_SWITCHES``: ``"pe_radial_only"``, ``"pe_naive_remap"``,
-            docs/components.md); defaults to the adapter's recorded set, or all corrections.
+            docs/components.md); defaults to the (first) adapter's recorded set, or all
+            corrections. One set for every view.
         strict: refuse an adapter fitted on other weights (PE fingerprint) or another camera.
-        mask: optional (H, W) bool mask of valid pixels, combined with the camera's valid region.
+        mask: optional (H, W) bool mask of valid pixels, combined with the camera's valid region;
+            with a camera list, one mask (or None) per camera.
         knee_deg, max_stretch: parameters of the fisheye-to-pinhole map and patch resampling.
 
     Everything is validated before the model is touched; a failure while installing rolls back.
     Applying the same camera and adapter again returns the existing handle.
     """
-    from raytun3r_plugin.cameras import Camera
-
-    if isinstance(adapter, str) or hasattr(adapter, "__fspath__"):
-        adapter = Adapter.load(adapter)
-    if adapter is not None and not isinstance(adapter, Adapter):
-        raise AdapterError(
-            f"adapter must be an Adapter, a path or None, got {type(adapter).__name__}"
-        )
-    if camera is None and adapter is not None:
-        camera = adapter.camera
-    if camera is None:
-        raise CameraError("apply needs a camera (or an adapter that carries one)")
-    if not isinstance(camera, Camera):
-        raise CameraError(
-            f"camera must be a raytun3r_plugin.cameras.Camera, got {type(camera).__name__}"
-        )
-    if mask is not None:
-        mask = _checked_mask(mask, camera)
+    cameras, adapters, masks = _views_of(camera, adapter, mask)
+    camera, adapter, mask = cameras[0], adapters[0], masks[0]
 
     spec, root = spec_for(model)
     info = spec.describe(root)
@@ -572,19 +718,97 @@ def apply(
         (path, branch_spec, branch, branch_spec.describe(branch) if spec.branches else info)
         for path, branch_spec, branch in branch_roots(spec, root)
     ]
-    if adapter is not None:
-        if spec.branches:
-            _check_branch_width(adapter, spec, branches)
-        _check_adapter(adapter, info, camera, strict)
-    wanted = _components_for(components, adapter)
+    for view_camera, view_adapter in zip(cameras, adapters, strict=True):
+        if view_adapter is not None:
+            if spec.branches:
+                _check_branch_width(view_adapter, spec, branches)
+            _check_adapter(view_adapter, info, view_camera, strict)
+    wanted = _components_for(components, next((a for a in adapters if a is not None), None))
+    views = tuple(zip(cameras, adapters, masks, strict=True))
 
     try:
         _LOCK.acquire()
-        return _apply_locked(
-            model, root, spec, branches, camera, adapter, wanted, mask, knee_deg, max_stretch
-        )
+        return _apply_locked(model, root, spec, branches, views, wanted, knee_deg, max_stretch)
     finally:
         _release()
+
+
+def _views_of(camera, adapter, mask) -> tuple[list, list, list]:
+    """Per-view (cameras, adapters, masks) of ``apply``'s arguments, each checked; no model read."""
+    from raytun3r_plugin.cameras import Camera
+
+    def one_adapter(item):
+        if isinstance(item, str) or hasattr(item, "__fspath__"):
+            item = Adapter.load(item)
+        if item is not None and not isinstance(item, Adapter):
+            raise AdapterError(
+                f"adapter must be an Adapter, a path or None, got {type(item).__name__}"
+            )
+        return item
+
+    rig = isinstance(camera, (list, tuple)) or isinstance(adapter, (list, tuple))
+    if not rig:
+        adapters = [one_adapter(adapter)]
+        cameras = [camera if camera is not None or adapters[0] is None else adapters[0].camera]
+        masks = [mask]
+    else:
+        given = (
+            [one_adapter(item) for item in adapter] if isinstance(adapter, (list, tuple)) else None
+        )
+        if camera is None:  # then the adapters are a list (a rig needs a list of either)
+            cameras = [item.camera if item is not None else None for item in given or []]
+        elif isinstance(camera, (list, tuple)):
+            cameras = list(camera)
+        else:
+            cameras = [camera] * len(given or [None])
+        if not cameras:
+            raise CameraError("apply got an empty camera list: a rig needs at least one camera")
+        if given is None:
+            adapters = [one_adapter(adapter)] * len(cameras)
+        elif len(given) != len(cameras):
+            raise AdapterError(
+                f"apply got {len(cameras)} cameras and {len(given)} adapters: give one adapter "
+                "per camera (None for a camera without one) or a single adapter"
+            )
+        else:
+            adapters = given
+        if isinstance(mask, (list, tuple)):
+            masks = list(mask)
+            if len(masks) != len(cameras):
+                raise CameraError(
+                    f"apply got {len(cameras)} cameras and {len(masks)} masks: give one per camera"
+                )
+        else:
+            if mask is not None and len(cameras) > 1:
+                raise CameraError(
+                    "a rig takes one mask per camera (a list, None for a camera without one)"
+                )
+            masks = [mask] * len(cameras)
+    for index, view_camera in enumerate(cameras):
+        where = f"camera {index} of the rig" if rig else "camera"
+        if view_camera is None:
+            raise CameraError(
+                f"apply needs a camera (or an adapter that carries one): {where} has none"
+            )
+        if not isinstance(view_camera, Camera):
+            raise CameraError(
+                f"{where} must be a raytun3r_plugin.cameras.Camera, got {type(view_camera).__name__}"
+            )
+    first = cameras[0]
+    for index, view_camera in enumerate(cameras[1:], start=1):
+        aspect, expected = view_camera.width / view_camera.height, first.width / first.height
+        if abs(aspect - expected) / expected > 0.01:
+            raise CameraError(
+                f"camera {index} of the rig is {view_camera.width}x{view_camera.height} px (aspect "
+                f"{aspect:.4f}), camera 0 is {first.width}x{first.height} (aspect {expected:.4f}): "
+                "a rig's views share one network input size, so its cameras need one aspect "
+                "ratio (crop with camera.cropped(...) first)"
+            )
+    masks = [
+        None if view_mask is None else _checked_mask(view_mask, view_camera)
+        for view_mask, view_camera in zip(masks, cameras, strict=True)
+    ]
+    return cameras, adapters, masks
 
 
 def _check_branch_width(adapter: Adapter, spec: BackboneSpec, branches: list) -> None:
@@ -614,29 +838,16 @@ def _apply_locked(
     root: nn.Module,
     spec: BackboneSpec,
     branches: list[tuple[str, BackboneSpec, nn.Module, BackboneInfo]],
-    camera: Camera,
-    adapter: Adapter | None,
+    views: tuple[tuple[Camera, Adapter | None, torch.Tensor | None], ...],
     wanted: dict[str, bool],
-    mask: torch.Tensor | None,
     knee_deg: float,
     max_stretch: float,
 ) -> RaytunHandle:
     """The check-then-install of :func:`apply`, run while holding :data:`_LOCK`."""
+    camera, adapter, mask = views[0]
     existing = handle_of(model)
     if existing is not None:
-        same = (
-            _same_camera(existing.camera, camera)
-            and (
-                (existing.adapter is None and adapter is None)
-                or (
-                    existing.adapter is not None
-                    and adapter is not None
-                    and existing.adapter.same_as(adapter)
-                )
-            )
-            and existing.components == wanted
-        )
-        if same:
+        if _same_views(existing._state.views, views) and existing.components == wanted:
             return existing
         raise AlreadyAppliedError(
             f"{type(model).__name__} is already patched ({existing!r}); call remove() first"
@@ -664,7 +875,13 @@ def _apply_locked(
             max_stretch,
             model=model,
             spec=branch_spec,
+            views=tuple(
+                (view_camera, view_adapter if index == 0 else None, view_mask)
+                for view_camera, view_adapter, view_mask in views
+            ),
         )
+        if state.rig:
+            _check_per_view(branch_spec, found, branch_path, state)
         states.append(state)
         prefix = f"{branch_path}." if branch_path else ""
         resolved += [(target, prefix + path, owner, state) for target, path, owner in found]
@@ -692,6 +909,43 @@ def _apply_locked(
     except BaseException:
         _rollback(model, installed)
         raise
+
+
+def _same_views(existing: tuple[View, ...], views: tuple) -> bool:
+    """True when ``views`` (camera, adapter, mask per position) are what ``existing`` holds."""
+    if len(existing) != len(views):
+        return False
+    for view, (camera, adapter, mask) in zip(existing, views, strict=True):
+        if not _same_camera(view.camera, camera) or not _same_mask(view.mask, mask):
+            return False
+        if (view.adapter is None) != (adapter is None):
+            return False
+        if view.adapter is not None and not view.adapter.same_as(adapter):
+            return False
+    return True
+
+
+def _check_per_view(spec: BackboneSpec, found: list, branch_path: str, state: PatchState) -> None:
+    """Refuse a rig where a hook in use computes one value for every view (``per_view=False``).
+
+    Passed where the one value would be right for every view anyway: a RoPE hook without any
+    RoPE table among the views' adapters, another hook when every camera's map is the identity
+    (pinhole cameras inside the knee, whose corrections are upstream's own values).
+    """
+    identity = all(map_is_identity(view.camera, state.knee_deg) for view in state.views)
+    for target, path, _owner in found:
+        if target.hook == "rope" and not state.uses("rope"):
+            continue
+        if target.hook != "rope" and identity:
+            continue
+        if not target.per_view:
+            where = f"{branch_path}.{path}" if branch_path else path
+            served = sorted(HOOK_COMPONENTS.get(target.hook, ()))
+            raise InputError(
+                f"{spec.family}: a rig of different cameras needs every hook per view, but "
+                f"{where}.{target.attribute} ({target.name!r}) computes one value for all views "
+                f"upstream; apply with components that leave {served} off, or one camera"
+            )
 
 
 def _install(installed: list[_Installed], owner, attribute: str, replacement) -> None:

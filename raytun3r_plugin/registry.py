@@ -59,6 +59,10 @@ class PatchTarget:
             (see :mod:`raytun3r_plugin.hooks`).
         optional: when True an absent owner (missing attribute or ``None``) just means the model
             has no such hook (e.g. a DA3 mono model has no RoPE); otherwise it is an error.
+        per_view: the behaviour gives each view of a multi-camera forward its own camera
+            (``apply(model, [camera_a, camera_b, ...])``, docs/rigs.md). False where upstream
+            computes one value for every view (VGGT-Omega's RoPE table, Pi3X's uv channels):
+            ``apply`` then refuses a rig of different cameras while this hook is on, naming it.
     """
 
     name: str
@@ -69,6 +73,7 @@ class PatchTarget:
     owner_classes: tuple[str, ...]
     build: Callable[..., Callable]
     optional: bool = False
+    per_view: bool = True
 
 
 @dataclass(frozen=True)
