@@ -71,3 +71,8 @@ from raytun3r_plugin.adaptation.intrinsics import (  # noqa: E402
 )
 
 __all__ += ["IntrinsicsReport", "refine_intrinsics"]
+
+# Multi-camera rigs (issue 18).
+from raytun3r_plugin.adaptation.rig import adapt_rig  # noqa: E402
+
+__all__ += ["adapt_rig"]

@@ -48,6 +48,7 @@ if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load 
 __all__ = [
     "adaptation_step",
     "objective_value",
+    "prediction_terms",
     "problem_window_terms",
     "regulariser_scale",
     "window_of_step",
@@ -204,7 +205,41 @@ def window_terms(
         numbers of reprojection matches / pose targets that entered them.
     """
     prediction = predict(model, images[None])
-    depth, poses = prediction.depth[0], prediction.cam_from_world[0]
+    return prediction_terms(
+        prediction.depth[0],
+        prediction.cam_from_world[0],
+        adapter,
+        images,
+        pairs,
+        layout,
+        valid,
+        geometry,
+        config,
+        generator,
+        pe_scale=pe_scale,
+        depth_targets=depth_targets,
+    )
+
+
+def prediction_terms(
+    depth: torch.Tensor,
+    poses: torch.Tensor,
+    adapter: Adapter,
+    images: torch.Tensor,
+    pairs: list[_Pair],
+    layout: InputLayout,
+    valid: torch.Tensor,
+    geometry: Any,
+    config: AdaptConfig,
+    generator: torch.Generator,
+    *,
+    pe_scale: float = 1.0,
+    depth_targets: list[tuple[torch.Tensor, torch.Tensor]] | None = None,
+) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
+    """The loss terms of one window from its predicted ``depth`` (S, h, w) and ``poses``
+    (S, 4, 4) ``cam_from_world``: :func:`window_terms` after its forward, so a rig fit
+    (:func:`raytun3r_plugin.adaptation.rig.adapt_rig`) can score each camera's views of one
+    joint forward. Arguments and result as :func:`window_terms`."""
     correction = pe_correction_grid(adapter, geometry)
     regularisers = {"l2": pe_l2(correction) / pe_scale, "tv": pe_tv(correction) / pe_scale}
     if depth_targets is not None:

@@ -18,6 +18,7 @@ from raytun3r_plugin.datasets.colmap import load_colmap, read_images_txt
 from raytun3r_plugin.datasets.eth3d import eth3d_rig_cameras, load_eth3d_rig, load_eth3d_rig_all
 from raytun3r_plugin.datasets.folder import load_synthetic, write_sequence
 from raytun3r_plugin.datasets.kitti360 import load_kitti360
+from raytun3r_plugin.datasets.rig import Rig, load_eth3d_rig_set, load_tumvi_rig, rig_from_sequences
 from raytun3r_plugin.datasets.scannetpp import load_scannetpp_transforms
 from raytun3r_plugin.datasets.sequence import Sequence, read_image
 from raytun3r_plugin.datasets.tumvi import load_tumvi
@@ -25,6 +26,7 @@ from raytun3r_plugin.errors import DatasetError
 
 __all__ = [
     "KINDS",
+    "Rig",
     "Sequence",
     "detect_kind",
     "eth3d_rig_cameras",
@@ -32,12 +34,15 @@ __all__ = [
     "load_colmap",
     "load_eth3d_rig",
     "load_eth3d_rig_all",
+    "load_eth3d_rig_set",
     "load_kitti360",
     "load_scannetpp_transforms",
     "load_sequence",
     "load_synthetic",
     "load_tumvi",
+    "load_tumvi_rig",
     "read_aria_calibration",
+    "rig_from_sequences",
     "read_aria_trajectory",
     "read_image",
     "read_images_txt",

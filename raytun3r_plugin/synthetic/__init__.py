@@ -26,8 +26,10 @@ from raytun3r_plugin.synthetic.generate import (
     camera_centres,
     make_trajectory,
     median_flow,
+    render_rig,
     render_sequence,
     scene_of,
+    stereo_extrinsics,
 )
 from raytun3r_plugin.synthetic.render import RenderedFrame, Renderer, render_frame
 from raytun3r_plugin.synthetic.scene import (
@@ -59,7 +61,9 @@ __all__ = [
     "median_flow",
     "relative_pose",
     "render_frame",
+    "render_rig",
     "render_sequence",
     "scene_of",
+    "stereo_extrinsics",
     "write_sequence",
 ]

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -21,7 +22,14 @@ from raytun3r_plugin.synthetic.trajectory import (
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
 
-__all__ = ["camera_centres", "make_trajectory", "median_flow", "render_sequence", "scene_of"]
+__all__ = [
+    "camera_centres",
+    "make_trajectory",
+    "median_flow",
+    "render_rig",
+    "render_sequence",
+    "scene_of",
+]
 
 # Typical scene range (m) at which the apparent motion of a trajectory is measured.
 _DEPTH_SCALE = {"indoor": 2.5, "outdoor": 16.0}
@@ -145,6 +153,42 @@ def render_sequence(
     poses, step = make_trajectory(kind, motion, camera, n_frames, seed, flow_px)
     path = camera_centres(poses)
     scene = make_scene(kind, seed, path)
+    seq = _render_path(
+        kind,
+        camera,
+        poses,
+        scene,
+        supersample=supersample,
+        adaptive=adaptive,
+        fps=fps,
+        num_threads=num_threads,
+    )
+    seq.name = name or f"synthetic-{kind}-{motion}-s{seed}"
+    rendered = seq.meta["synthetic"]
+    seq.meta["synthetic"] = {
+        "kind": kind,
+        "seed": int(seed),
+        "motion": motion,
+        "flow_px": float(flow_px),
+        "step": float(step),
+        **{key: rendered[key] for key in ("supersample", "adaptive", "fps", "path")},
+    }
+    return seq
+
+
+def _render_path(
+    kind: str,
+    camera: Camera,
+    poses: np.ndarray,
+    scene: Scene,
+    *,
+    supersample: int = 2,
+    adaptive: bool = True,
+    fps: float = 10.0,
+    num_threads: int | None = 1,
+) -> Sequence:
+    """Render ``scene`` from the (N, 4, 4) ``cam_from_world`` poses: a :class:`Sequence`."""
+    n_frames = len(poses)
     renderer = Renderer(camera, supersample=supersample, adaptive=adaptive, num_threads=num_threads)
     h, w = int(camera.height), int(camera.width)
     images = np.zeros((n_frames, h, w, 3), dtype=np.float32)
@@ -157,17 +201,13 @@ def render_sequence(
         images[k], depth[k], zdepth[k], mask[k], sky[k] = f.rgb, f.range, f.z_depth, f.valid, f.sky
     gen = {
         "kind": kind,
-        "seed": int(seed),
-        "motion": motion,
-        "flow_px": float(flow_px),
-        "step": float(step),
         "supersample": int(supersample),
         "adaptive": bool(adaptive),
         "fps": float(fps),
-        "path": path.tolist(),
+        "path": camera_centres(poses).tolist(),
     }
     return Sequence(
-        name=name or f"synthetic-{kind}-{motion}-s{seed}",
+        name=f"synthetic-{kind}",
         camera=camera,
         timestamps=np.arange(n_frames, dtype=np.float64) / float(fps),
         cam_from_world=poses,
@@ -176,4 +216,101 @@ def render_sequence(
         depth_kind="range",
         mask=mask,
         meta={"synthetic": gen, "scene": scene, "per_frame": {"z_depth": zdepth, "sky": sky}},
+    )
+
+
+def stereo_extrinsics(baseline_m: float = 0.1, toe_out_deg: float = 0.0) -> dict[str, np.ndarray]:
+    """``cam_from_rig`` of a forward-looking stereo pair: ``"left"`` (the reference) and
+    ``"right"``, ``baseline_m`` to its right (+x), each turned outwards by ``toe_out_deg``
+    about the vertical (y) axis (0: parallel optical axes)."""
+    angle = np.radians(toe_out_deg)
+    right = np.eye(4)
+    right[:3, :3] = np.array(
+        [[np.cos(angle), 0.0, -np.sin(angle)], [0.0, 1.0, 0.0], [np.sin(angle), 0.0, np.cos(angle)]]
+    )
+    # rig -> right camera: the right camera's centre is at +baseline on the rig's x axis.
+    right[:3, 3] = -right[:3, :3] @ np.array([baseline_m, 0.0, 0.0])
+    return {"left": np.eye(4), "right": right}
+
+
+def render_rig(
+    kind: str,
+    cameras: Mapping[str, Camera],
+    cam_from_rig: Mapping[str, np.ndarray] | None = None,
+    n_frames: int = 10,
+    seed: int = 0,
+    motion: str | None = None,
+    **kwargs: Any,
+):
+    """Render a synthetic multi-camera rig: every camera sees one scene at the same instants.
+
+    Args:
+        kind, n_frames, seed, motion: as :func:`render_sequence`; the trajectory is the
+            reference (first) camera's, planned for its lens.
+        cameras: camera name -> camera; the first is the rig's reference (its frame is the
+            rig frame). All need one image size (:meth:`Rig.views`).
+        cam_from_rig: camera name -> (4, 4) rig-to-camera transform (default: a
+            :func:`stereo_extrinsics` pair for two cameras named ``"left"`` and ``"right"``).
+        kwargs: ``flow_px``, ``supersample``, ``adaptive``, ``fps``, ``num_threads`` as
+            :func:`render_sequence`.
+
+    Returns:
+        A :class:`~raytun3r_plugin.datasets.rig.Rig` whose sequences carry images, range depth,
+        masks and ground-truth poses ``cam_from_rig[c] @ rig_from_world``, with the scene in
+        every sequence's ``meta`` (``scene_of`` works on each).
+    """
+    from raytun3r_plugin.datasets.rig import Rig
+
+    if not cameras:
+        raise InputError("render_rig needs at least one camera")
+    names = list(cameras)
+    if cam_from_rig is None:
+        if names != ["left", "right"]:
+            raise InputError(
+                "give cam_from_rig for every camera (the default is the stereo pair 'left', 'right')"
+            )
+        cam_from_rig = stereo_extrinsics()
+    missing = [name for name in names if name not in cam_from_rig]
+    if missing:
+        raise InputError(f"render_rig: no cam_from_rig for {missing}")
+    sizes = {(int(c.width), int(c.height)) for c in cameras.values()}
+    if len(sizes) != 1:
+        raise InputError(f"render_rig: the cameras need one image size, got {sorted(sizes)}")
+    if kind not in _DEPTH_SCALE:
+        raise InputError(f"unknown scene kind {kind!r}; expected 'indoor' or 'outdoor'")
+    motion = motion or ("handheld" if kind == "indoor" else "driving")
+    flow_px = float(kwargs.pop("flow_px", 6.0))
+    fps = float(kwargs.pop("fps", 10.0))
+    reference = cameras[names[0]]
+    rig_from_world, step = make_trajectory(kind, motion, reference, n_frames, seed, flow_px)
+    poses = {
+        name: np.asarray(cam_from_rig[name], dtype=np.float64)[None] @ rig_from_world
+        for name in names
+    }
+    # One scene for the whole rig, kept clear of every camera's path; each sequence records
+    # that joint path, so scene_of() rebuilds the same scene from any of them.
+    path = np.concatenate([camera_centres(p) for p in poses.values()])
+    scene = make_scene(kind, seed, path)
+    sequences = {}
+    for name in names:
+        seq = _render_path(kind, cameras[name], poses[name], scene, fps=fps, **kwargs)
+        seq.name = f"synthetic-rig-{kind}-{motion}-s{seed}/{name}"
+        rendered = seq.meta["synthetic"]
+        seq.meta["synthetic"] = {
+            "kind": kind,
+            "seed": int(seed),
+            "motion": motion,
+            "flow_px": flow_px,
+            "step": float(step),
+            **{key: rendered[key] for key in ("supersample", "adaptive", "fps")},
+            "path": path.tolist(),
+            "rig_camera": name,
+        }
+        sequences[name] = seq
+    extrinsics = {name: np.asarray(cam_from_rig[name], dtype=np.float64) for name in names}
+    return Rig(
+        f"synthetic-rig-{kind}-{motion}-s{seed}",
+        sequences,
+        extrinsics,
+        {"synthetic": {"kind": kind, "seed": int(seed), "motion": motion, "step": float(step)}},
     )

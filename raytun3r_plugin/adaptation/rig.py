@@ -1,0 +1,359 @@
+"""Fit the adapters of every camera of a rig together, from one rig sequence (docs/rigs.md).
+
+Each camera keeps its own adapter (shareable per camera, as a single-camera fit's), and each
+camera's segment is prepared as :func:`~raytun3r_plugin.adaptation.train.adapt` prepares one
+(windows, matches, pose targets, input layout). What is joint is the forward: every step takes
+one window of every camera, lays the views out instant-major (``apply(model, cameras,
+adapters)``'s order), runs them through the patched model *in one multi-view forward*, scores
+each camera's views with that camera's pairs (:func:`~raytun3r_plugin.adaptation.step.
+prediction_terms`) and steps one Adam optimiser over every camera's tables on the mean of the
+cameras' losses. So each camera's tables are fitted while the network sees the other cameras'
+views, as it will at inference.
+
+Not here (single-camera :func:`adapt` has them): pairs across cameras (the reprojection terms
+are within one camera), the parallax gate, the collapse guard, checkpoints and resuming, the
+supervised mode. ``training_info["rig"]`` says so.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from raytun3r_plugin.adaptation.config import TERMS, AdaptConfig
+from raytun3r_plugin.adaptation.losses import total_loss
+from raytun3r_plugin.adaptation.problem import AdaptationProblem, prepare_problem
+from raytun3r_plugin.adaptation.step import (
+    _frozen,
+    prediction_terms,
+    regulariser_scale,
+    window_of_step,
+)
+from raytun3r_plugin.adapter import Adapter
+from raytun3r_plugin.errors import AlreadyAppliedError, InputError
+from raytun3r_plugin.patching import apply, handle_of
+from raytun3r_plugin.prediction import predict
+
+if TYPE_CHECKING:
+    from raytun3r_plugin.datasets.rig import Rig
+
+__all__ = ["adapt_rig", "rig_artifact_paths"]
+
+#: What a rig fit leaves out, recorded in every adapter's ``training_info["rig"]``.
+NOT_IN_A_RIG_FIT = (
+    "cross-camera pairs",
+    "parallax gate",
+    "collapse guard",
+    "checkpoint and resume",
+    "supervised mode",
+)
+
+
+def rig_artifact_paths(out_dir: str | os.PathLike, names: list[str]) -> dict[str, Path]:
+    """Files a rig fit writes into ``out_dir``: one adapter per camera, one log and loss curve."""
+    folder = Path(out_dir)
+    paths = {f"adapter:{name}": folder / f"{name}.safetensors" for name in names}
+    paths.update(
+        {
+            "log": folder / "rig.log.jsonl",
+            "csv": folder / "rig.losses.csv",
+            "curve": folder / "rig.losses.png",
+        }
+    )
+    return paths
+
+
+def adapt_rig(
+    model: nn.Module,
+    rig: Rig,
+    config: AdaptConfig | None = None,
+    *,
+    adapters: Mapping[str, Adapter] | None = None,
+    out_dir: str | os.PathLike | None = None,
+    progress: bool = True,
+) -> dict[str, Adapter]:
+    """Fit one adapter per camera of ``rig``, all cameras' views in each forward.
+
+    Args:
+        model: a supported backbone, not patched; its weights are never changed.
+        rig: a :class:`~raytun3r_plugin.datasets.rig.Rig` (time-aligned sequences, one image
+            size); its :attr:`~raytun3r_plugin.datasets.rig.Rig.names` order is the view order.
+        config: :class:`AdaptConfig` for every camera (defaults if None); ``window_size``
+            frames of each camera per step, so ``window_size x V`` views per forward.
+        adapters: start from these (copied), by camera name; default zero adapters.
+        out_dir: write ``<camera>.safetensors`` per camera, ``rig.log.jsonl`` (one JSON object
+            per step) and the loss curves (``rig.losses.csv``, ``.png`` with matplotlib).
+        progress: a line to stderr every ~5 % of the run.
+
+    Returns:
+        ``{camera name: Adapter}``, each with its camera and ``training_info`` (the single-camera
+        fields for its segment, plus ``"rig"``: the cameras, views per forward, and what a rig
+        fit leaves out, :data:`NOT_IN_A_RIG_FIT`).
+
+    Raises:
+        AlreadyAppliedError: the model carries a raytun3r patch.
+        InputError: a camera without a usable window, or cameras whose input layouts differ.
+    """
+    config = AdaptConfig() if config is None else config
+    if handle_of(model) is not None:
+        raise AlreadyAppliedError(
+            "adapt_rig needs an unpatched model; remove the existing raytun3r patch first"
+        )
+    names = rig.names
+    start = {} if adapters is None else dict(adapters)
+    fitted = {
+        name: (
+            Adapter.for_model(model, None, components=config.components)
+            if name not in start
+            else _copied(start[name])
+        )
+        for name in names
+    }
+    patch = fitted[names[0]].patch_size
+    problems: dict[str, AdaptationProblem] = {}
+    for name in names:
+        seq = rig.sequences[name]
+        problem = prepare_problem(
+            seq.camera, seq, _for_camera(config, rig, name), patch, mask=_static_mask(seq)
+        )
+        problem.pe_scale = regulariser_scale(model, config)
+        problems[name] = problem
+        fitted[name].camera = problem.layout.native_camera
+    sizes = {name: (p.layout.height, p.layout.width) for name, p in problems.items()}
+    if len(set(sizes.values())) != 1:
+        raise InputError(
+            f"the rig's cameras give different network inputs {sizes}: a rig forward needs one"
+        )
+    frames_per_view = min(len(p.windows[0][0].frames) for p in problems.values())
+    trainable = [table for name in names for table in fitted[name].parameters()]
+    optimizer = torch.optim.Adam(trainable, lr=config.lr)
+    history: list[dict[str, Any]] = []
+    paths = rig_artifact_paths(out_dir, names) if out_dir is not None else None
+    log = None
+    if paths is not None:
+        paths["log"].parent.mkdir(parents=True, exist_ok=True)
+        log = open(paths["log"], "w", encoding="utf-8")  # noqa: SIM115 (closed in finally)
+    began = time.perf_counter()
+    every = max(1, config.steps // 20)
+    try:
+        with _frozen(model), torch.random.fork_rng(devices=[]):
+            torch.manual_seed(config.seed)
+            handle = apply(
+                model,
+                [problems[name].layout.native_camera for name in names],
+                [fitted[name] for name in names],
+                components=config.components,
+                strict=False,
+                mask=[problems[name].mask for name in names],
+            )
+            try:
+                for step in range(config.steps):
+                    record = _rig_step(
+                        model, fitted, problems, names, optimizer, config, step, frames_per_view
+                    )
+                    history.append(record)
+                    if log is not None:
+                        log.write(json.dumps(record) + "\n")
+                        log.flush()
+                    if progress and ((step + 1) % every == 0 or step + 1 == config.steps):
+                        print(
+                            f"adapt_rig: step {step + 1}/{config.steps} loss {record['loss']:.4g}",
+                            file=sys.stderr,
+                            flush=True,
+                        )
+            finally:
+                handle.remove()
+    finally:
+        if log is not None:
+            log.close()
+    seconds = time.perf_counter() - began
+    for index, name in enumerate(names):
+        fitted[name].training_info = _training_info(
+            config, problems[name], history, name, index, names, frames_per_view, seconds
+        )
+    if paths is not None:
+        for name in names:
+            fitted[name].save(paths[f"adapter:{name}"])
+        _write_rig_losses(paths, history, names)
+    return fitted
+
+
+def _write_rig_losses(paths: Mapping[str, Path], records: list[dict[str, Any]], names) -> None:
+    """CSV of the joint and per-camera losses and terms per step, and their loss curves."""
+    import csv
+
+    import cv2
+
+    from raytun3r_plugin.plots import line_chart
+
+    per_camera = [
+        f"{name}:{term}"
+        for name in names
+        for term in ("loss", *TERMS)
+        if records and f"{name}:{term}" in records[0]
+    ]
+    columns = ["step", "loss", *per_camera, "grad_norm", "skipped", "time_s"]
+    with open(paths["csv"], "w", newline="", encoding="utf-8") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(columns)
+        for record in records:
+            writer.writerow([record.get(column, "") for column in columns])
+    series = {
+        column: [float(r[column]) for r in records]
+        for column in ("loss", *(f"{name}:loss" for name in names))
+        if records and any(float(r[column]) > 0 for r in records)
+    }
+    title = f"rig adaptation losses ({len(records)} steps, {len(names)} cameras)"
+    cv2.imwrite(str(paths["curve"]), line_chart(series, title))
+
+
+def _copied(adapter: Adapter) -> Adapter:
+    import copy
+
+    return copy.deepcopy(adapter)
+
+
+def _for_camera(config: AdaptConfig, rig: Rig, name: str) -> AdaptConfig:
+    """The camera's config: its own cache entry (``sequence_id``) when the config has one."""
+    import dataclasses
+
+    if config.sequence_id is None:
+        return config
+    return dataclasses.replace(config, sequence_id=f"{config.sequence_id}/{name}")
+
+
+def _static_mask(seq) -> np.ndarray | None:
+    """A sequence's fixed (H, W) mask (a vehicle body), passed on; per-frame masks are not."""
+    mask = getattr(seq, "mask", None)
+    if mask is None or np.ndim(mask) != 2:
+        return None
+    return np.asarray(mask, dtype=bool)
+
+
+def _rig_step(
+    model: nn.Module,
+    fitted: dict[str, Adapter],
+    problems: dict[str, AdaptationProblem],
+    names: list[str],
+    optimizer: torch.optim.Optimizer,
+    config: AdaptConfig,
+    step: int,
+    frames_per_view: int,
+) -> dict[str, Any]:
+    """One joint step: a window of every camera, one forward, each camera's terms, one update."""
+    began = time.perf_counter()
+    count = len(names)
+    windows, batches = {}, {}
+    for offset, name in enumerate(names):
+        problem = problems[name]
+        # Each camera draws its own window order (its seed offset by its place in the rig).
+        index = window_of_step(step, len(problem.windows), config.seed + offset)
+        windows[name] = index
+        batches[name] = problem.batch(index)[:frames_per_view]
+    views = torch.stack(
+        [batches[name][t] for t in range(frames_per_view) for name in names]
+    )  # instant-major: view t V + c is camera c
+    prediction = predict(model, views[None])
+    depth, poses = prediction.depth[0], prediction.cam_from_world[0]
+    losses, record = [], {"step": step}
+    for offset, name in enumerate(names):
+        problem = problems[name]
+        _window, pairs = problem.windows[windows[name]]
+        kept = [pair for pair in pairs if pair.a < frames_per_view and pair.b < frames_per_view]
+        generator = torch.Generator().manual_seed(int(config.seed) * 7_919 + step * 31 + offset)
+        terms, counts = prediction_terms(
+            depth[offset::count],
+            poses[offset::count],
+            fitted[name],
+            batches[name],
+            kept,
+            problem.layout,
+            problem.valid,
+            problem.geometry,
+            config,
+            generator,
+            pe_scale=problem.pe_scale,
+        )
+        loss = total_loss(terms, config.weights)
+        losses.append(loss)
+        record[f"{name}:loss"] = float(loss.detach())
+        record.update({f"{name}:{term}": float(value.detach()) for term, value in terms.items()})
+        record[f"{name}:window"] = windows[name]
+        record[f"{name}:n_matches"] = counts["n_matches"]
+    loss = torch.stack(losses).mean()
+    parameters = [p for group in optimizer.param_groups for p in group["params"]]
+    optimizer.zero_grad(set_to_none=True)
+    grad_norm = float("nan")
+    if bool(torch.isfinite(loss)):
+        loss.backward()
+        if config.clip is not None:
+            grad_norm = float(torch.nn.utils.clip_grad_norm_(parameters, config.clip))
+        else:
+            grads = [p.grad for p in parameters if p.grad is not None]
+            grad_norm = float(
+                torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
+            )
+        if math.isfinite(grad_norm):
+            optimizer.step()
+    record.update(
+        {
+            "loss": float(loss.detach()),
+            "grad_norm": grad_norm,
+            "skipped": not math.isfinite(grad_norm),
+            "views": int(views.shape[0]),
+            "time_s": round(time.perf_counter() - began, 4),
+        }
+    )
+    return record
+
+
+def _training_info(
+    config: AdaptConfig,
+    problem: AdaptationProblem,
+    history: list[dict[str, Any]],
+    name: str,
+    index: int,
+    names: list[str],
+    frames_per_view: int,
+    seconds: float,
+) -> dict[str, Any]:
+    tail = history[-len(problem.windows) :]
+    final = {
+        term: float(np.mean([r[f"{name}:{term}"] for r in tail]))
+        for term in ("loss", *TERMS)
+        if tail and f"{name}:{term}" in tail[0]
+    }
+    first = history[: len(problem.windows)]
+    return {
+        "method": "raytun3r rig adaptation",
+        "supervision": {"kind": "self-supervised"},
+        "steps": len(history),
+        "requested_steps": config.steps,
+        "final_losses": final,
+        "first_pass_loss": float(np.mean([r[f"{name}:loss"] for r in first])) if first else None,
+        "segment": {
+            **problem.segment,
+            "windows": [list(w.frames) for w in problem.adaptation.windows],
+        },
+        "input": problem.layout.record(),
+        "adaptation_set": problem.adaptation.cache_key,
+        "config": config.to_dict(),
+        "wall_time_s": round(seconds, 3),
+        "rig": {
+            "cameras": list(names),
+            "camera_index": index,
+            "camera": name,
+            "views_per_forward": frames_per_view * len(names),
+            "left_out": list(NOT_IN_A_RIG_FIT),
+        },
+    }

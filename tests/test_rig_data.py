@@ -1,0 +1,188 @@
+"""Rig data and the joint rig fit: ``render_rig``, ``Rig``, the TUM-VI / ETH3D rig builders and
+``adapt_rig`` (docs/rigs.md)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+import raytun3r_plugin as rt
+from raytun3r_plugin.adaptation import AdaptConfig
+from raytun3r_plugin.adaptation.rig import adapt_rig, rig_artifact_paths
+from raytun3r_plugin.datasets._common import invert_pose
+from raytun3r_plugin.datasets.rig import (
+    load_eth3d_rig_set,
+    load_tumvi_rig,
+    rig_from_sequences,
+)
+from raytun3r_plugin.errors import DatasetError, InputError
+from raytun3r_plugin.synthetic.generate import render_rig, scene_of, stereo_extrinsics
+from tests.helpers import assert_same_snapshot, fisheye, snapshot
+from tests.test_datasets import T0, T_CAM_IMU, H, W, rigid, rot, tumvi_fixture, write_png
+from tests.test_datasets_readers import CAM5_FROM_CAM4, eth3d_fixture
+
+CAM1_FROM_CAM0 = rigid(rot([0.0, 1.0, 0.1], 3.0), [-0.11, 0.001, 0.0])
+
+
+@pytest.fixture(scope="module")
+def stereo():
+    cameras = {
+        "left": fisheye(56, 56, 190.0),
+        "right": fisheye(56, 56, 165.0, k1=0.03),
+    }
+    return render_rig("indoor", cameras, n_frames=6, seed=7, flow_px=5.0)
+
+
+def test_render_rig_sees_one_scene_from_a_rigid_rig(stereo):
+    left, right = stereo.sequences["left"], stereo.sequences["right"]
+    relative = right.cam_from_world @ invert_pose(left.cam_from_world)
+    np.testing.assert_allclose(
+        relative, np.broadcast_to(stereo_extrinsics()["right"], relative.shape), atol=1e-12
+    )
+    assert scene_of(left) is scene_of(right)
+    # The baseline puts the right camera 0.1 m to the left camera's right.
+    centres = [invert_pose(seq.cam_from_world)[:, :3, 3] for seq in (left, right)]
+    np.testing.assert_allclose(np.linalg.norm(centres[1] - centres[0], axis=1), 0.1, atol=1e-12)
+    views = stereo.views([2, 4])
+    assert views.shape == (4, 56, 56, 3)
+    assert np.array_equal(views[1], right.image(2)) and np.array_equal(views[2], left.image(4))
+    assert not np.array_equal(views[0], views[1])
+
+
+def test_render_rig_refuses_cameras_of_two_sizes():
+    with pytest.raises(InputError, match="one image size"):
+        render_rig("indoor", {"left": fisheye(56, 56), "right": fisheye(70, 56)}, n_frames=2)
+
+
+def test_rig_from_sequences_measures_and_checks_the_extrinsics(stereo):
+    left, right = stereo.sequences["left"], stereo.sequences["right"]
+    rig = rig_from_sequences({"left": left, "right": right})
+    np.testing.assert_allclose(rig.cam_from_rig["right"], stereo_extrinsics()["right"], atol=1e-9)
+    np.testing.assert_allclose(rig.cam_from_rig["left"], np.eye(4), atol=1e-12)
+    # A camera that moves against the other is not a rig.
+    moved = right.subset(range(len(right)))
+    moved.cam_from_world = moved.cam_from_world.copy()
+    moved.cam_from_world[3, 0, 3] += 0.05
+    with pytest.raises(DatasetError, match="rigid rig"):
+        rig_from_sequences({"left": left, "right": moved})
+    # Frames are matched by time: a camera shifted by half a frame shares no instant.
+    late = right.subset(range(len(right)))
+    late.timestamps = late.timestamps + 0.05
+    with pytest.raises(DatasetError, match="no instant"):
+        rig_from_sequences({"left": left, "right": late}, stereo.cam_from_rig)
+
+
+def test_tumvi_rig_takes_its_extrinsics_from_the_camchain(tmp_path):
+    root = tmp_path / "dataset-room1_512_16"
+    images = tumvi_fixture(root)
+    chain = yaml.safe_load((root / "camchain.yaml").read_text())
+    chain["cam1"] = json.loads(json.dumps(chain["cam0"]))  # a copy: no YAML aliases
+    chain["cam1"]["T_cam_imu"] = (CAM1_FROM_CAM0 @ T_CAM_IMU).tolist()
+    chain["cam1"]["intrinsics"] = [4.6, 4.6, 6.0, 4.7]  # its own lens
+    (root / "camchain.yaml").write_text(yaml.safe_dump(chain, sort_keys=False))
+    cam1 = root / "mav0" / "cam1"
+    (cam1 / "data").mkdir(parents=True)
+    (cam1 / "data.csv").write_text(
+        "\n".join(["#timestamp [ns],filename"] + [f"{t},{t}.png" for t in images]) + "\n"
+    )
+    for t in images:
+        write_png(cam1 / "data" / f"{t}.png", 20000, dtype=np.uint16, channels=1)
+    rig = load_tumvi_rig(root)
+    assert rig.names == ["cam0", "cam1"] and len(rig) == len(rig.sequences["cam0"])
+    np.testing.assert_allclose(rig.cam_from_rig["cam1"], CAM1_FROM_CAM0, atol=1e-9)
+    assert rig.meta["extrinsics"] == "camchain T_cam_imu"
+    views = rig.views([0])
+    assert views.shape == (2, H, W, 3) and np.allclose(views[1], 20000 / 65535)
+    assert int(rig.sequences["cam1"].meta["per_frame"]["timestamp_ns"][0]) >= T0
+
+
+def test_eth3d_rig_set_puts_the_reference_first(tmp_path):
+    scene = tmp_path / "delivery_area"
+    eth3d_fixture(scene)
+    rig = load_eth3d_rig_set(scene)
+    assert rig.names == ["images_rig_cam4", "images_rig_cam5"] and len(rig) == 3
+    np.testing.assert_allclose(rig.cam_from_rig["images_rig_cam5"], CAM5_FROM_CAM4, atol=1e-9)
+    assert rig.views([1]).shape == (2, H, W, 3)
+
+
+def test_adapt_rig_fits_each_camera_in_one_forward(stereo, tmp_path):
+    from raytun3r_plugin.patches.da3 import build_tiny_network
+
+    torch.manual_seed(0)
+    model = build_tiny_network(seed=0).eval()
+    before = snapshot(model)
+    views_seen = []
+    original = type(model).forward
+
+    def spy(self, x, *args, **kwargs):
+        views_seen.append(int(x.shape[1]))
+        return original(self, x, *args, **kwargs)
+
+    type(model).forward = spy
+    try:
+        config = AdaptConfig(
+            steps=3, input_size=56, n_windows=2, checkpoint_every=0, min_parallax_px=0.0
+        )
+        fitted = adapt_rig(model, stereo, config, out_dir=tmp_path, progress=False)
+    finally:
+        type(model).forward = original
+    assert set(fitted) == {"left", "right"}
+    # One forward per step, with every camera's window in it.
+    assert views_seen == [6, 6, 6]
+    for name, adapter in fitted.items():
+        info = adapter.training_info
+        assert info["rig"]["cameras"] == ["left", "right"] and info["rig"]["camera"] == name
+        assert info["steps"] == 3 and info["rig"]["views_per_forward"] == 6
+        assert adapter.camera.width == 56
+        moved = sum(float(p.detach().abs().sum()) for p in adapter.parameters())
+        assert moved > 0.0  # each camera's tables got gradient from its own views
+    assert not torch.equal(fitted["left"].pe["radial"], fitted["right"].pe["radial"])
+    assert rt.handle_of(model) is None
+    assert_same_snapshot(model, before)
+    paths = rig_artifact_paths(tmp_path, ["left", "right"])
+    for path in paths.values():
+        assert path.is_file(), path
+    log = [json.loads(line) for line in paths["log"].read_text().splitlines()]
+    assert len(log) == 3 and {"left:loss", "right:loss", "loss"} <= set(log[0])
+    reloaded = rt.Adapter.load(paths["adapter:right"])
+    assert torch.equal(reloaded.pe["radial"], fitted["right"].pe["radial"])
+    # The fitted pair applies as a rig.
+    with rt.apply(
+        model, [fitted["left"].camera, fitted["right"].camera], [fitted["left"], fitted["right"]]
+    ) as handle:
+        assert handle.is_rig
+
+
+def _run_reader_rig(rig):
+    """A reader's rig through a patched DA3 net: its cameras resized to the 84 x 70 input."""
+    import cv2
+
+    from raytun3r_plugin import predict
+    from tests.backbones import make
+
+    model = make("da3")
+    before = snapshot(model)
+    cameras = [camera.resized(84, 70) for camera in rig.cameras]
+    views = rig.views([0, 1])
+    images = np.stack([cv2.resize(v, (84, 70), interpolation=cv2.INTER_AREA) for v in views])
+    batch = torch.from_numpy(images).permute(0, 3, 1, 2)[None].float()
+    with torch.no_grad():
+        plain = predict(model, batch).depth
+        with rt.apply(model, cameras) as handle:
+            assert handle.is_rig and len(handle.cameras) == len(rig.names)
+            patched = predict(model, batch).depth
+    assert torch.isfinite(patched).all() and not torch.equal(patched, plain)
+    assert_same_snapshot(model, before)
+
+
+def test_a_tumvi_and_an_eth3d_rig_run_through_a_patched_model(tmp_path):
+    eth3d = tmp_path / "delivery_area"
+    eth3d_fixture(eth3d)
+    _run_reader_rig(load_eth3d_rig_set(eth3d))
+    root = tmp_path / "dataset-room1_512_16"
+    test_tumvi_rig_takes_its_extrinsics_from_the_camchain(tmp_path)
+    _run_reader_rig(load_tumvi_rig(root))
