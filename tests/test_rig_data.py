@@ -137,6 +137,7 @@ def test_adapt_rig_fits_each_camera_in_one_forward(stereo, tmp_path):
         info = adapter.training_info
         assert info["rig"]["cameras"] == ["left", "right"] and info["rig"]["camera"] == name
         assert info["steps"] == 3 and info["rig"]["views_per_forward"] == 6
+        assert info["verdict"]["status"] == "ok" and "parallax_gate" not in info
         assert adapter.camera.width == 56
         moved = sum(float(p.detach().abs().sum()) for p in adapter.parameters())
         assert moved > 0.0  # each camera's tables got gradient from its own views
@@ -186,3 +187,18 @@ def test_a_tumvi_and_an_eth3d_rig_run_through_a_patched_model(tmp_path):
     root = tmp_path / "dataset-room1_512_16"
     test_tumvi_rig_takes_its_extrinsics_from_the_camchain(tmp_path)
     _run_reader_rig(load_tumvi_rig(root))
+
+
+def test_adapt_rig_gate_without_signal_leaves_every_camera_as_it_started(stereo):
+    from raytun3r_plugin.patches.da3 import build_tiny_network
+
+    model = build_tiny_network(seed=0).eval()
+    config = AdaptConfig(
+        steps=3, input_size=56, n_windows=2, checkpoint_every=0, min_parallax_px=1e9
+    )
+    fitted = adapt_rig(model, stereo, config, progress=False)
+    for adapter in fitted.values():
+        info = adapter.training_info
+        assert info["verdict"]["status"] == "no signal" and info["steps"] == 0
+        assert info["parallax_gate"]["windows_kept"] == 0
+        assert all(float(p.detach().abs().sum()) == 0.0 for p in adapter.parameters())

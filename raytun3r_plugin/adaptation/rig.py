@@ -10,9 +10,14 @@ prediction_terms`) and steps one Adam optimiser over every camera's tables on th
 cameras' losses. So each camera's tables are fitted while the network sees the other cameras'
 views, as it will at inference.
 
+The parallax gate (``AdaptConfig.min_parallax_px``) works per camera as in :func:`adapt`: a
+camera's windows whose matches carry no depth signal are dropped from its loss, and a camera
+left with none still gives its views to every forward but is not scored (its tables stay as they
+started, ``training_info["verdict"]`` "no signal").
+
 Not here (single-camera :func:`adapt` has them): pairs across cameras (the reprojection terms
-are within one camera), the parallax gate, the collapse guard, checkpoints and resuming, the
-supervised mode. ``training_info["rig"]`` says so.
+are within one camera), the collapse guard, checkpoints and resuming, the supervised mode.
+``training_info["rig"]`` says so.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ from raytun3r_plugin.adaptation.step import (
     prediction_terms,
     regulariser_scale,
     window_of_step,
+    window_parallax,
 )
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
@@ -52,7 +58,6 @@ __all__ = ["adapt_rig", "rig_artifact_paths"]
 #: What a rig fit leaves out, recorded in every adapter's ``training_info["rig"]``.
 NOT_IN_A_RIG_FIT = (
     "cross-camera pairs",
-    "parallax gate",
     "collapse guard",
     "checkpoint and resume",
     "supervised mode",
@@ -135,6 +140,25 @@ def adapt_rig(
             f"the rig's cameras give different network inputs {sizes}: a rig forward needs one"
         )
     frames_per_view = min(len(p.windows[0][0].frames) for p in problems.values())
+    # Per camera, measured with the starting tables: (windows to score, the gate's record).
+    scored: dict[str, list[int]] = {}
+    gates: dict[str, dict[str, Any] | None] = {}
+    for name in names:
+        problem = problems[name]
+        everything = list(range(len(problem.windows)))
+        if config.min_parallax_px <= 0:
+            scored[name], gates[name] = everything, None
+            continue
+        medians = window_parallax(model, fitted[name], problem, config)
+        scored[name] = [
+            i for i, m in zip(everything, medians, strict=True) if not m < config.min_parallax_px
+        ]
+        gates[name] = {
+            "min_parallax_px": config.min_parallax_px,
+            "window_median_px": [round(m, 4) if math.isfinite(m) else None for m in medians],
+            "windows_kept": len(scored[name]),
+            "windows_dropped": len(medians) - len(scored[name]),
+        }
     trainable = [table for name in names for table in fitted[name].parameters()]
     optimizer = torch.optim.Adam(trainable, lr=config.lr)
     history: list[dict[str, Any]] = []
@@ -157,9 +181,17 @@ def adapt_rig(
                 mask=[problems[name].mask for name in names],
             )
             try:
-                for step in range(config.steps):
+                for step in range(config.steps if any(scored.values()) else 0):
                     record = _rig_step(
-                        model, fitted, problems, names, optimizer, config, step, frames_per_view
+                        model,
+                        fitted,
+                        problems,
+                        names,
+                        optimizer,
+                        config,
+                        step,
+                        frames_per_view,
+                        scored,
                     )
                     history.append(record)
                     if log is not None:
@@ -178,9 +210,13 @@ def adapt_rig(
             log.close()
     seconds = time.perf_counter() - began
     for index, name in enumerate(names):
-        fitted[name].training_info = _training_info(
+        info = _training_info(
             config, problems[name], history, name, index, names, frames_per_view, seconds
         )
+        if gates[name] is not None:
+            info["parallax_gate"] = gates[name]
+        info["verdict"] = _verdict(info, bool(scored[name]))
+        fitted[name].training_info = info
     if paths is not None:
         for name in names:
             fitted[name].save(paths[f"adapter:{name}"])
@@ -249,15 +285,21 @@ def _rig_step(
     config: AdaptConfig,
     step: int,
     frames_per_view: int,
+    scored: dict[str, list[int]],
 ) -> dict[str, Any]:
-    """One joint step: a window of every camera, one forward, each camera's terms, one update."""
+    """One joint step: a window of every camera, one forward, each camera's terms, one update.
+
+    ``scored``: per camera, the windows the loss may use (the parallax gate's); a camera with
+    none takes part in the forward with its own windows but adds no loss.
+    """
     began = time.perf_counter()
     count = len(names)
     windows, batches = {}, {}
     for offset, name in enumerate(names):
         problem = problems[name]
         # Each camera draws its own window order (its seed offset by its place in the rig).
-        index = window_of_step(step, len(problem.windows), config.seed + offset)
+        usable = scored[name] or list(range(len(problem.windows)))
+        index = usable[window_of_step(step, len(usable), config.seed + offset)]
         windows[name] = index
         batches[name] = problem.batch(index)[:frames_per_view]
     views = torch.stack(
@@ -267,6 +309,8 @@ def _rig_step(
     depth, poses = prediction.depth[0], prediction.cam_from_world[0]
     losses, record = [], {"step": step}
     for offset, name in enumerate(names):
+        if not scored[name]:
+            continue
         problem = problems[name]
         _window, pairs = problem.windows[windows[name]]
         kept = [pair for pair in pairs if pair.a < frames_per_view and pair.b < frames_per_view]
@@ -317,6 +361,25 @@ def _rig_step(
     return record
 
 
+def _verdict(info: dict[str, Any], has_signal: bool) -> dict[str, Any]:
+    """What the fit of one camera came to, as a sentence (``status`` and ``summary``)."""
+    if not has_signal:
+        return {
+            "status": "no signal",
+            "summary": "no signal: every window of this camera was dropped by the parallax "
+            "gate (its matches carry no depth signal); the tables stay as they started",
+        }
+    first, last = info.get("first_pass_loss"), info["final_losses"].get("loss")
+    if first is None or last is None or not (math.isfinite(first) and math.isfinite(last)):
+        return {"status": "diverged", "summary": "diverged: the loss is not finite"}
+    return {
+        "status": "ok",
+        "summary": f"ok: loss {first:.4g} -> {last:.4g} over {info['steps']} joint steps",
+        "first_pass_loss": first,
+        "last_pass_loss": last,
+    }
+
+
 def _training_info(
     config: AdaptConfig,
     problem: AdaptationProblem,
@@ -333,14 +396,16 @@ def _training_info(
         for term in ("loss", *TERMS)
         if tail and f"{name}:{term}" in tail[0]
     }
-    first = history[: len(problem.windows)]
+    first, key = history[: len(problem.windows)], f"{name}:loss"
     return {
         "method": "raytun3r rig adaptation",
         "supervision": {"kind": "self-supervised"},
         "steps": len(history),
         "requested_steps": config.steps,
         "final_losses": final,
-        "first_pass_loss": float(np.mean([r[f"{name}:loss"] for r in first])) if first else None,
+        "first_pass_loss": float(np.mean(losses))
+        if (losses := [r[key] for r in first if key in r])
+        else None,
         "segment": {
             **problem.segment,
             "windows": [list(w.frames) for w in problem.adaptation.windows],
