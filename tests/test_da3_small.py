@@ -41,7 +41,9 @@ def test_fisheye_adapter_on_da3_small(net, images):
     camera = fisheye(W, H, 195.0)
     adapter = randomise_(rt.Adapter.for_model(net, camera))
     with rt.apply(net, camera, adapter) as handle:
-        assert len(handle.patched) == 6  # PE, RoPE positions, reference view, RoPE angles, patches, grid
+        assert (
+            len(handle.patched) == 6
+        )  # PE, RoPE positions, reference view, RoPE angles, patches, grid
         patched = outputs(net, images)
     assert max_relative_difference(reference, patched) > 1e-3
     assert max_relative_difference(reference, outputs(net, images)) == 0.0
