@@ -202,3 +202,81 @@ def test_adapt_rig_gate_without_signal_leaves_every_camera_as_it_started(stereo)
         assert info["verdict"]["status"] == "no signal" and info["steps"] == 0
         assert info["parallax_gate"]["windows_kept"] == 0
         assert all(float(p.detach().abs().sum()) == 0.0 for p in adapter.parameters())
+
+
+def _write_tumvi_rig(root, rig) -> None:
+    """``rig`` (rendered, KB4 cameras) written in the TUM-VI / EuRoC layout: cam0 + cam1 images,
+    a Kalibr camchain (equidistant = KB4) and mocap poses of the IMU (= cam0)."""
+    import cv2
+
+    from raytun3r_plugin.datasets._common import rot_to_quat
+
+    mav = root / "mav0"
+    chain = {}
+    times = [T0 + k * 50_000_000 for k in range(len(rig))]
+    for name, cam in zip(rig.names, ("cam0", "cam1"), strict=True):
+        seq = rig.sequences[name]
+        values = seq.camera.values
+        chain[cam] = {
+            "T_cam_imu": rig.cam_from_rig[name].tolist(),
+            "camera_model": "pinhole",
+            "distortion_coeffs": [float(values[k]) for k in ("k1", "k2", "k3", "k4")],
+            "distortion_model": "equidistant",
+            "intrinsics": [float(values[k]) for k in ("fx", "fy", "cx", "cy")],
+            "resolution": [int(seq.camera.width), int(seq.camera.height)],
+            "rostopic": f"/{cam}/image_raw",
+        }
+        (mav / cam / "data").mkdir(parents=True)
+        rows = ["#timestamp [ns],filename"]
+        for k, t in enumerate(times):
+            gray = cv2.cvtColor((seq.images[k] * 255).round().astype(np.uint8), cv2.COLOR_RGB2GRAY)
+            cv2.imwrite(str(mav / cam / "data" / f"{t}.png"), gray)
+            rows.append(f"{t},{t}.png")
+        (mav / cam / "data.csv").write_text("\n".join(rows) + "\n")
+    (root / "camchain.yaml").write_text(yaml.safe_dump(chain, sort_keys=False))
+    world_from_imu = invert_pose(rig.sequences[rig.names[0]].cam_from_world)
+    rows = [
+        "#timestamp [ns], p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z []"
+    ]
+    for t, pose in zip(times, world_from_imu, strict=True):
+        q = rot_to_quat(pose[:3, :3])
+        rows.append(f"{t}," + ",".join(repr(float(x)) for x in [*pose[:3, 3], *q]))
+    (mav / "mocap0").mkdir(parents=True)
+    (mav / "mocap0" / "data.csv").write_text("\n".join(rows) + "\n")
+
+
+def test_cli_adapt_rig_on_a_tumvi_rig(tmp_path, capsys):
+    from raytun3r_plugin.apps.cli import main
+
+    cameras = {"left": fisheye(56, 56, 190.0), "right": fisheye(56, 56, 170.0, k1=0.03)}
+    rendered = render_rig("indoor", cameras, n_frames=6, seed=11, flow_px=5.0)
+    root = tmp_path / "dataset-room9_512_16"
+    _write_tumvi_rig(root, rendered)
+    rig = load_tumvi_rig(root)
+    np.testing.assert_allclose(rig.cam_from_rig["cam1"], stereo_extrinsics()["right"], atol=1e-9)
+    out = tmp_path / "adapters"
+    code = main(
+        [
+            "adapt-rig",
+            "--backbone",
+            "raytun3r-da3-tiny",
+            str(root),
+            "--format",
+            "tumvi",
+            "--size",
+            "56",
+            "--steps",
+            "2",
+            "--windows",
+            "2",
+            "--out",
+            str(out),
+        ]
+    )
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "cam0: saved" in text and "cam1: saved" in text
+    for cam in ("cam0", "cam1"):
+        adapter = rt.Adapter.load(out / f"{cam}.safetensors")
+        assert adapter.training_info["rig"]["cameras"] == ["cam0", "cam1"]
+        assert adapter.training_info["method"] == "raytun3r rig adaptation"

@@ -163,6 +163,37 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_adapt_rig(args: argparse.Namespace) -> int:
+    from raytun3r_plugin.adaptation.rig import adapt_rig, rig_artifact_paths
+    from raytun3r_plugin.adaptation.train import AdaptConfig
+    from raytun3r_plugin.datasets.rig import load_eth3d_rig_set, load_tumvi_rig
+    from raytun3r_plugin.preprocess import DEFAULT_LONG_SIDE
+
+    rig = (
+        load_tumvi_rig(args.dataset) if args.format == "tumvi" else load_eth3d_rig_set(args.dataset)
+    )
+    instants = range(0, len(rig), args.stride)
+    if args.max_frames is not None:
+        instants = instants[: args.max_frames]
+    rig = rig.subset(list(instants))
+    model = _load_model(args.backbone, args.weights)
+    config = AdaptConfig(
+        steps=args.steps,
+        input_size=args.size or DEFAULT_LONG_SIDE,
+        n_windows=args.windows,
+        seed=args.seed,
+        pose_source=args.pose_source,
+        cache_dir=args.cache_dir,
+    )
+    adapters = adapt_rig(model, rig, config, out_dir=args.out)
+    paths = rig_artifact_paths(args.out, rig.names)
+    for name in rig.names:
+        verdict = adapters[name].training_info["verdict"]["summary"]
+        print(f"{name}: saved {paths[f'adapter:{name}']}; {verdict}")
+    print(f"losses: {paths['csv']}, {paths['curve']}")
+    return 0
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adapter import Adapter
     from raytun3r_plugin.apps.evaluation import (
@@ -421,6 +452,24 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, help="output adapter .safetensors")
     p.set_defaults(func=cmd_adapt)
+
+    p = sub.add_parser(
+        "adapt-rig",
+        help="fit one adapter per camera of a multi-camera rig, all cameras in each forward (docs/rigs.md)",
+    )
+    _add_model_arguments(p)
+    p.add_argument("dataset", help="a TUM-VI sequence folder or an ETH3D rig scene")
+    p.add_argument("--format", required=True, choices=("tumvi", "eth3d"))
+    p.add_argument("--stride", type=int, default=1, help="use every n-th instant")
+    p.add_argument("--max-frames", type=int, default=None, help="at most this many instants")
+    p.add_argument("--size", type=int, default=None, help="network input long side (default 504)")
+    p.add_argument("--steps", type=int, default=300)
+    p.add_argument("--windows", type=int, default=30)
+    p.add_argument("--pose-source", default="model", choices=("model", "targets"))
+    p.add_argument("--cache-dir", default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="output folder: <camera>.safetensors per camera")
+    p.set_defaults(func=cmd_adapt_rig)
 
     p = sub.add_parser(
         "eval", help="run a method on a dataset sequence and print the metrics table"
