@@ -438,3 +438,46 @@ def test_full_size_nested_model_in_the_hub_layout_loads_patches_and_predicts(
     assert torch.isfinite(prediction.depth).all() and (prediction.depth > 0).all()
     assert "metric_scale" in prediction.extras
     assert handle_of(loaded) is None
+
+
+def test_a_rig_patches_both_branches_per_view(net, images, reference):
+    """A rig on the nested model: each branch's hooks give each view its own camera."""
+    cameras = [fisheye(84, 70, 190.0), fisheye(84, 70, 150.0, k1=0.04)]
+    adapters = [
+        randomise_(rt.Adapter.for_model(net, c), seed=s)
+        for c, s in zip(cameras, (1, 2), strict=True)
+    ]
+    before = snapshot(net)
+    tokens = torch.zeros(2, 1 + 5 * 6, net.da3_metric.backbone.pretrained.embed_dim)
+    pictures = torch.rand(2, 3, 70, 84, generator=torch.Generator().manual_seed(2))
+
+    def per_branch():
+        return [
+            (
+                branch.backbone.pretrained.interpolate_pos_encoding(tokens, 70, 84),
+                branch.backbone.pretrained.patch_embed(pictures),
+            )
+            for branch in (net.da3_metric, net.da3)
+        ]
+
+    with torch.no_grad():
+        singles = []
+        for camera, adapter in zip(cameras, adapters, strict=True):
+            with rt.apply(net, camera, adapter):
+                singles.append(per_branch())
+        with rt.apply(net, cameras, adapters) as handle:
+            assert handle.is_rig and all(state.rig for state in handle._states)
+            rig = per_branch()
+            patched = outputs(net, images)
+    (pe, patches), (main_pe, main_patches) = rig
+    for view in range(2):
+        (single_pe, single_patches), (single_main_pe, single_main_patches) = singles[view]
+        # The metric branch has no learned tables: its PE is upstream's; the patches are per view.
+        assert torch.equal(pe, single_pe) and pe.shape[0] == 1
+        assert torch.equal(patches[view], single_patches[view])
+        # The main branch carries each view's adapter.
+        assert torch.equal(main_pe[view], single_main_pe[0])
+        assert torch.equal(main_patches[view], single_main_patches[view])
+    assert not torch.equal(singles[0][0][1], singles[1][0][1])
+    assert max_relative_difference(patched, reference) > 1e-4
+    assert_same_snapshot(net, before)
