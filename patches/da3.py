@@ -101,6 +101,9 @@ NAME_ALIASES = {
 #: ``NestedDepthAnything3Net``; patched through :data:`NESTED_SPEC`).
 NESTED_NAMES = ("da3nested-giant-large", "da3nested-giant-large-1.1")
 NESTED_FAMILY = "da3nested"
+#: Upstream's assertion when the nested model's metric alignment has no scene to align on
+#: (``NestedDepthAnything3Net.forward``); :func:`predict_nested` turns it into an InputError.
+NESTED_SKY_ASSERTION = "Insufficient non-sky pixels for alignment"
 #: The nested model's patch roots: (attribute, family); the first is the main (adapter) branch.
 NESTED_BRANCHES = (("da3", FAMILY), ("da3_metric", FAMILY))
 #: Modules some DA3 configs import beyond the ``[da3]`` extra -> what to pip install.
@@ -300,7 +303,15 @@ def predict_nested(root: nn.Module, images: torch.Tensor, **kwargs) -> Predictio
     onto it, sky set to far); ``extras["metric_scale"]`` is that scale (a 0-d tensor).
     """
     images = as_batched_images(images, root.da3.backbone.pretrained.patch_size)
-    output = root(imagenet_normalise(images), **kwargs)
+    try:
+        output = root(imagenet_normalise(images), **kwargs)
+    except AssertionError as error:
+        if NESTED_SKY_ASSERTION not in str(error):
+            raise
+        raise InputError(
+            "the nested DA3 model's metric alignment found (almost) only sky in these images "
+            f"(upstream needs more than 10 non-sky pixels: {error}); give views that see the scene"
+        ) from error
     prediction = _prediction(output)
     if "scale_factor" in output:
         prediction.extras["metric_scale"] = torch.tensor(float(output["scale_factor"]))

@@ -21,7 +21,7 @@ from safetensors.torch import save_model  # noqa: E402
 import raytun3r_plugin as rt  # noqa: E402
 from raytun3r_plugin import registry  # noqa: E402
 from raytun3r_plugin.apps.cli import main  # noqa: E402
-from raytun3r_plugin.errors import AdapterError, UnsupportedUpstreamError  # noqa: E402
+from raytun3r_plugin.errors import AdapterError, InputError, UnsupportedUpstreamError  # noqa: E402
 from raytun3r_plugin.patching import WRAPPER_MARK, handle_of  # noqa: E402
 from raytun3r_plugin.registry import spec_for  # noqa: E402
 from raytun3r_plugin.weights import describe_checkpoint  # noqa: E402
@@ -481,3 +481,18 @@ def test_a_rig_patches_both_branches_per_view(net, images, reference):
     assert not torch.equal(singles[0][0][1], singles[1][0][1])
     assert max_relative_difference(patched, reference) > 1e-4
     assert_same_snapshot(net, before)
+
+
+def test_an_all_sky_input_is_an_input_error(net, images, monkeypatch):
+    """Upstream asserts (in the nested class) when the metric alignment sees no scene; predict says so."""
+    import inspect
+
+    source = inspect.getsource(type(net))
+    assert da3_patch.NESTED_SKY_ASSERTION in source  # the assertion is still upstream's
+
+    def all_sky(*args, **kwargs):
+        assert False, da3_patch.NESTED_SKY_ASSERTION  # noqa: B011, PT015 (what upstream raises)
+
+    monkeypatch.setattr(net, "forward", all_sky)
+    with pytest.raises(InputError, match="only sky"):
+        rt.predict(net, images)
