@@ -280,3 +280,15 @@ def test_cli_adapt_rig_on_a_tumvi_rig(tmp_path, capsys):
         adapter = rt.Adapter.load(out / f"{cam}.safetensors")
         assert adapter.training_info["rig"]["cameras"] == ["cam0", "cam1"]
         assert adapter.training_info["method"] == "raytun3r rig adaptation"
+
+
+def test_rig_inputs_are_each_cameras_layout_instant_major(stereo):
+    from raytun3r_plugin.preprocess import InputLayout
+
+    images, cameras = stereo.inputs([1, 3], long_side=28)
+    assert images.shape == (1, 4, 3, 28, 28) and len(cameras) == 2
+    for index, name in enumerate(stereo.names):
+        layout = InputLayout.for_camera(stereo.sequences[name].camera, 28)
+        expected = layout.frames(stereo.sequences[name].images[[1, 3]])
+        assert torch.equal(images[0, index::2], expected)
+        assert cameras[index] == layout.native_camera

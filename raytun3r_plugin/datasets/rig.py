@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from raytun3r_plugin.datasets._common import invert_pose
 from raytun3r_plugin.datasets.sequence import Sequence
@@ -96,6 +97,43 @@ class Rig:
                 "forward needs one size (resize or crop them to a common one first)"
             )
         return np.stack(frames).astype(np.float32)
+
+    def inputs(
+        self, instants: Any, long_side: int | None = None, patch: int = 14
+    ) -> tuple[torch.Tensor, list]:
+        """Network input of ``instants`` and the camera list to ``apply`` with it.
+
+        Each camera's frames are prepared by its own
+        :class:`~raytun3r_plugin.preprocess.InputLayout` (the rule ``adapt`` and ``infer`` use:
+        resize, a centred crop only for another aspect ratio), so they match what
+        :func:`~raytun3r_plugin.adaptation.rig.adapt_rig` fitted on.
+
+        Returns:
+            ``(images, cameras)``: (1, T V, 3, h, w) float32 in [0, 1], instant-major like
+            :meth:`views`, and one (cropped) native camera per rig camera.
+
+        Raises:
+            DatasetError: the cameras' layouts give different input sizes.
+        """
+        from raytun3r_plugin.preprocess import DEFAULT_LONG_SIDE, InputLayout
+
+        instants = [int(i) for i in np.atleast_1d(instants)]
+        layouts = [
+            InputLayout.for_camera(seq.camera, long_side or DEFAULT_LONG_SIDE, patch)
+            for seq in self.sequences.values()
+        ]
+        sizes = {(layout.width, layout.height) for layout in layouts}
+        if len(sizes) != 1:
+            raise DatasetError(
+                f"rig {self.name!r}: the cameras give network inputs of {sorted(sizes)} px; a rig "
+                "forward needs one size"
+            )
+        per_camera = [
+            layout.frames(np.stack([seq.image(i) for i in instants]))
+            for layout, seq in zip(layouts, self.sequences.values(), strict=True)
+        ]
+        views = torch.stack(per_camera, dim=1).flatten(0, 1)  # (T, V, ...) -> instant-major
+        return views[None], [layout.native_camera for layout in layouts]
 
     def subset(self, instants: Any) -> Rig:
         """The rig restricted to ``instants`` (every camera's frames sliced alike)."""
