@@ -215,3 +215,32 @@ def test_lora_contract_on_every_backbone_that_declares_its_blocks(family):
     handle.remove()
     assert torch.equal(_depth(model, images), reference)
     assert all(torch.equal(state[k], v) for k, v in model.state_dict().items())
+
+
+def test_tune_mode_has_the_collapse_guard(net, tmp_path, monkeypatch):
+    """A LoRA fit whose depth the guard judges collapsed gets its starting factors back."""
+    from raytun3r_plugin.adaptation import AdaptConfig, adapt, train
+    from tests.test_losses import room_sequence
+
+    monkeypatch.setattr(train, "GUARD_MIN_CORRELATION", 1.01)  # no fit can pass: it must trip
+    camera = fisheye(84, 70, 190.0)
+    images, _, _ = room_sequence(camera, 5, step=0.35, yaw=0.06)
+    config = AdaptConfig(
+        steps=6,
+        guard_every=3,
+        input_size=84,
+        n_windows=3,
+        cache_dir=str(tmp_path / "cache"),
+        matcher_options={"border_px": 2},
+        components=[],
+        lr=1e-2,
+        min_parallax_px=0.0,
+    )
+    with inject_lora(net) as handle:
+        adapter = adapt(net, camera, images, config, tune=handle.weights, progress=False)
+        factors = [float(b.detach().abs().max()) for b in handle.weights.lora_B]
+    guard = adapter.training_info["guard"]
+    assert guard["tripped"]["step"] == 3 and guard["tripped"]["restored_step"] == 0
+    assert adapter.training_info["steps"] == 3
+    assert max(factors) == 0.0  # LoRA's B factors start at zero: restored
+    assert adapter.training_info["verdict"]["status"] == "collapsed"

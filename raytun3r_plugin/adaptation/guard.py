@@ -73,8 +73,12 @@ class _CollapseGuard:
         with torch.no_grad():
             return predict(model, self.images[None]).depth[0].float()
 
-    def check(self, model: nn.Module, adapter: Adapter, step: int) -> bool:
-        """True when healthy (the tables are kept); False after restoring the last healthy ones."""
+    def check(self, model: nn.Module, adapter: Adapter | nn.Module, step: int) -> bool:
+        """True when healthy (the tables are kept); False after restoring the last healthy ones.
+
+        ``adapter``: what is being fitted, the adapter or (tune mode) the module fitted instead
+        (LoRA factors, calibration tokens); its parameters are what is kept and restored.
+        """
         depth = self._depth(model)
         if self.reference is None:
             self.usable = self.valid[None].expand_as(depth) & torch.isfinite(depth) & (depth > 0)

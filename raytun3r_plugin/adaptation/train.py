@@ -231,9 +231,10 @@ def adapt(
     Baselines:
         ``tune``: a module whose parameters are fitted *instead of* the adapter's tables (e.g.
         :class:`raytun3r_plugin.baselines.LoraWeights`, already injected into ``model``): same
-        objective, windows, optimiser and steps; the tables stay at zero, so the PE regularisers
-        are constant; no collapse guard, no checkpoint and no adapter file (the caller saves
-        ``tune``); the loss log and curves are still written next to ``out_path``.
+        objective, windows, optimiser, steps and collapse guard (which keeps and restores the
+        module's parameters); the tables stay at zero, so the PE regularisers are constant; no
+        checkpoint and no adapter file (the caller saves ``tune``); the loss log and curves are
+        still written next to ``out_path``.
 
     Raises:
         AlreadyAppliedError: the model already carries a raytun3r patch.
@@ -313,9 +314,11 @@ def adapt(
     # The thresholds are read here, at call time, so patching this module's constants takes effect.
     guard = (
         _CollapseGuard(problem, GUARD_MIN_CORRELATION, GUARD_SPREAD_RANGE)
-        if config.guard and tune is None and problem.windows
+        if config.guard and problem.windows
         else None
     )
+    # What the guard keeps and restores: the adapter's tables, or what tune mode fits instead.
+    guarded = adapter if tune is None else tune
     completed, interrupted, began = start, False, time.perf_counter()
     bar = _Progress(config.steps, start, progress)
     log = open(paths["log"], "a", encoding="utf-8") if paths is not None else None  # noqa: SIM115
@@ -332,7 +335,7 @@ def adapt(
             )
             try:
                 if guard is not None:
-                    guard.check(model, adapter, start)
+                    guard.check(model, guarded, start)
                 for step in range(start, config.steps if problem.windows else start):
                     record = adaptation_step(model, adapter, optimizer, problem, config, step)
                     completed = step + 1
@@ -344,7 +347,7 @@ def adapt(
                     if (
                         guard is not None
                         and (completed % config.guard_every == 0 or completed == config.steps)
-                        and not guard.check(model, adapter, completed)
+                        and not guard.check(model, guarded, completed)
                     ):
                         break
                     if (
