@@ -21,6 +21,8 @@ CHECKED = [
     "raytun3r_plugin/preprocess.py",
     "raytun3r_plugin/registry.py",
     "raytun3r_plugin/cameras/",
+    "raytun3r_plugin/datasets/rig.py",
+    "raytun3r_plugin/adaptation/rig.py",
 ]
 
 

@@ -307,7 +307,8 @@ def _rig_step(
     )  # instant-major: view t V + c is camera c
     prediction = predict(model, views[None])
     depth, poses = prediction.depth[0], prediction.cam_from_world[0]
-    losses, record = [], {"step": step}
+    losses: list[torch.Tensor] = []
+    record: dict[str, Any] = {"step": step}
     for offset, name in enumerate(names):
         if not scored[name]:
             continue
