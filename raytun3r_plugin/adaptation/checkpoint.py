@@ -45,11 +45,19 @@ def artifact_paths(out_path: str | os.PathLike) -> dict[str, Path]:
     }
 
 
-def write_loss_artifacts(paths: Mapping[str, Path], records: list[dict[str, Any]]) -> None:
+def write_loss_artifacts(
+    paths: Mapping[str, Path],
+    records: list[dict[str, Any]],
+    terms: list[str] | None = None,
+    title: str | None = None,
+    plotted: list[str] | None = None,
+) -> None:
     """The per-step losses as CSV (``paths["csv"]``) and as a loss-curve picture (``paths["curve"]``).
 
-    Columns: ``step``, ``loss``, every term the run had, ``grad_norm``, ``skipped``, ``time_s``.
-    The picture shows the total and the raw value of each term over the steps (log scale).
+    Columns: ``step``, ``loss``, every term the run had (``terms``: these columns instead, e.g.
+    a rig fit's per-camera ones), ``grad_norm``, ``skipped``, ``time_s``. The picture shows the
+    total and the raw value of each term (``plotted``: these columns instead) over the steps
+    (log scale).
     """
     import csv
 
@@ -57,7 +65,8 @@ def write_loss_artifacts(paths: Mapping[str, Path], records: list[dict[str, Any]
 
     from raytun3r_plugin.plots import line_chart
 
-    terms = [name for name in TERMS if records and name in records[0]]
+    if terms is None:
+        terms = [name for name in TERMS if records and name in records[0]]
     columns = ["step", "loss", *terms, "grad_norm", "skipped", "time_s"]
     with open(paths["csv"], "w", newline="", encoding="utf-8") as handle:
         writer = csv.writer(handle)
@@ -66,10 +75,10 @@ def write_loss_artifacts(paths: Mapping[str, Path], records: list[dict[str, Any]
             writer.writerow([record.get(name, "") for name in columns])
     series = {
         name: [float(r[name]) for r in records]
-        for name in ("loss", *terms)
-        if any(float(r[name]) > 0 for r in records)
+        for name in ("loss", *(terms if plotted is None else plotted))
+        if all(name in r for r in records) and any(float(r[name]) > 0 for r in records)
     }
-    title = f"adaptation losses ({len(records)} steps)"
+    title = title or f"adaptation losses ({len(records)} steps)"
     cv2.imwrite(str(paths["curve"]), line_chart(series, title))
 
 

@@ -35,11 +35,13 @@ import numpy as np
 import torch
 from torch import nn
 
+from raytun3r_plugin.adaptation.checkpoint import write_loss_artifacts
 from raytun3r_plugin.adaptation.config import TERMS, AdaptConfig
 from raytun3r_plugin.adaptation.losses import total_loss
 from raytun3r_plugin.adaptation.problem import AdaptationProblem, prepare_problem
 from raytun3r_plugin.adaptation.step import (
     _frozen,
+    optimiser_step,
     prediction_terms,
     regulariser_scale,
     window_of_step,
@@ -220,37 +222,20 @@ def adapt_rig(
     if paths is not None:
         for name in names:
             fitted[name].save(paths[f"adapter:{name}"])
-        _write_rig_losses(paths, history, names)
+        per_camera = [
+            f"{name}:{term}"
+            for name in names
+            for term in ("loss", *TERMS)
+            if history and f"{name}:{term}" in history[0]
+        ]
+        write_loss_artifacts(
+            paths,
+            history,
+            terms=per_camera,
+            plotted=[column for column in per_camera if column.endswith(":loss")],
+            title=f"rig adaptation losses ({len(history)} steps, {len(names)} cameras)",
+        )
     return fitted
-
-
-def _write_rig_losses(paths: Mapping[str, Path], records: list[dict[str, Any]], names) -> None:
-    """CSV of the joint and per-camera losses and terms per step, and their loss curves."""
-    import csv
-
-    import cv2
-
-    from raytun3r_plugin.plots import line_chart
-
-    per_camera = [
-        f"{name}:{term}"
-        for name in names
-        for term in ("loss", *TERMS)
-        if records and f"{name}:{term}" in records[0]
-    ]
-    columns = ["step", "loss", *per_camera, "grad_norm", "skipped", "time_s"]
-    with open(paths["csv"], "w", newline="", encoding="utf-8") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(columns)
-        for record in records:
-            writer.writerow([record.get(column, "") for column in columns])
-    series = {
-        column: [float(r[column]) for r in records]
-        for column in ("loss", *(f"{name}:loss" for name in names))
-        if records and any(float(r[column]) > 0 for r in records)
-    }
-    title = f"rig adaptation losses ({len(records)} steps, {len(names)} cameras)"
-    cv2.imwrite(str(paths["curve"]), line_chart(series, title))
 
 
 def _copied(adapter: Adapter) -> Adapter:
@@ -336,20 +321,7 @@ def _rig_step(
         record[f"{name}:window"] = windows[name]
         record[f"{name}:n_matches"] = counts["n_matches"]
     loss = torch.stack(losses).mean()
-    parameters = [p for group in optimizer.param_groups for p in group["params"]]
-    optimizer.zero_grad(set_to_none=True)
-    grad_norm = float("nan")
-    if bool(torch.isfinite(loss)):
-        loss.backward()
-        if config.clip is not None:
-            grad_norm = float(torch.nn.utils.clip_grad_norm_(parameters, config.clip))
-        else:
-            grads = [p.grad for p in parameters if p.grad is not None]
-            grad_norm = float(
-                torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
-            )
-        if math.isfinite(grad_norm):
-            optimizer.step()
+    grad_norm = optimiser_step(loss, optimizer, config.clip)
     record.update(
         {
             "loss": float(loss.detach()),

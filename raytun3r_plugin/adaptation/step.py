@@ -48,6 +48,7 @@ if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load 
 __all__ = [
     "adaptation_step",
     "objective_value",
+    "optimiser_step",
     "prediction_terms",
     "problem_window_terms",
     "regulariser_scale",
@@ -401,20 +402,7 @@ def adaptation_step(
     generator = torch.Generator().manual_seed(int(config.seed) * 7_919 + step)
     terms, counts = problem_window_terms(model, adapter, problem, config, index, generator)
     loss = total_loss(terms, config.weights)
-    parameters = [p for group in optimizer.param_groups for p in group["params"]]
-    optimizer.zero_grad(set_to_none=True)
-    grad_norm = float("nan")
-    if bool(torch.isfinite(loss)):
-        loss.backward()
-        grads = [p.grad for p in parameters if p.grad is not None]
-        if config.clip is not None:
-            grad_norm = float(torch.nn.utils.clip_grad_norm_(parameters, config.clip))
-        elif grads:
-            grad_norm = float(
-                torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
-            )
-        if math.isfinite(grad_norm):
-            optimizer.step()
+    grad_norm = optimiser_step(loss, optimizer, config.clip)
     return {
         "step": step,
         "window": index,
@@ -426,6 +414,28 @@ def adaptation_step(
         **counts,
         "time_s": round(time.perf_counter() - began, 4),
     }
+
+
+def optimiser_step(
+    loss: torch.Tensor, optimizer: torch.optim.Optimizer, clip: float | None
+) -> float:
+    """Backward, gradient clipping at ``clip`` (None: none) and one step; returns the gradient
+    norm. A non-finite loss or gradient norm skips the update (the norm is then NaN or inf)."""
+    parameters = [p for group in optimizer.param_groups for p in group["params"]]
+    optimizer.zero_grad(set_to_none=True)
+    grad_norm = float("nan")
+    if bool(torch.isfinite(loss)):
+        loss.backward()
+        grads = [p.grad for p in parameters if p.grad is not None]
+        if clip is not None:
+            grad_norm = float(torch.nn.utils.clip_grad_norm_(parameters, clip))
+        elif grads:
+            grad_norm = float(
+                torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
+            )
+        if math.isfinite(grad_norm):
+            optimizer.step()
+    return grad_norm
 
 
 def regulariser_scale(model: nn.Module, config: AdaptConfig) -> float:
