@@ -292,3 +292,38 @@ def test_rig_inputs_are_each_cameras_layout_instant_major(stereo):
         expected = layout.frames(stereo.sequences[name].images[[1, 3]])
         assert torch.equal(images[0, index::2], expected)
         assert cameras[index] == layout.native_camera
+
+
+def test_adapt_rig_cross_camera_terms_give_signal_where_motion_gives_none(monkeypatch):
+    """Every temporal window gated off: only the cross-camera terms can move the tables."""
+    from raytun3r_plugin.patches.da3 import build_tiny_network
+
+    from raytun3r_plugin.adaptation import rig as rig_fit
+
+    # Forward driving: the gate finds no parallax in any temporal window (as at 112 px).
+    monkeypatch.setattr(
+        rig_fit,
+        "window_parallax",
+        lambda model, adapter, problem, config: [0.0] * len(problem.windows),
+    )
+    lens = fisheye(56, 56, 185.0)
+    rig = render_rig(
+        "outdoor",
+        {"left": lens, "right": lens},
+        stereo_extrinsics(0.4),
+        n_frames=6,
+        seed=3,
+        flow_px=10.0,
+    )
+    model = build_tiny_network(seed=0).eval()
+    config = AdaptConfig(steps=3, input_size=56, n_windows=2, checkpoint_every=0, min_motion_px=0.5)
+    plain = adapt_rig(model, rig, config, progress=False)
+    assert all(a.training_info["verdict"]["status"] == "no signal" for a in plain.values())
+    fitted = adapt_rig(model, rig, config, progress=False, cross_camera=True)
+    for name, adapter in fitted.items():
+        info = adapter.training_info
+        assert info["steps"] == 3 and info["rig"]["cross_camera"]["pairs"] > 0
+        assert info["rig"]["cross_camera"]["aligned_steps"] == 3
+        assert "cross-camera pairs" not in info["rig"]["left_out"]
+        assert info["verdict"]["status"] == "ok", (name, info["verdict"])
+        assert sum(float(p.detach().abs().sum()) for p in adapter.parameters()) > 0.0

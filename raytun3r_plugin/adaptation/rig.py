@@ -37,10 +37,23 @@ from torch import nn
 
 from raytun3r_plugin.adaptation.checkpoint import write_loss_artifacts
 from raytun3r_plugin.adaptation.config import TERMS, AdaptConfig
-from raytun3r_plugin.adaptation.losses import total_loss
-from raytun3r_plugin.adaptation.problem import AdaptationProblem, prepare_problem
+from raytun3r_plugin.adaptation.losses import (
+    pe_correction_grid,
+    pe_l2,
+    pe_tv,
+    reprojection_loss,
+    total_loss,
+)
+from raytun3r_plugin.adaptation.problem import (
+    AdaptationProblem,
+    _inside,
+    _Pair,
+    prepare_problem,
+)
 from raytun3r_plugin.adaptation.step import (
     _frozen,
+    _subset,
+    _targets_pose,
     optimiser_step,
     prediction_terms,
     regulariser_scale,
@@ -50,6 +63,7 @@ from raytun3r_plugin.adaptation.step import (
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
 from raytun3r_plugin.patching import apply, handle_of
+from raytun3r_plugin.poses import invert_rigid
 from raytun3r_plugin.prediction import predict
 
 if TYPE_CHECKING:
@@ -88,6 +102,7 @@ def adapt_rig(
     adapters: Mapping[str, Adapter] | None = None,
     out_dir: str | os.PathLike | None = None,
     progress: bool = True,
+    cross_camera: bool = False,
 ) -> dict[str, Adapter]:
     """Fit one adapter per camera of ``rig``, all cameras' views in each forward.
 
@@ -101,6 +116,12 @@ def adapt_rig(
         out_dir: write ``<camera>.safetensors`` per camera, ``rig.log.jsonl`` (one JSON object
             per step) and the loss curves (``rig.losses.csv``, ``.png`` with matplotlib).
         progress: a line to stderr every ~5 % of the run.
+        cross_camera: add a reprojection term between the cameras at each instant (matches
+            between camera i and camera j at one instant, the rig's known rotation and
+            translation direction, the translation scale chosen for the pixel residual as for
+            temporal pairs; :func:`_cross_pairs`). Every step then takes the reference
+            camera's window and, for the other cameras, their window of the same frames; the
+            temporal terms still need the gate's windows, the cross terms do not.
 
     Returns:
         ``{camera name: Adapter}``, each with its camera and ``training_info`` (the single-camera
@@ -161,6 +182,13 @@ def adapt_rig(
             "windows_kept": len(scored[name]),
             "windows_dropped": len(medians) - len(scored[name]),
         }
+    cross: dict[int, list[tuple[int, int, _Pair]]] = {}
+    if cross_camera and len(names) > 1:
+        frames = sorted({f for window, _ in problems[names[0]].windows for f in window.frames})
+        cross = _cross_pairs(rig, problems, names, frames, config)
+    has_signal = any(scored.values()) or any(
+        pair.uv_i.shape[0] for pairs in cross.values() for *_, pair in pairs
+    )
     trainable = [table for name in names for table in fitted[name].parameters()]
     optimizer = torch.optim.Adam(trainable, lr=config.lr)
     history: list[dict[str, Any]] = []
@@ -183,7 +211,7 @@ def adapt_rig(
                 mask=[problems[name].mask for name in names],
             )
             try:
-                for step in range(config.steps if any(scored.values()) else 0):
+                for step in range(config.steps if has_signal else 0):
                     record = _rig_step(
                         model,
                         fitted,
@@ -194,6 +222,7 @@ def adapt_rig(
                         step,
                         frames_per_view,
                         scored,
+                        cross if cross_camera else None,
                     )
                     history.append(record)
                     if log is not None:
@@ -217,7 +246,29 @@ def adapt_rig(
         )
         if gates[name] is not None:
             info["parallax_gate"] = gates[name]
-        info["verdict"] = _verdict(info, bool(scored[name]))
+        if cross_camera:
+            info["rig"]["cross_camera"] = {
+                "pairs": sum(1 for pairs in cross.values() for p in pairs if p[0] == index),
+                "median_matches": float(
+                    np.median(
+                        [
+                            p[2].uv_i.shape[0]
+                            for pairs in cross.values()
+                            for p in pairs
+                            if p[0] == index
+                        ]
+                    )
+                )
+                if cross
+                else 0.0,
+                "aligned_steps": sum(1 for r in history if r.get("aligned", False)),
+            }
+            info["rig"]["left_out"] = [
+                x for x in info["rig"]["left_out"] if x != "cross-camera pairs"
+            ]
+        info["verdict"] = _verdict(
+            info, bool(scored[name]) or bool(history and cross_camera), history
+        )
         fitted[name].training_info = info
     if paths is not None:
         for name in names:
@@ -271,20 +322,38 @@ def _rig_step(
     step: int,
     frames_per_view: int,
     scored: dict[str, list[int]],
+    cross: dict[int, list[tuple[int, int, _Pair]]] | None = None,
 ) -> dict[str, Any]:
     """One joint step: a window of every camera, one forward, each camera's terms, one update.
 
     ``scored``: per camera, the windows the loss may use (the parallax gate's); a camera with
-    none takes part in the forward with its own windows but adds no loss.
+    none takes part in the forward with its own windows but adds no loss. ``cross`` (a
+    cross-camera fit): frame -> ``(camera i, camera j, pair)``; the step then takes the
+    reference camera's window and each other camera's window of the same frames (when it has
+    one) and adds the cross-camera reprojection terms of those frames.
     """
     began = time.perf_counter()
     count = len(names)
     windows, batches = {}, {}
+    aligned = cross is not None
+    if cross is not None:
+        reference = problems[names[0]]
+        first = window_of_step(step, len(reference.windows), config.seed)
+        frames = tuple(reference.windows[first][0].frames[:frames_per_view])
     for offset, name in enumerate(names):
         problem = problems[name]
-        # Each camera draws its own window order (its seed offset by its place in the rig).
-        usable = scored[name] or list(range(len(problem.windows)))
-        index = usable[window_of_step(step, len(usable), config.seed + offset)]
+        if cross is not None:
+            same = [
+                i
+                for i, (window, _) in enumerate(problem.windows)
+                if tuple(window.frames[:frames_per_view]) == frames
+            ]
+            index = same[0] if same else window_of_step(step, len(problem.windows), config.seed)
+            aligned = aligned and bool(same)
+        else:
+            # Each camera draws its own window order (its seed offset by its place in the rig).
+            usable = scored[name] or list(range(len(problem.windows)))
+            index = usable[window_of_step(step, len(usable), config.seed + offset)]
         windows[name] = index
         batches[name] = problem.batch(index)[:frames_per_view]
     views = torch.stack(
@@ -295,9 +364,20 @@ def _rig_step(
     losses: list[torch.Tensor] = []
     record: dict[str, Any] = {"step": step}
     for offset, name in enumerate(names):
-        if not scored[name]:
-            continue
         problem = problems[name]
+        if windows[name] not in scored[name]:
+            if cross is not None:  # its tables still move through the cross terms: regularise
+                correction = pe_correction_grid(fitted[name], problem.geometry)
+                losses.append(
+                    total_loss(
+                        {
+                            "l2": pe_l2(correction) / problem.pe_scale,
+                            "tv": pe_tv(correction) / problem.pe_scale,
+                        },
+                        config.weights,
+                    )
+                )
+            continue
         _window, pairs = problem.windows[windows[name]]
         kept = [pair for pair in pairs if pair.a < frames_per_view and pair.b < frames_per_view]
         generator = torch.Generator().manual_seed(int(config.seed) * 7_919 + step * 31 + offset)
@@ -320,7 +400,28 @@ def _rig_step(
         record.update({f"{name}:{term}": float(value.detach()) for term, value in terms.items()})
         record[f"{name}:window"] = windows[name]
         record[f"{name}:n_matches"] = counts["n_matches"]
-    loss = torch.stack(losses).mean()
+    cross_terms: list[torch.Tensor] = []
+    if cross is not None and aligned:
+        for position, frame in enumerate(frames):
+            for offset_i, offset_j, pair in cross.get(frame, []):
+                if pair.uv_i.shape[0] == 0:
+                    continue
+                term = _cross_term(
+                    depth[position * count + offset_i],
+                    pair,
+                    problems[names[offset_i]],
+                    problems[names[offset_j]],
+                    config,
+                    torch.Generator().manual_seed(int(config.seed) * 7_919 + step * 31 + 17),
+                )
+                if term is not None:
+                    cross_terms.append(term)
+    if cross_terms:
+        cross_loss = torch.stack(cross_terms).mean()
+        record["cross"] = float(cross_loss.detach())
+        losses.append(config.weights.reproj * cross_loss)
+    record["aligned"] = bool(cross is not None and aligned)
+    loss = torch.stack(losses).mean() if losses else depth.sum() * 0.0
     grad_norm = optimiser_step(loss, optimizer, config.clip)
     record.update(
         {
@@ -334,8 +435,99 @@ def _rig_step(
     return record
 
 
-def _verdict(info: dict[str, Any], has_signal: bool) -> dict[str, Any]:
-    """What the fit of one camera came to, as a sentence (``status`` and ``summary``)."""
+def _cross_pairs(
+    rig: Rig,
+    problems: dict[str, AdaptationProblem],
+    names: list[str],
+    frames: list[int],
+    config: AdaptConfig,
+) -> dict[int, list[tuple[int, int, _Pair]]]:
+    """frame -> ``(camera i, camera j, pair)`` for every ordered pair of cameras at one instant.
+
+    Matched on the network inputs (one size for the whole rig) by the configured matcher inside
+    both cameras' valid regions; the pose target is the rig's ``cam_j_from_cam_i`` (rotation
+    and unit translation; the scale is chosen for the pixel residual in the fit, as the
+    predicted depth has none). Frames a camera has no input for are skipped.
+    """
+    from raytun3r_plugin.adaptation.matchers import get_matcher
+
+    matcher = get_matcher(config.matcher, **config.matcher_options)
+    out: dict[int, list[tuple[int, int, _Pair]]] = {}
+    for frame in frames:
+        for offset_i, name_i in enumerate(names):
+            for offset_j, name_j in enumerate(names):
+                problem_i, problem_j = problems[name_i], problems[name_j]
+                if (
+                    offset_i == offset_j
+                    or frame not in problem_i.inputs
+                    or frame not in problem_j.inputs
+                ):
+                    continue
+                j_from_i = rig.cam_from_rig[name_j] @ invert_rigid(rig.cam_from_rig[name_i])
+                baseline = float(np.linalg.norm(j_from_i[:3, 3]))
+                if baseline < 1e-9:
+                    continue
+                valid = problem_i.valid & problem_j.valid
+                image_i = problem_i.inputs[frame].permute(1, 2, 0).numpy()
+                image_j = problem_j.inputs[frame].permute(1, 2, 0).numpy()
+                matches = matcher.match(image_i, image_j, valid.numpy())
+                uv_i, uv_j = torch.from_numpy(matches.uv_i), torch.from_numpy(matches.uv_j)
+                with torch.no_grad():
+                    rays_i, ok_i = problem_i.layout.camera.unproject(uv_i)
+                    rays_j, ok_j = problem_j.layout.camera.unproject(uv_j)
+                keep = ok_i & ok_j & _inside(uv_i, valid) & _inside(uv_j, valid)
+                pair = _Pair(
+                    offset_i,
+                    offset_j,
+                    uv_i[keep],
+                    uv_j[keep],
+                    torch.from_numpy(matches.confidence).float()[keep],
+                    rays_i[keep].float(),
+                    rays_j[keep].float(),
+                    torch.from_numpy(j_from_i[:3, :3]).double(),
+                    torch.from_numpy(j_from_i[:3, 3] / baseline).double(),
+                )
+                out.setdefault(frame, []).append((offset_i, offset_j, pair))
+    return out
+
+
+def _cross_term(
+    depth_i: torch.Tensor,
+    pair: _Pair,
+    problem_i: AdaptationProblem,
+    problem_j: AdaptationProblem,
+    config: AdaptConfig,
+    generator: torch.Generator,
+) -> torch.Tensor | None:
+    """The reprojection term of one cross-camera pair: camera i's depth, projected into camera j."""
+    uv_i, uv_j, confidence, rays_i, rays_j = _subset(pair, config.max_matches, generator)
+    camera_j = problem_j.layout.camera
+    relative = _targets_pose(
+        pair, depth_i, uv_i, uv_j, confidence, rays_i, rays_j, camera_j, config
+    )
+    loss, count = reprojection_loss(
+        depth_i,
+        relative,
+        uv_i,
+        uv_j,
+        confidence,
+        camera_j,
+        problem_i.valid & problem_j.valid,
+        config.depth_convention,
+        rays_i=(rays_i, torch.ones_like(confidence, dtype=torch.bool)),
+        robust_px=config.robust_px,
+    )
+    return loss if count else None
+
+
+def _verdict(
+    info: dict[str, Any], has_signal: bool, history: list[dict[str, Any]]
+) -> dict[str, Any]:
+    """What the fit of one camera came to, as a sentence (``status`` and ``summary``).
+
+    A camera with no temporal window of its own (cross-camera terms only) is judged by the
+    cross-camera loss of the first and last pass.
+    """
     if not has_signal:
         return {
             "status": "no signal",
@@ -343,6 +535,10 @@ def _verdict(info: dict[str, Any], has_signal: bool) -> dict[str, Any]:
             "gate (its matches carry no depth signal); the tables stay as they started",
         }
     first, last = info.get("first_pass_loss"), info["final_losses"].get("loss")
+    if first is None and last is None and any("cross" in r for r in history):
+        crossed = [r["cross"] for r in history if "cross" in r]
+        window = max(1, len(crossed) // 10)
+        first, last = float(np.mean(crossed[:window])), float(np.mean(crossed[-window:]))
     if first is None or last is None or not (math.isfinite(first) and math.isfinite(last)):
         return {"status": "diverged", "summary": "diverged: the loss is not finite"}
     return {

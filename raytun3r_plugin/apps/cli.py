@@ -185,7 +185,7 @@ def cmd_adapt_rig(args: argparse.Namespace) -> int:
         pose_source=args.pose_source,
         cache_dir=args.cache_dir,
     )
-    adapters = adapt_rig(model, rig, config, out_dir=args.out)
+    adapters = adapt_rig(model, rig, config, out_dir=args.out, cross_camera=args.cross_camera)
     paths = rig_artifact_paths(args.out, rig.names)
     for name in rig.names:
         verdict = adapters[name].training_info["verdict"]["summary"]
@@ -468,6 +468,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pose-source", default="model", choices=("model", "targets"))
     p.add_argument("--cache-dir", default=None)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--cross-camera",
+        action="store_true",
+        help="add reprojection terms between the cameras at each instant (docs/rigs.md)",
+    )
     p.add_argument("--out", required=True, help="output folder: <camera>.safetensors per camera")
     p.set_defaults(func=cmd_adapt_rig)
 
