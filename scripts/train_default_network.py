@@ -262,11 +262,87 @@ def build_dataset(
 _FLIP = np.diag([-1.0, 1.0, 1.0, 1.0])
 
 
-def make_batch(data: dict, seed: int, step: int, batch: int, views: int, max_gap: int) -> dict:
+def rotate_views(
+    im: np.ndarray, de: np.ndarray, po: np.ndarray, fov_deg: float, rots: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
+    """Re-render the views of one sample as if each camera were turned by ``rots[s]``.
+
+    A rotation about the camera centre maps a pinhole image to a pinhole image exactly (the
+    homography ``K' R K^-1``), so new views with known poses need no re-rendering. The new
+    views share one zoom ``z`` >= 1 (focal ``z f``), the smallest on a 0.02 grid that keeps every
+    new pixel inside the old image: no border appears, which would give the rotation away.
+
+    Args:
+        im: (S, H, W, 3) float images; de: (S, H, W) z-depth (0 = invalid); po: (S, 4, 4)
+        cam_from_world; fov_deg: the square pinhole's field of view; rots: (S, 3, 3).
+
+    Returns:
+        (images, z-depth, cam_from_world, fov_deg) of the rotated views, or None when no zoom
+        up to 2 avoids a border.
+    """
+    S, H, W = de.shape
+    f = (W / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
+    cx, cy = (W - 1) / 2.0, (H - 1) / 2.0
+
+    def source(u: np.ndarray, v: np.ndarray, z: float, R: np.ndarray):
+        d_new = np.stack([(u - cx) / (z * f), (v - cy) / (z * f), np.ones_like(u)], -1)
+        d = d_new @ R  # R^T d' as row vectors: the ray in the old camera
+        return f * d[..., 0] / d[..., 2] + cx, f * d[..., 1] / d[..., 2] + cy, d[..., 2]
+
+    corners_u, corners_v = np.array([0.0, W - 1, 0.0, W - 1]), np.array([0.0, 0.0, H - 1, H - 1])
+    zoom = None
+    for z in np.arange(1.0, 2.0001, 0.02):
+        ok = True
+        for R in rots:
+            su, sv, dz = source(corners_u, corners_v, float(z), R)
+            ok &= bool((dz > 0).all() and (su >= 0).all() and (su <= W - 1).all())
+            ok &= bool((sv >= 0).all() and (sv <= H - 1).all())
+        if ok:
+            zoom = float(z)
+            break
+    if zoom is None:
+        return None
+    vv, uu = np.meshgrid(
+        np.arange(H, dtype=np.float64), np.arange(W, dtype=np.float64), indexing="ij"
+    )
+    out_im, out_de = np.empty_like(im), np.empty_like(de)
+    for k, R in enumerate(rots):
+        su, sv, dz = source(uu, vv, zoom, R)
+        # grid_sample with align_corners=True: -1 and 1 are the centres of the edge pixels
+        grid = torch.from_numpy(np.stack([su / (W - 1) * 2 - 1, sv / (H - 1) * 2 - 1], -1))[None]
+        img = torch.from_numpy(np.ascontiguousarray(im[k])).permute(2, 0, 1)[None]
+        out_im[k] = (
+            torch.nn.functional.grid_sample(img, grid.float(), "bilinear", align_corners=True)[0]
+            .permute(1, 2, 0)
+            .numpy()
+        )
+        dep = torch.from_numpy(np.ascontiguousarray(de[k]))[None, None]
+        z_old = torch.nn.functional.grid_sample(dep, grid.float(), "nearest", align_corners=True)
+        # the same point in the turned camera: z' = z * d'_z / d_z with d'_z = 1
+        out_de[k] = (z_old[0, 0].double().numpy() / dz).astype(de.dtype)
+    turn = np.tile(np.eye(4), (S, 1, 1))
+    turn[:, :3, :3] = rots
+    fov_new = math.degrees(2.0 * math.atan((W / 2.0) / (zoom * f)))
+    return out_im, out_de, turn @ po, fov_new
+
+
+def make_batch(
+    data: dict,
+    seed: int,
+    step: int,
+    batch: int,
+    views: int,
+    max_gap: int,
+    rot_aug_deg: float = 0.0,
+    rot_aug_frac: float = 0.0,
+) -> dict:
     """Batch ``step``: ``batch`` samples of ``views`` frames each (a pure function of seed, step).
 
     Each sample: a random sequence, an ordered frame subset (gaps 1..max_gap, random direction),
-    random horizontal flip (pose conjugated by diag(-1, 1, 1)) and a mild colour jitter.
+    random horizontal flip (pose conjugated by diag(-1, 1, 1)) and a mild colour jitter. With
+    ``rot_aug_deg`` > 0, a fraction ``rot_aug_frac`` of the samples has every view turned by its
+    own random rotation (std ``rot_aug_deg`` per axis, :func:`rotate_views`): relative rotations
+    then no longer follow from the scene, which a network can otherwise memorise.
     """
     rng = np.random.default_rng([int(seed), int(step), 5])
     n_seq, n_frames, size = data["images"].shape[:3]
@@ -288,13 +364,21 @@ def make_batch(data: dict, seed: int, step: int, batch: int, views: int, max_gap
         if rng.uniform() < 0.5:
             im, de = im[:, :, ::-1], de[:, :, ::-1]
             po = _FLIP @ po @ _FLIP
+        fov = float(data["fov"][s])
+        if rot_aug_deg > 0 and rng.uniform() < rot_aug_frac:
+            from scipy.spatial.transform import Rotation
+
+            vec = np.deg2rad(rng.normal(0.0, rot_aug_deg, size=(views, 3)))
+            turned = rotate_views(im, de, po, fov, Rotation.from_rotvec(vec).as_matrix())
+            if turned is not None:
+                im, de, po, fov = turned
         gain = rng.uniform(0.8, 1.2, size=3).astype(np.float32)
         bias = np.float32(rng.uniform(-0.05, 0.05))
         im = np.clip(im * gain + bias, 0.0, 1.0)
         imgs.append(np.ascontiguousarray(im))
         deps.append(np.ascontiguousarray(de))
         poses.append(po)
-        fovs.append(data["fov"][s])
+        fovs.append(fov)
     return {
         "images": torch.from_numpy(np.stack(imgs)).permute(0, 1, 4, 2, 3).contiguous(),  # B,S,3,H,W
         "depth": torch.from_numpy(np.stack(deps)),  # B,S,H,W z-depth, 0 = invalid
@@ -404,38 +488,142 @@ def global_layer_positions(model) -> list[int]:
     return [k for k, i in enumerate(layers) if vit.alt_start != -1 and i >= vit.alt_start and i % 2]
 
 
+def token_grid(H: int, W: int, patch: int = 14) -> torch.Tensor:
+    """(h * w, 2) patch-centre positions (u, v) relative to the image centre, in half-widths."""
+    h, w = H // patch, W // patch
+    u = (torch.arange(w, dtype=torch.float32) * patch + (patch - 1) / 2.0 - (W - 1) / 2.0) / (W / 2)
+    v = (torch.arange(h, dtype=torch.float32) * patch + (patch - 1) / 2.0 - (H - 1) / 2.0) / (W / 2)
+    vv, uu = torch.meshgrid(v, u, indexing="ij")
+    return torch.stack([uu.reshape(-1), vv.reshape(-1)], -1)
+
+
+FLOW_KINDS = ("regress", "corr", "both")
+
+
 class FlowAux(torch.nn.Module):
-    """Training-only token-flow head: one small MLP per global-attention output layer.
+    """Training-only token-flow heads on the global-attention output layers.
 
     Each reads the post-global-attention half of the ``cat_token`` features (B, S, N, C) and
     predicts, per token, the displacement of its centre into the partner view (2 numbers, units
     of half the image width). Never exported: it only shapes the backbone's cross-view tokens.
+
+    * ``regress``: an MLP per layer regresses the displacement from the token alone, so the
+      global attention itself must find the match and carry its position;
+    * ``corr``: a projection per layer gives unit descriptors of the tokens that ENTER the
+      global block (the ``local`` half of ``cat_token`` features: the last frame-attention
+      output, from which that block's queries and keys are made); the softmax of their scaled
+      dot products with the partner view's tokens (a cost volume, (B, S, N, N) logits) gives a
+      soft-argmax position on the known token grid. This makes the global block's inputs
+      matchable, so its attention can find the match the ``regress`` head asks for;
+    * ``both``: both heads on every layer.
     """
 
-    def __init__(self, embed_dim: int, n_layers: int) -> None:
+    def __init__(self, embed_dim: int, n_layers: int, kind: str = "regress", dim: int = 64):
         super().__init__()
-        self.embed_dim = embed_dim
-        self.mlps = torch.nn.ModuleList(
-            torch.nn.Sequential(
-                torch.nn.LayerNorm(embed_dim),
-                torch.nn.Linear(embed_dim, 2 * embed_dim),
-                torch.nn.GELU(),
-                torch.nn.Linear(2 * embed_dim, 2),
+        if kind not in FLOW_KINDS:
+            raise ValueError(f"flow head kind {kind!r} not in {FLOW_KINDS}")
+        self.embed_dim, self.kind = embed_dim, kind
+        if kind in ("regress", "both"):
+            self.mlps = torch.nn.ModuleList(
+                torch.nn.Sequential(
+                    torch.nn.LayerNorm(embed_dim),
+                    torch.nn.Linear(embed_dim, 2 * embed_dim),
+                    torch.nn.GELU(),
+                    torch.nn.Linear(2 * embed_dim, 2),
+                )
+                for _ in range(n_layers)
             )
-            for _ in range(n_layers)
-        )
+        if kind in ("corr", "both"):
+            self.projs = torch.nn.ModuleList(
+                torch.nn.Sequential(torch.nn.LayerNorm(embed_dim), torch.nn.Linear(embed_dim, dim))
+                for _ in range(n_layers)
+            )
+            # log of the inverse softmax temperature of the cosine similarities
+            self.log_scale = torch.nn.Parameter(torch.full((n_layers,), math.log(10.0)))
 
-    def forward(self, tokens: list[torch.Tensor]) -> list[torch.Tensor]:
-        return [mlp(t[..., -self.embed_dim :]) for mlp, t in zip(self.mlps, tokens, strict=True)]
+    def forward(self, tokens: list[torch.Tensor], grid: torch.Tensor) -> list[dict]:
+        """Per head: ``flow`` (B, S, N, 2) and, for ``corr``, ``logits`` (B, S, N, N)."""
+        outs = []
+        for k, t in enumerate(tokens):
+            x = t[..., -self.embed_dim :]  # after the global block
+            x_in = t[..., : self.embed_dim]  # its input (= x without cat_token)
+            if self.kind in ("regress", "both"):
+                outs.append({"flow": self.mlps[k](x), "logits": None})
+            if self.kind in ("corr", "both"):
+                f = torch.nn.functional.normalize(self.projs[k](x_in), dim=-1)
+                fb = f[:, partner_views(f.shape[1])]
+                scale = self.log_scale[k].clamp(max=math.log(100.0)).exp()
+                logits = torch.einsum("bsnd,bsmd->bsnm", f, fb) * scale
+                flow = logits.softmax(-1) @ grid - grid
+                outs.append({"flow": flow, "logits": logits})
+        return outs
 
 
-def flow_loss(preds: list[torch.Tensor], flow: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """Mean over layers of the smooth-L1 flow error (beta 0.05 half-widths) on valid tokens."""
+def flow_loss(
+    preds: list[dict], flow: torch.Tensor, valid: torch.Tensor, grid: torch.Tensor, w: int
+) -> torch.Tensor:
+    """Mean over heads of the smooth-L1 flow error (beta 0.05 half-widths) on valid tokens,
+    plus, for cost-volume heads, 0.1 x the cross-entropy of the partner token nearest to the
+    true position (a sharp gradient even while the soft-argmax is still flat)."""
     n = valid.sum().clamp(min=1)
+    index = nearest_partner_token(flow, grid, w)
     terms = []
     for p in preds:
-        e = torch.nn.functional.smooth_l1_loss(p, flow, reduction="none", beta=0.05).sum(-1)
-        terms.append(torch.where(valid, e, torch.zeros_like(e)).sum() / n)
+        e = torch.nn.functional.smooth_l1_loss(p["flow"], flow, reduction="none", beta=0.05).sum(-1)
+        term = torch.where(valid, e, torch.zeros_like(e)).sum() / n
+        if p["logits"] is not None:
+            ce = torch.nn.functional.cross_entropy(
+                p["logits"].flatten(0, 2), index.flatten(), reduction="none"
+            ).view_as(e)
+            term = term + 0.1 * torch.where(valid, ce, torch.zeros_like(ce)).sum() / n
+        terms.append(term)
+    return torch.stack(terms).mean()
+
+
+def nearest_partner_token(flow: torch.Tensor, grid: torch.Tensor, w: int) -> torch.Tensor:
+    """(B, S, N) index of the partner token nearest to where each token's centre lands."""
+    target = grid[None, None] + flow
+    spacing = float(grid[1, 0] - grid[0, 0]) if grid.shape[0] > 1 else 1.0
+    col = ((target[..., 0] - grid[0, 0]) / spacing).round().clamp(0, w - 1)
+    row = ((target[..., 1] - grid[0, 1]) / spacing).round().clamp(0, grid.shape[0] // w - 1)
+    return (row * w + col).long()
+
+
+def attention_match_loss(
+    model, feats: list, flow: torch.Tensor, valid: torch.Tensor, grid: torch.Tensor, heads: int
+) -> torch.Tensor:
+    """Cross-entropy of the network's OWN global-attention logits towards the true match.
+
+    For every global block among the output layers, its queries and keys are recomputed from
+    the block's input (the ``local`` half of the ``cat_token`` features: the raw output of the
+    frame block before it) with the block's own ``norm1``, ``qkv`` and q/k norms. The global
+    blocks' RoPE positions are all equal, which leaves dot products unchanged, so these are the
+    logits the block uses (camera and register tokens left out). For the first ``heads`` heads,
+    each patch token of a view is pushed to attend, among the patch tokens of its own view and
+    of its partner view, to the partner token nearest to where its centre lands. No parameter is
+    added: this trains the shipped attention to match across views.
+    """
+    vit = model.backbone.pretrained
+    layers = list(model.backbone.out_layers)
+    B, S, N = valid.shape
+    w = int(round(math.sqrt(N)))
+    index = nearest_partner_token(flow, grid, w) + N  # keys: [own view, partner view]
+    n = valid.sum().clamp(min=1)
+    terms = []
+    for k in global_layer_positions(model):
+        blk = vit.blocks[layers[k]]
+        x = blk.norm1(feats[k][0][..., : vit.embed_dim])  # B,S,N,C: the global block's input
+        C, nh = x.shape[-1], blk.attn.num_heads
+        q, key, _ = blk.attn.qkv(x).reshape(B, S, N, 3, nh, C // nh).unbind(3)
+        q, key = blk.attn.q_norm(q[..., :heads, :]), blk.attn.k_norm(key[..., :heads, :])
+        keys = torch.cat([key, key[:, partner_views(S)]], dim=2)  # B,S,2N,h,d
+        logits = torch.einsum("bsnhd,bsmhd->bshnm", q, keys) * blk.attn.scale
+        ce = torch.nn.functional.cross_entropy(
+            logits.flatten(0, 3),
+            index[:, :, None].expand(B, S, heads, N).flatten(),
+            reduction="none",
+        ).view(B, S, heads, N)
+        terms.append(torch.where(valid[:, :, None], ce, torch.zeros_like(ce)).sum() / (n * heads))
     return torch.stack(terms).mean()
 
 
@@ -736,6 +924,20 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="weight of the training-only token-flow head on the global-attention tokens (0 = off)",
     )
     ap.add_argument(
+        "--aux-flow-kind",
+        default="regress",
+        choices=FLOW_KINDS,
+        help="flow head: MLP regression, cost-volume soft-argmax (corr), or both",
+    )
+    ap.add_argument(
+        "--aux-attn",
+        type=float,
+        default=0.0,
+        help="weight of the cross-entropy pushing the global blocks' own attention to the true "
+        "match (training-only loss, no parameters; 0 = off)",
+    )
+    ap.add_argument("--aux-attn-heads", type=int, default=2, help="heads supervised by --aux-attn")
+    ap.add_argument(
         "--pose-only",
         action="store_true",
         help="train the backbone and camera decoder only (skip the DPT head and its losses)",
@@ -752,6 +954,14 @@ def parse_args(argv=None) -> argparse.Namespace:
         default=0.0,
         help="std (degrees, per axis) of the rotation jitter of --jitter-frac sequences",
     )
+    ap.add_argument(
+        "--rot-aug-deg",
+        type=float,
+        default=0.0,
+        help="turn the views of --rot-aug-frac of the samples by random rotations of this std "
+        "(degrees per axis), by exact pinhole homographies (0 = off)",
+    )
+    ap.add_argument("--rot-aug-frac", type=float, default=0.5)
     ap.add_argument(
         "--val-seqs",
         type=int,
@@ -794,10 +1004,15 @@ def main(argv=None) -> int:
     # when set, so checkpoints of runs made before they existed still resume.
     new_opts = {
         "aux_flow": 0.0,
+        "aux_flow_kind": "regress",
+        "aux_attn": 0.0,
+        "aux_attn_heads": 2,
         "pose_only": False,
         "jitter_frac": 0.0,
         "jitter_deg": 0.0,
         "val_seqs": 0,
+        "rot_aug_deg": 0.0,
+        "rot_aug_frac": 0.5,
         "val_every": None,
     }
     record = {
@@ -837,12 +1052,15 @@ def main(argv=None) -> int:
             table[0, :1] = 0.0
     n_params = sum(p.numel() for p in model.parameters())
     aux = None
-    if args.aux_flow > 0:
-        flow_layers = global_layer_positions(model)
+    flow_layers = global_layer_positions(model)
+    if args.aux_flow > 0 or args.aux_attn > 0:
         if not flow_layers:
-            raise SystemExit("--aux-flow needs global-attention blocks among the output layers")
+            raise SystemExit("--aux-flow/--aux-attn need global-attention blocks among the outputs")
+    if args.aux_flow > 0:
         torch.manual_seed(args.seed + 7919)  # built after the network: its init is unchanged
-        aux = FlowAux(model.backbone.pretrained.embed_dim, len(flow_layers)).train()
+        aux = FlowAux(
+            model.backbone.pretrained.embed_dim, len(flow_layers), args.aux_flow_kind
+        ).train()
     model.to(device)
     if aux is not None:
         aux.to(device)
@@ -905,11 +1123,14 @@ def main(argv=None) -> int:
         "rot_gt_deg",
         "trans_deg",
         "flow",
+        "attn",
         "val_rot_ratio",
         "val_trans_deg",
         "val_abs_rel",
     ]
-    n_batch_fields = len(fields) - 6  # step, time_s, lr first; the 3 val_* columns are filled on validation steps only
+    n_batch_fields = (
+        len(fields) - 6
+    )  # step, time_s, lr first; the 3 val_* columns are filled on validation steps only
     val_every = args.val_every or args.ckpt_every
     if not log_path.is_file():
         with log_path.open("w", newline="") as fh:
@@ -925,7 +1146,14 @@ def main(argv=None) -> int:
         # A fixed batch must be fitted by any network that can represent its targets: if it is
         # not, the targets or the losses are wrong rather than the data too hard.
         batch = make_batch(
-            data, args.seed, 0 if args.fixed_batch else step, args.batch, args.views, args.max_gap
+            data,
+            args.seed,
+            0 if args.fixed_batch else step,
+            args.batch,
+            args.views,
+            args.max_gap,
+            args.rot_aug_deg,
+            args.rot_aug_frac,
         )
         tg = targets(batch)
         tg = {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in tg.items()}
@@ -935,12 +1163,32 @@ def main(argv=None) -> int:
         ls = losses(out_d, pose_enc, tg, weights)
         if aux is not None:
             flow, flow_ok = flow_targets(batch)
+            H, W = batch["images"].shape[-2:]
+            grid = token_grid(H, W).to(device)
             ls["flow"] = flow_loss(
-                aux([feats[k][0] for k in flow_layers]), flow.to(device), flow_ok.to(device)
+                aux([feats[k][0] for k in flow_layers], grid),
+                flow.to(device),
+                flow_ok.to(device),
+                grid,
+                W // 14,
             )
             ls["loss"] = ls["loss"] + args.aux_flow * ls["flow"]
         else:
             ls["flow"] = pose_enc.new_zeros(())
+        if args.aux_attn > 0:
+            flow, flow_ok = flow_targets(batch)
+            H, W = batch["images"].shape[-2:]
+            ls["attn"] = attention_match_loss(
+                model,
+                feats,
+                flow.to(device),
+                flow_ok.to(device),
+                token_grid(H, W).to(device),
+                args.aux_attn_heads,
+            )
+            ls["loss"] = ls["loss"] + args.aux_attn * ls["attn"]
+        else:
+            ls["attn"] = pose_enc.new_zeros(())
         if not torch.isfinite(ls["loss"]):
             raise SystemExit(
                 f"non-finite loss at step {step}: { {k: float(v) for k, v in ls.items()} }"

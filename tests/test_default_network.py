@@ -357,7 +357,16 @@ def test_flow_targets_match_a_known_translation():
 def test_flow_aux_pose_only_jitter_run_resumes_exactly_and_exports_no_aux_head(tmp_path):
     train = _script("train_default_network")
     common = _tiny_args(
-        **{"--aux-flow": "1", "--jitter-frac": "0.5", "--jitter-deg": "5", "--val-seqs": "1"}
+        **{
+            "--aux-flow": "1",
+            "--aux-flow-kind": "both",
+            "--aux-attn": "1",
+            "--jitter-frac": "0.5",
+            "--jitter-deg": "5",
+            "--val-seqs": "1",
+            "--rot-aug-deg": "3",
+            "--rot-aug-frac": "1",
+        }
     )
     common.append("--pose-only")
     a, b = tmp_path / "a", tmp_path / "b"
@@ -385,10 +394,10 @@ def test_flow_aux_pose_only_jitter_run_resumes_exactly_and_exports_no_aux_head(t
     assert exported.keys() == load_file(str(c / "net.safetensors")).keys()
     header, *rows = (a / "log.csv").read_text().strip().splitlines()
     cols = header.split(",")
-    for col in ("flow", "trans_deg", "val_rot_ratio", "val_trans_deg", "val_abs_rel"):
+    for col in ("flow", "attn", "trans_deg", "val_rot_ratio", "val_trans_deg", "val_abs_rel"):
         assert col in cols
     last = dict(zip(cols, rows[-1].split(","), strict=True))
-    assert float(last["flow"]) > 0 and float(last["val_rot_ratio"]) > 0
+    assert float(last["flow"]) > 0 and float(last["attn"]) > 0 and float(last["val_rot_ratio"]) > 0
     assert float(last["depth_si"]) == 0.0  # pose-only: no depth loss
 
 
@@ -401,3 +410,25 @@ def test_jitter_rotates_cameras_about_their_centres():
     assert np.allclose(camera_centres(plain["poses"]), camera_centres(jit["poses"]), atol=1e-9)
     assert not np.allclose(plain["poses"][:, :3, :3], jit["poses"][:, :3, :3])
     assert train.jittered(10_001, 1.0) and not train.jittered(10_001, 0.0)
+
+
+def test_rotate_views_is_an_exact_pinhole_rotation():
+    train = _script("train_default_network")
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    S, H, W = 2, 28, 28
+    im = rng.uniform(size=(S, H, W, 3)).astype(np.float32)
+    de = rng.uniform(1.0, 3.0, size=(S, H, W)).astype(np.float32)
+    po = np.tile(np.eye(4), (S, 1, 1))
+    same = train.rotate_views(im, de, po, 70.0, np.tile(np.eye(3), (S, 1, 1)))
+    assert same is not None
+    assert np.allclose(same[0], im, atol=1e-5) and np.allclose(same[1], de, atol=1e-5)
+    assert same[3] == pytest.approx(70.0)
+    # a turned camera: the new pose is R @ old, the zoom keeps every pixel inside (no border)
+    rots = Rotation.from_rotvec([[0.0, 0.05, 0.0], [0.03, 0.0, 0.02]]).as_matrix()
+    im2, de2, po2, fov2 = train.rotate_views(im, np.full_like(de, 2.0), po, 70.0, rots)
+    assert np.allclose(po2[:, :3, :3], rots) and fov2 < 70.0
+    assert (de2 > 0).all()
+    # a fronto-parallel plane at z = 2 seen by a camera turned by R: z' = (R X)_z >= 0
+    assert np.all(np.abs(de2 - 2.0) < 0.2)
