@@ -366,6 +366,7 @@ def test_flow_aux_pose_only_jitter_run_resumes_exactly_and_exports_no_aux_head(t
             "--val-seqs": "1",
             "--rot-aug-deg": "3",
             "--rot-aug-frac": "1",
+            "--w-tdir": "1",
         }
     )
     common.append("--pose-only")
@@ -394,7 +395,7 @@ def test_flow_aux_pose_only_jitter_run_resumes_exactly_and_exports_no_aux_head(t
     assert exported.keys() == load_file(str(c / "net.safetensors")).keys()
     header, *rows = (a / "log.csv").read_text().strip().splitlines()
     cols = header.split(",")
-    for col in ("flow", "attn", "trans_deg", "val_rot_ratio", "val_trans_deg", "val_abs_rel"):
+    for col in ("flow", "attn", "tdir", "trans_deg", "val_rot_ratio", "val_trans_deg"):
         assert col in cols
     last = dict(zip(cols, rows[-1].split(","), strict=True))
     assert float(last["flow"]) > 0 and float(last["attn"]) > 0 and float(last["val_rot_ratio"]) > 0
