@@ -162,6 +162,15 @@ def evaluate_camera(
     }
     res["abs_rel_ratio"] = res["abs_rel"] / res["abs_rel_constant"]
     res["rotation_ratio"] = res["rotation_deg"] / res["rotation_deg_no_rotation"]
+    # 95 % interval of the rotation ratio, resampling whole sequences (pairs of one sequence
+    # are not independent): says whether the held-out set resolves the ratio from a target
+    per_seq = n_frames - GAP
+    r = np.asarray(rot).reshape(n_seq, per_seq)
+    r0 = np.asarray(rot_0).reshape(n_seq, per_seq)
+    rng = np.random.default_rng(0)
+    draws = rng.integers(0, n_seq, size=(2000, n_seq))
+    boot = r[draws].mean(axis=(1, 2)) / r0[draws].mean(axis=(1, 2))
+    res["rotation_ratio_ci95"] = [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))]
     if rot_ray:
         res["ray_pose"] = {
             "rotation_deg": float(np.nanmean(rot_ray)),
@@ -172,6 +181,7 @@ def evaluate_camera(
         res["ray_pose"] = {
             k: (round(v, 4) if isinstance(v, float) else v) for k, v in res["ray_pose"].items()
         }
+    res["rotation_ratio_ci95"] = [round(v, 4) for v in res["rotation_ratio_ci95"]]
     return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in res.items()}
 
 
