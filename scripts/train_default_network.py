@@ -27,6 +27,13 @@ Optional training-only auxiliaries and recipes (issue 13; all off by default):
   decoder gets no gradient towards cross-view matching until some matching exists; this head
   provides it. The head lives outside the network (``<out>/aux.safetensors``) and is never
   exported, so the shipped architecture is unchanged;
+* ``--aux-attn W``: a cross-entropy on the global blocks' own attention logits (queries and
+  keys recomputed with the block's weights), pushing each patch token to attend to its true
+  match in the partner view; no parameters, nothing to export. With ``--aux-flow`` this is what
+  took the camera decoder's rotation off chance (docs/model_card_raytun3r_da3_tiny.md, "Issue 13");
+* ``--rot-aug-deg D --rot-aug-frac F``: turn every view of a fraction F of the samples by its
+  own random rotation, by the exact pinhole homography (zoomed so no border shows);
+* ``--w-tdir W``: a translation-direction loss (1 - cosine) of the camera decoder;
 * ``--pose-only``: run only the backbone and the camera decoder (no DPT head, no depth/ray
   losses): about 5x cheaper per step, for pose pre-training before a joint run (``--init``);
 * ``--jitter-frac F --jitter-deg D``: render a fraction F of the training sequences with an extra
@@ -648,7 +655,9 @@ def losses(out: dict | None, pose_enc: torch.Tensor, tg: dict, weights: dict) ->
     """Loss terms and logged batch metrics; ``out`` None (``--pose-only``) drops depth and rays."""
 
     if out is None:
-        return pose_losses(pose_enc, tg, weights, zero=pose_enc.new_zeros(()))
+        ls = pose_losses(pose_enc, tg, weights, zero=pose_enc.new_zeros(()))
+        del ls["_pose_term"], ls["_quat_term"]  # already in ls["loss"]
+        return ls
     pred, gt, valid = out["depth"], tg["depth"], tg["valid"]
     H, W = pred.shape[-2:]
     n = valid.sum(dim=(-1, -2)).clamp(min=1)
@@ -678,9 +687,16 @@ def losses(out: dict | None, pose_enc: torch.Tensor, tg: dict, weights: dict) ->
     ray_gt = ray_targets(tg, ray.shape[2], ray.shape[3], H, W)
     l_ray = (ray - ray_gt).abs().mean()
     ls = pose_losses(pose_enc, tg, weights, zero=pred.new_zeros(()))
-    ls["loss"] = ls["loss"] + (
-        weights["depth"] * (l_si + 0.25 * l_abs) + weights["conf"] * l_conf + weights["ray"] * l_ray
+    # summed in the order of earlier versions, so default runs stay bit-identical to them
+    ls["loss"] = (
+        weights["depth"] * (l_si + 0.25 * l_abs)
+        + weights["conf"] * l_conf
+        + weights["ray"] * l_ray
+        + ls.pop("_pose_term")
+        + ls.pop("_quat_term")
     )
+    if weights.get("tdir", 0.0) > 0:
+        ls["loss"] = ls["loss"] + weights["tdir"] * ls["tdir"]
     ls.update(depth_si=l_si, depth_abs=l_abs, conf=l_conf, ray=l_ray)
     return ls
 
@@ -701,7 +717,9 @@ def pose_losses(pose_enc: torch.Tensor, tg: dict, weights: dict, zero: torch.Ten
     # identity (all earlier runs: raw w about 9.5, rotation error = no-rotation error). A loss on
     # the raw encoding, as VGGT's camera loss does, pins the norm to 1 and keeps that gradient.
     l_quat = (pose_enc[..., 3:7] - quaternion_target(R_g)).abs().sum(-1).mean()
-    total = weights["pose"] * (l_rot + l_trans + 0.5 * l_fov) + weights["quat"] * l_quat
+    pose_term = weights["pose"] * (l_rot + l_trans + 0.5 * l_fov)
+    quat_term = weights["quat"] * l_quat
+    total = pose_term + quat_term
     # Translation direction (1 - cosine) of the later views: the normalised translations are
     # small (about 0.1), so the L1 term is nearly met by predicting none, in any direction.
     moving = t_g[:, 1:].norm(dim=-1) > 1e-4
@@ -724,6 +742,8 @@ def pose_losses(pose_enc: torch.Tensor, tg: dict, weights: dict, zero: torch.Ten
         trans_deg = torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0))).mean()
     return {
         "loss": total,
+        "_pose_term": pose_term,
+        "_quat_term": quat_term,
         "depth_si": zero,
         "depth_abs": zero,
         "conf": zero,
