@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import re
 import shutil
 import sys
@@ -315,3 +316,120 @@ def test_fixed_batch_trains_on_the_first_batch_every_step(tmp_path, monkeypatch)
     requested.clear()
     assert train.main(["--out", str(tmp_path / "normal"), *common]) == 0
     assert requested == [0, 1, 2]
+
+
+def _tiny_args(**extra: str) -> list[str]:
+    """A 28 px, 1-sequence smoke configuration (seconds per run)."""
+    args = {
+        "--size": "28",
+        "--n-seq": "2",
+        "--n-frames": "3",
+        "--max-gap": "1",
+        "--batch": "1",
+        "--steps": "2",
+        "--warmup": "1",
+        "--log-every": "1",
+        "--ckpt-every": "1",
+        "--threads": "1",
+        **extra,
+    }
+    return ["--tiny", *[x for kv in args.items() for x in kv]]
+
+
+def test_flow_targets_match_a_known_translation():
+    train = _script("train_default_network")
+    H = W = 28
+    depth = torch.full((1, 2, H, W), 2.0)
+    depth[0, 0, :14, :14] = 0.0  # the first token has no depth: invalid
+    poses = torch.eye(4, dtype=torch.float64).repeat(1, 2, 1, 1)
+    poses[0, 1, 0, 3] = -0.2  # view 2 sees the scene 0.2 m to the left: points move left
+    batch = {"depth": depth, "cam_from_world": poses, "fov": torch.tensor([90.0])}
+    flow, ok = train.flow_targets(batch)
+    assert flow.shape == (1, 2, 4, 2) and ok.shape == (1, 2, 4)
+    f = (W / 2.0) / math.tan(math.radians(45.0))  # 14 px
+    # u_b - u_a = f * t_x / z = 14 * -0.2 / 2 = -1.4 px, in units of half the width (14 px)
+    assert torch.allclose(flow[0, 0, 1:, 0], torch.full((3,), -0.2 * f / 2.0 / (W / 2.0)))
+    assert torch.allclose(flow[0, 1, :, 0], torch.full((4,), 0.2 * f / 2.0 / (W / 2.0)))
+    assert torch.allclose(flow[..., 1], torch.zeros(1, 2, 4))
+    assert not ok[0, 0, 0] and ok[0, 0, 1:].all() and ok[0, 1].all()
+
+
+def test_flow_aux_pose_only_jitter_run_resumes_exactly_and_exports_no_aux_head(tmp_path):
+    train = _script("train_default_network")
+    common = _tiny_args(
+        **{
+            "--aux-flow": "1",
+            "--aux-flow-kind": "both",
+            "--aux-attn": "1",
+            "--jitter-frac": "0.5",
+            "--jitter-deg": "5",
+            "--val-seqs": "1",
+            "--rot-aug-deg": "3",
+            "--rot-aug-frac": "1",
+            "--w-tdir": "1",
+        }
+    )
+    common.append("--pose-only")
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert train.main(["--out", str(a), "--stop-after", "1", *common]) == 0
+    assert train.main(["--out", str(a), *common, "--export", str(a / "net.safetensors")]) == 0
+    b.mkdir()
+    for name in ("train_data.npz", "val_data.npz"):
+        shutil.copy(a / name, b / name)
+    assert train.main(["--out", str(b), *common]) == 0
+    from safetensors.torch import load_file
+
+    for name in ("checkpoint.safetensors", "aux.safetensors"):
+        wa, wb = load_file(str(a / name)), load_file(str(b / name))
+        assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa), name
+    exported = load_file(str(a / "net.safetensors"))
+    aux_keys = load_file(str(a / "aux.safetensors")).keys()
+    assert not any("mlps" in k or k.startswith("flowaux") for k in exported)
+    assert aux_keys and not set(aux_keys) & set(exported)
+    # the exported network is the plain builder's architecture: same keys as a run without aux
+    c = tmp_path / "c"
+    c.mkdir()
+    shutil.copy(a / "train_data.npz", c / "train_data.npz")
+    plain = _tiny_args(**{"--jitter-frac": "0.5", "--jitter-deg": "5", "--steps": "1"})
+    assert train.main(["--out", str(c), *plain, "--export", str(c / "net.safetensors")]) == 0
+    assert exported.keys() == load_file(str(c / "net.safetensors")).keys()
+    header, *rows = (a / "log.csv").read_text().strip().splitlines()
+    cols = header.split(",")
+    for col in ("flow", "attn", "tdir", "trans_deg", "val_rot_ratio", "val_trans_deg"):
+        assert col in cols
+    last = dict(zip(cols, rows[-1].split(","), strict=True))
+    assert float(last["flow"]) > 0 and float(last["attn"]) > 0 and float(last["val_rot_ratio"]) > 0
+    assert float(last["depth_si"]) == 0.0  # pose-only: no depth loss
+
+
+def test_jitter_rotates_cameras_about_their_centres():
+    train = _script("train_default_network")
+    plain = train.render_one(10_001, 28, 2)
+    jit = train.render_one(10_001, 28, 2, jitter_deg=5.0)
+    from raytun3r_plugin.synthetic.generate import camera_centres
+
+    assert np.allclose(camera_centres(plain["poses"]), camera_centres(jit["poses"]), atol=1e-9)
+    assert not np.allclose(plain["poses"][:, :3, :3], jit["poses"][:, :3, :3])
+    assert train.jittered(10_001, 1.0) and not train.jittered(10_001, 0.0)
+
+
+def test_rotate_views_is_an_exact_pinhole_rotation():
+    train = _script("train_default_network")
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    S, H, W = 2, 28, 28
+    im = rng.uniform(size=(S, H, W, 3)).astype(np.float32)
+    de = rng.uniform(1.0, 3.0, size=(S, H, W)).astype(np.float32)
+    po = np.tile(np.eye(4), (S, 1, 1))
+    same = train.rotate_views(im, de, po, 70.0, np.tile(np.eye(3), (S, 1, 1)))
+    assert same is not None
+    assert np.allclose(same[0], im, atol=1e-5) and np.allclose(same[1], de, atol=1e-5)
+    assert same[3] == pytest.approx(70.0)
+    # a turned camera: the new pose is R @ old, the zoom keeps every pixel inside (no border)
+    rots = Rotation.from_rotvec([[0.0, 0.05, 0.0], [0.03, 0.0, 0.02]]).as_matrix()
+    im2, de2, po2, fov2 = train.rotate_views(im, np.full_like(de, 2.0), po, 70.0, rots)
+    assert np.allclose(po2[:, :3, :3], rots) and fov2 < 70.0
+    assert (de2 > 0).all()
+    # a fronto-parallel plane at z = 2 seen by a camera turned by R: z' = (R X)_z >= 0
+    assert np.all(np.abs(de2 - 2.0) < 0.2)
