@@ -1,4 +1,6 @@
-"""raytun3r's built-in default network ``raytun3r-da3-tiny`` (issue 7).
+"""raytun3r's built-in networks ``raytun3r-da3-tiny`` (the default, v2; issue 7) and
+``raytun3r-da3-tiny-v3`` (issue 13: the same architecture, trained so that its pose head
+generalises; model card, "Versions").
 
 A small ``DepthAnything3Net`` of the real ``depth_anything_3`` classes, trained from scratch on
 procedural PINHOLE views only (``scripts/train_default_network.py``; model card
@@ -20,6 +22,8 @@ from pathlib import Path
 from raytun3r_plugin.errors import WeightsError
 
 NAME = "raytun3r-da3-tiny"
+#: The v3 weights: same build arguments, a pose head that beats "no rotation" on held-out pairs.
+NAME_V3 = "raytun3r-da3-tiny-v3"
 WEIGHTS_FILE = f"{NAME}.safetensors"
 KWARGS_FILE = f"{NAME}.json"
 METRICS_FILE = f"{NAME}.metrics.json"
@@ -30,43 +34,48 @@ def data_dir() -> Path:
     return Path(str(resources.files("raytun3r_plugin"))) / "data"
 
 
-def build_kwargs() -> dict:
-    """The ``build_tiny_network`` arguments the shipped weights were trained with."""
-    path = data_dir() / KWARGS_FILE
+def build_kwargs(name: str = NAME) -> dict:
+    """The ``build_tiny_network`` arguments the shipped weights ``name`` were trained with."""
+    path = data_dir() / f"{name}.json"
     if not path.is_file():
         raise WeightsError(
-            f"{NAME}: the packaged build record {path} is missing; reinstall raytun3r or train the "
+            f"{name}: the packaged build record {path} is missing; reinstall raytun3r or train the "
             "network with scripts/train_default_network.py --export <path>"
         )
     try:
         kwargs = json.loads(path.read_text())["build_kwargs"]
     except (ValueError, KeyError, TypeError) as error:
-        raise WeightsError(f"{NAME}: {path} is not a valid build record ({error})") from error
+        raise WeightsError(f"{name}: {path} is not a valid build record ({error})") from error
     return {
         key: (tuple(value) if isinstance(value, list) else value) for key, value in kwargs.items()
     }
 
 
-def build(path=None):
-    """Build ``raytun3r-da3-tiny`` and load the packaged weights (or the file ``path``).
+def build(path=None, name: str = NAME):
+    """Build the built-in network ``name`` and load its packaged weights (or the file ``path``).
 
-    Returns the network in eval mode, named ``raytun3r-da3-tiny`` (``describe`` reports it).
+    Returns the network in eval mode, named ``name`` (``describe`` reports it).
     Raises :class:`WeightsError` when the packaged weight file is missing.
     """
     from raytun3r_plugin.patches.da3 import build_tiny_network, load_weights
 
-    weights = Path(path) if path is not None else data_dir() / WEIGHTS_FILE
+    weights = Path(path) if path is not None else data_dir() / f"{name}.safetensors"
     if path is None and not weights.is_file():
         raise WeightsError(
-            f"{NAME}: the packaged weight file {weights} is missing; reinstall raytun3r, pass a "
+            f"{name}: the packaged weight file {weights} is missing; reinstall raytun3r, pass a "
             "local path, or train it with scripts/train_default_network.py --export <path>"
         )
-    kwargs = build_kwargs()
+    kwargs = build_kwargs(name)
     kwargs["seed"] = None  # the initialisation is overwritten by the weights; leave the RNG alone
     model = build_tiny_network(**kwargs)
     load_weights(model, weights)
-    model.raytun3r_name = NAME
+    model.raytun3r_name = name
     return model.eval()
 
 
-BUILDERS = {NAME: build}
+def build_v3(path=None):
+    """:func:`build` of ``raytun3r-da3-tiny-v3``."""
+    return build(path, NAME_V3)
+
+
+BUILDERS = {NAME: build, NAME_V3: build_v3}
