@@ -438,6 +438,7 @@ def test_rotate_views_is_an_exact_pinhole_rotation():
 def test_v3_is_a_second_built_in_of_the_same_architecture():
     """``raytun3r-da3-tiny-v3`` (issue 13) loads without a path, under its own name, and is not v2."""
     from raytun3r_plugin.patches.da3 import describe
+
     from raytun3r_plugin.weights import available_backbones, load_backbone
 
     module = _default()
