@@ -129,11 +129,25 @@ def cmd_infer(args: argparse.Namespace) -> int:
     return 0
 
 
+def _adapt_settings(args: argparse.Namespace) -> dict:
+    """The ``AdaptConfig`` fields the ``adapt`` and ``adapt-rig`` options set."""
+    from raytun3r_plugin.preprocess import DEFAULT_LONG_SIDE
+
+    return dict(
+        steps=args.steps,
+        input_size=args.size or DEFAULT_LONG_SIDE,
+        n_windows=args.windows,
+        matcher=args.matcher,
+        seed=args.seed,
+        pose_source=args.pose_source,
+        cache_dir=args.cache_dir,
+    )
+
+
 def cmd_adapt(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adaptation.train import AdaptConfig, adapt, artifact_paths
     from raytun3r_plugin.cameras import load as load_camera
     from raytun3r_plugin.images import read_depth_maps, read_frames, read_mask
-    from raytun3r_plugin.preprocess import DEFAULT_LONG_SIDE
 
     camera = load_camera(args.camera, camera=args.camera_id)
     frames, names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
@@ -144,15 +158,7 @@ def cmd_adapt(args: argparse.Namespace) -> int:
         else None
     )
     model = _load_model(args.backbone, args.weights)
-    settings = dict(
-        steps=args.steps,
-        input_size=args.size or DEFAULT_LONG_SIDE,
-        n_windows=args.windows,
-        matcher=args.matcher,
-        seed=args.seed,
-        pose_source=args.pose_source,
-        cache_dir=args.cache_dir,
-    )
+    settings = _adapt_settings(args)
     config = AdaptConfig(**settings) if depth is None else AdaptConfig.supervised(**settings)
     adapter = adapt(model, camera, frames, config, out_path=args.out, mask=mask, depth=depth)
     paths = artifact_paths(args.out)
@@ -167,7 +173,6 @@ def cmd_adapt_rig(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adaptation.rig import adapt_rig, rig_artifact_paths
     from raytun3r_plugin.adaptation.train import AdaptConfig
     from raytun3r_plugin.datasets.rig import load_eth3d_rig_set, load_tumvi_rig
-    from raytun3r_plugin.preprocess import DEFAULT_LONG_SIDE
 
     rig = (
         load_tumvi_rig(args.dataset) if args.format == "tumvi" else load_eth3d_rig_set(args.dataset)
@@ -177,14 +182,7 @@ def cmd_adapt_rig(args: argparse.Namespace) -> int:
         instants = instants[: args.max_frames]
     rig = rig.subset(list(instants))
     model = _load_model(args.backbone, args.weights)
-    config = AdaptConfig(
-        steps=args.steps,
-        input_size=args.size or DEFAULT_LONG_SIDE,
-        n_windows=args.windows,
-        seed=args.seed,
-        pose_source=args.pose_source,
-        cache_dir=args.cache_dir,
-    )
+    config = AdaptConfig(**_adapt_settings(args))
     adapters = adapt_rig(model, rig, config, out_dir=args.out, cross_camera=args.cross_camera)
     paths = rig_artifact_paths(args.out, rig.names)
     for name in rig.names:
@@ -465,6 +463,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=int, default=None, help="network input long side (default 504)")
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--windows", type=int, default=30)
+    p.add_argument("--matcher", default="dis", help="dis | sift | a registered matcher")
     p.add_argument("--pose-source", default="model", choices=("model", "targets"))
     p.add_argument("--cache-dir", default=None)
     p.add_argument("--seed", type=int, default=0)
