@@ -266,3 +266,17 @@ def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
         q /= np.linalg.norm(q)
         out[k] = q if q[0] >= 0 else -q
     return out.reshape(rotations.shape[:-2] + (4,))
+
+
+def rotations_from_rotvecs(rotvecs: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices of (N, 3) axis-angle vectors (radians), by Rodrigues' formula."""
+    w = np.asarray(rotvecs, dtype=np.float64).reshape(-1, 3)
+    theta = np.linalg.norm(w, axis=1)
+    k = np.zeros((len(w), 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    small = theta < 1e-12
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0, np.sin(safe) / safe)[:, None, None]
+    b = np.where(small, 0.5, (1.0 - np.cos(safe)) / safe**2)[:, None, None]
+    return np.eye(3)[None] + a * k + b * (k @ k)

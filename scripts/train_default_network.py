@@ -145,10 +145,10 @@ def sequence_spec(seed: int, outdoor_fraction: float = 0.3) -> dict:
 
 def jitter_rotations(seed: int, n: int, std_deg: float) -> np.ndarray:
     """(n, 3, 3) random rotations: axis-angle vectors with i.i.d. N(0, ``std_deg``) components."""
-    from scipy.spatial.transform import Rotation
+    from raytun3r_plugin.poses import rotations_from_rotvecs
 
     rng = np.random.default_rng([int(seed), 91])
-    return Rotation.from_rotvec(np.deg2rad(rng.normal(0.0, std_deg, size=(n, 3)))).as_matrix()
+    return rotations_from_rotvecs(np.deg2rad(rng.normal(0.0, std_deg, size=(n, 3))))
 
 
 def render_one(seed: int, size: int, n_frames: int, jitter_deg: float = 0.0) -> dict:
@@ -373,10 +373,10 @@ def make_batch(
             po = _FLIP @ po @ _FLIP
         fov = float(data["fov"][s])
         if rot_aug_deg > 0 and rng.uniform() < rot_aug_frac:
-            from scipy.spatial.transform import Rotation
+            from raytun3r_plugin.poses import rotations_from_rotvecs
 
             vec = np.deg2rad(rng.normal(0.0, rot_aug_deg, size=(views, 3)))
-            turned = rotate_views(im, de, po, fov, Rotation.from_rotvec(vec).as_matrix())
+            turned = rotate_views(im, de, po, fov, rotations_from_rotvecs(vec))
             if turned is not None:
                 im, de, po, fov = turned
         gain = rng.uniform(0.8, 1.2, size=3).astype(np.float32)

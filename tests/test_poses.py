@@ -131,3 +131,19 @@ def test_tum_trajectories_store_x_y_z_w(tmp_path):
     np.testing.assert_allclose(
         values, [0.5, 1.0, 2.0, 3.0, 0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)], atol=1e-8
     )
+
+
+def test_rotations_from_rotvecs_turn_by_the_vector_length_about_its_axis():
+    from raytun3r_plugin.poses import rotation_angle, rotations_from_rotvecs
+
+    rotvecs = np.random.default_rng(0).normal(size=(20, 3))
+    rotvecs[0] = 0.0
+    rotations = rotations_from_rotvecs(rotvecs)
+    assert np.allclose(rotations @ rotations.transpose(0, 2, 1), np.eye(3), atol=1e-12)
+    assert np.allclose(np.linalg.det(rotations), 1.0)
+    assert np.allclose(rotations[0], np.eye(3))
+    axes = rotvecs[1:] / np.linalg.norm(rotvecs[1:], axis=1, keepdims=True)
+    assert np.allclose(np.einsum("nij,nj->ni", rotations[1:], axes), axes, atol=1e-12)
+    angles = np.linalg.norm(rotvecs[1:], axis=1)  # radians, all below pi here
+    found = [float(rotation_angle(r, np.eye(3))) for r in rotations[1:]]
+    assert angles.max() < np.pi and np.allclose(found, angles, atol=1e-6)
