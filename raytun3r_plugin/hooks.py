@@ -242,7 +242,7 @@ def uv_grid_embedding(owner, state):
             if all(embed is None for embed in embeds):
                 return original(x, W, H, ratio)
             # A view whose grid is upstream's own (a pinhole camera) goes through upstream.
-            plain = original(x, W, H, ratio)
+            plain = original(x, W, H, ratio) if any(embed is None for embed in embeds) else x
             parts = [
                 plain[row] if embeds[view] is None else x[row] + embeds[view][0]
                 for row, view in enumerate(index.tolist())

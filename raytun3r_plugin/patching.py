@@ -148,6 +148,8 @@ class PatchState:
         self.spec = spec
         self.geometry_cache = GeometryCache(camera, info.patch_size, mask, knee_deg, max_stretch)
         self.views = self._views(views or ((camera, adapter, mask),))
+        # Fixed for the patch's life, and read by every hook on every call: decided once here.
+        self.rig = self._differ(self.views)
         # Weak: the state is reachable from the model's own wrappers.
         self._model = weakref.ref(model) if model is not None else None
 
@@ -169,13 +171,13 @@ class PatchState:
             views.append(View(camera, adapter, mask, cache))
         return tuple(views)
 
-    @property
-    def rig(self) -> bool:
+    @staticmethod
+    def _differ(views: tuple[View, ...]) -> bool:
         """True when the views differ (camera, mask or adapter): the hooks then work per view."""
-        first = self.views[0]
+        first = views[0]
         return any(
             view.geometry_cache is not first.geometry_cache or view.adapter is not first.adapter
-            for view in self.views[1:]
+            for view in views[1:]
         )
 
     def __deepcopy__(self, memo: dict) -> PatchState:
@@ -207,6 +209,7 @@ class PatchState:
                 for view in self.views
             )
         )
+        twin.rig = twin._differ(twin.views)
         twin._model = weakref.ref(memo[id(model)])
         return twin
 

@@ -22,6 +22,7 @@ are within one camera), the collapse guard, checkpoints and resuming, the superv
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -143,7 +144,7 @@ def adapt_rig(
         name: (
             Adapter.for_model(model, None, components=config.components)
             if name not in start
-            else _copied(start[name])
+            else copy.deepcopy(start[name])
         )
         for name in names
     }
@@ -287,12 +288,6 @@ def adapt_rig(
             title=f"rig adaptation losses ({len(history)} steps, {len(names)} cameras)",
         )
     return fitted
-
-
-def _copied(adapter: Adapter) -> Adapter:
-    import copy
-
-    return copy.deepcopy(adapter)
 
 
 def _for_camera(config: AdaptConfig, rig: Rig, name: str) -> AdaptConfig:

@@ -358,6 +358,16 @@ def _add_model_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_fit_arguments(parser: argparse.ArgumentParser) -> None:
+    """The fitting options ``adapt`` and ``adapt-rig`` share (read by :func:`_adapt_settings`)."""
+    parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--windows", type=int, default=30)
+    parser.add_argument("--matcher", default="dis", help="dis | sift | a registered matcher")
+    parser.add_argument("--pose-source", default="model", choices=("model", "targets"))
+    parser.add_argument("--cache-dir", default=None)
+    parser.add_argument("--seed", type=int, default=0)
+
+
 def _add_frame_arguments(parser: argparse.ArgumentParser, size_help: str) -> None:
     parser.add_argument(
         "--frames", required=True, help="image folder (sorted by name) or video file"
@@ -431,12 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--camera", required=True)
     p.add_argument("--camera-id", default=None)
-    p.add_argument("--steps", type=int, default=300)
-    p.add_argument("--windows", type=int, default=30)
-    p.add_argument("--matcher", default="dis", help="dis | sift | a registered matcher")
-    p.add_argument("--pose-source", default="model", choices=("model", "targets"))
-    p.add_argument("--cache-dir", default=None)
-    p.add_argument("--seed", type=int, default=0)
+    _add_fit_arguments(p)
     p.add_argument(
         "--depth",
         default=None,
@@ -461,12 +466,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stride", type=int, default=1, help="use every n-th instant")
     p.add_argument("--max-frames", type=int, default=None, help="at most this many instants")
     p.add_argument("--size", type=int, default=None, help="network input long side (default 504)")
-    p.add_argument("--steps", type=int, default=300)
-    p.add_argument("--windows", type=int, default=30)
-    p.add_argument("--matcher", default="dis", help="dis | sift | a registered matcher")
-    p.add_argument("--pose-source", default="model", choices=("model", "targets"))
-    p.add_argument("--cache-dir", default=None)
-    p.add_argument("--seed", type=int, default=0)
+    _add_fit_arguments(p)
     p.add_argument(
         "--cross-camera",
         action="store_true",

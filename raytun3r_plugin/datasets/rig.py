@@ -24,6 +24,7 @@ import torch
 from raytun3r_plugin.datasets._common import invert_pose
 from raytun3r_plugin.datasets.sequence import Sequence
 from raytun3r_plugin.errors import DatasetError
+from raytun3r_plugin.poses import rotation_angle
 
 __all__ = ["Rig", "load_eth3d_rig_set", "load_tumvi_rig", "rig_from_sequences"]
 
@@ -145,11 +146,6 @@ class Rig:
         )
 
 
-def _angle_deg(rotation: np.ndarray) -> float:
-    cosine = np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.degrees(np.arccos(cosine)))
-
-
 def rig_from_sequences(
     sequences: Mapping[str, Sequence],
     cam_from_rig: Mapping[str, np.ndarray] | None = None,
@@ -215,7 +211,7 @@ def _measured_extrinsics(aligned: dict[str, Sequence]) -> tuple[dict[str, np.nda
         transform = np.eye(4)
         transform[:3, :3], transform[:3, 3] = rotation, centre[:3, 3]
         metres = float(np.abs(relative[:, :3, 3] - transform[:3, 3]).max())
-        degrees = max(_angle_deg(r @ rotation.T) for r in relative[:, :3, :3])
+        degrees = float(np.degrees(rotation_angle(relative[:, :3, :3], rotation).max()))
         if metres > RIGID_TOLERANCE_M or degrees > RIGID_TOLERANCE_DEG:
             raise DatasetError(
                 f"camera {camera!r} moves against {names[0]!r} by up to {metres * 1e3:.3g} mm / "
