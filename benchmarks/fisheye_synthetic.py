@@ -24,7 +24,7 @@ from raytun3r_plugin.apps.benchmark import (
     SEQUENCES_PER_CELL,
     run_benchmark,
 )
-from raytun3r_plugin.apps.demo import default_network
+from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, POSE_SOURCES, default_network
 from raytun3r_plugin.registry import quiet_upstream
 
 START, END = "<!-- bench:start -->", "<!-- bench:end -->"
@@ -52,12 +52,24 @@ def main() -> None:
         action="store_true",
         help="development seeds (80000+) instead of the held-out ones; never with --readme",
     )
+    parser.add_argument(
+        "--network",
+        default=DEFAULT_NETWORK,
+        choices=sorted(POSE_SOURCES),
+        help="built-in network (v2 = raytun3r-da3-tiny measured the README's older tables)",
+    )
+    parser.add_argument(
+        "--pose-source",
+        default=None,
+        choices=("model", "targets", "hybrid"),
+        help="pose source of the self-supervised fits (default: the network's, demo.POSE_SOURCES)",
+    )
     args = parser.parse_args()
     if args.development and args.readme:
         parser.error(
             "--development tables are for choosing settings; the README shows held-out seeds"
         )
-    model, description = default_network()
+    model, description = default_network(args.network)
     table = run_benchmark(
         model,
         args.out,
@@ -68,6 +80,7 @@ def main() -> None:
         progress=False,
         base_seed=DEVELOPMENT_SEED if args.development else HELD_OUT_SEED,
         baselines=tuple(name for name in args.baselines.split(",") if name),
+        pose_source=args.pose_source or POSE_SOURCES[args.network],
     )
     print(table)
     if args.readme:

@@ -296,6 +296,31 @@ def test_pose_from_targets_mode(camera, frames, cache_dir):
     assert all(float(t.abs().max()) > 0 for t in tables(adapter).values())
 
 
+def test_hybrid_mode_reprojects_through_the_targets_and_keeps_the_pose_term(
+    camera, frames, cache_dir, tmp_path
+):
+    # The first step's terms are taken at the zero adapter, so the three modes see one
+    # prediction: hybrid's reprojection must be the targets mode's, its pose term the model
+    # mode's (a mode that reprojected through the network's pose, or dropped the pose term,
+    # would differ).
+    first = {}
+    for source in ("targets", "model", "hybrid"):
+        out = tmp_path / f"{source}.safetensors"
+        adapt(
+            build_tiny_network(),
+            camera,
+            frames,
+            config(cache_dir, steps=1, pose_source=source),
+            out_path=out,
+            progress=False,
+        )
+        first[source] = read_loss_log(out)[0]
+    assert "pose" not in first["targets"] and first["model"]["pose"] > 0
+    assert first["hybrid"]["reproj"] == pytest.approx(first["targets"]["reproj"], rel=1e-5)
+    assert first["hybrid"]["pose"] == pytest.approx(first["model"]["pose"], rel=1e-5)
+    assert abs(first["model"]["reproj"] / first["targets"]["reproj"] - 1) > 1e-3
+
+
 def test_adapt_refuses_a_patched_model(camera, frames, cache_dir):
     model = build_tiny_network()
     with apply(model, camera), pytest.raises(AlreadyAppliedError):

@@ -232,3 +232,27 @@ def test_baselines_are_off_by_default_and_change_neither_targets_nor_gap(tiny_be
         tables["plain"].split("Target", 1)[1].split("\n")[0]
         == (tables["baselines"].split("Target", 1)[1].split("\n")[0])
     )
+
+
+def test_rotation_effect_compares_the_fit_with_vanilla_and_center_ph_per_sequence(tiny_bench):
+    from raytun3r_plugin.apps.benchmark import ZERO_ADAPTER, rotation_effect
+
+    rows = [
+        {"camera": "C", "scene": "indoor", "seed": seed, "method": method, "rot_deg": value}
+        for seed, values in ((1, (4.0, 3.0, 5.0, 1.0, 6.0)), (2, (2.0, 1.0, 2.0, 3.0, 2.0)))
+        for method, value in zip(
+            ("vanilla", "center-ph", ZERO_ADAPTER, "raytun3r", "raytun3r, supervised"),
+            values,
+            strict=True,
+        )
+    ]
+    (row,) = rotation_effect(rows)
+    assert row["rot_vanilla"] == 3.0 and row["rot_adapted"] == 2.0
+    assert row["vanilla_over_adapted"] == 1.5
+    assert row["adapted_below_vanilla"] == "1/2" and row["adapted_below_center_ph"] == "1/2"
+    assert row["adapted_below_no_adapter"] == "1/2"
+    # The benchmark writes the same table from its own rows.
+    _, results, _ = tiny_bench
+    data, out = results["plain"]
+    assert data["rotation"] == rotation_effect(data["sequences"])
+    assert "rotation_effect" in (out / "results.md").read_text()

@@ -368,7 +368,7 @@ def test_demo_runs_on_the_built_in_default(tmp_path, capsys):
         == 0
     )
     out = capsys.readouterr().out
-    assert "raytun3r-da3-tiny" in out and "trained by raytun3r on pinhole renders only" in out
+    assert "raytun3r-da3-tiny-v3" in out and "trained by raytun3r on pinhole renders only" in out
     for label in (
         "vanilla (unpatched)",
         "Center-PH",

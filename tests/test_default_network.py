@@ -456,3 +456,23 @@ def test_v3_is_a_second_built_in_of_the_same_architecture():
     assert metrics["network"] == module.NAME_V3
     assert pinhole["rotation_ratio"] <= 0.5 and pinhole["translation_deg"] < 90
     assert pinhole["abs_rel"] <= 0.185
+
+
+def test_the_demo_and_benchmarks_run_v3_and_fit_through_its_own_pose():
+    """Issue 13: v3 is the default network; its fits use the network's pose and the pose term,
+    v2's (at chance) the MAGSAC++ targets."""
+    from raytun3r_plugin.apps.demo import POSE_SOURCES, adapt_config, default_network
+
+    model, description = default_network()
+    assert model.raytun3r_name == "raytun3r-da3-tiny-v3" and description.startswith(
+        model.raytun3r_name
+    )
+    assert adapt_config(112, 10).pose_source == "model" and adapt_config(112, 10).weights.pose > 0
+    assert POSE_SOURCES["raytun3r-da3-tiny"] == "targets"
+    v2, _ = default_network("raytun3r-da3-tiny")
+    assert v2.raytun3r_name == "raytun3r-da3-tiny"
+    differs = any(
+        not torch.equal(a, b)
+        for a, b in zip(model.state_dict().values(), v2.state_dict().values(), strict=True)
+    )
+    assert differs

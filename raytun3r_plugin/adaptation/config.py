@@ -24,7 +24,7 @@ __all__ = [
     "AdaptConfig",
 ]
 
-POSE_SOURCES = ("model", "targets")
+POSE_SOURCES = ("model", "targets", "hybrid")
 SCALES = ("pixel", "least_squares")
 PE_REGULARISERS = ("relative", "absolute")
 TERMS = ("reproj", "smooth", "l2", "tv", "pose", "depth")
@@ -82,7 +82,10 @@ class AdaptConfig:
             head is unusable: the unit translation is scaled per pair in closed form to agree
             with the predicted depth, only pairs with a usable target contribute to the
             reprojection term, and the pose term is dropped (it would compare the targets with
-            themselves).
+            themselves); ``"hybrid"`` reprojects through the targets as ``"targets"`` does (the
+            scale-correct depth signal of issue 12) and keeps the paper's pose term on the
+            network's own relative pose, so the fit can move the pose head towards the same
+            targets (for backbones whose pose head works; issue 13, docs/adaptation.md).
         depth_convention: ``"range"`` (depth = distance along the unit ray, the fisheye
             default) or ``"z"`` (z-depth; FOV below 180 degrees only).
         components: corrections switched on during adaptation (None = all).

@@ -202,7 +202,7 @@ def window_terms(
             depth (K,))``; the terms are then ``depth`` (:func:`silog_loss`), ``l2`` and ``tv``.
 
     Returns:
-        (terms, counts): 0-d tensors per term name (pose absent in ``targets`` mode) and the
+        (terms, counts): 0-d tensors per term name (pose absent with ``pose_source="targets"``) and the
         numbers of reprojection matches / pose targets that entered them.
     """
     prediction = predict(model, images[None])
@@ -254,14 +254,15 @@ def prediction_terms(
         return {"depth": term, **regularisers}, {"n_matches": 0, "n_pose": 0, "n_depth": n_depth}
     reproj, pose_terms, n_matches = [], [], 0
     for pair in pairs:
-        if config.pose_source == "model":
+        if config.pose_source in ("model", "hybrid"):
             relative = relative_pose(poses, pair.a, pair.b)
             if pair.rotation is not None:
                 pose_terms.append(pose_loss(relative, pair.rotation, pair.direction))
-        if pair.uv_i.shape[0] == 0 or (config.pose_source == "targets" and pair.rotation is None):
+        reproject_targets = config.pose_source in ("targets", "hybrid")
+        if pair.uv_i.shape[0] == 0 or (reproject_targets and pair.rotation is None):
             continue
         uv_i, uv_j, confidence, rays_i, rays_j = _subset(pair, config.max_matches, generator)
-        if config.pose_source == "targets":
+        if reproject_targets:
             relative = _targets_pose(
                 pair, depth[pair.a], uv_i, uv_j, confidence, rays_i, rays_j, layout.camera, config
             )
@@ -286,7 +287,7 @@ def prediction_terms(
         "smooth": smoothness_loss(depth, images.to(depth.dtype), valid),
         **regularisers,
     }
-    if config.pose_source == "model":
+    if config.pose_source in ("model", "hybrid"):
         terms["pose"] = torch.stack(pose_terms).mean() if pose_terms else zero
     return terms, {"n_matches": n_matches, "n_pose": len(pose_terms)}
 

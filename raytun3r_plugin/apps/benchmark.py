@@ -14,13 +14,14 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections import defaultdict
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from raytun3r_plugin.apps.demo import adapt_config, supervised_config
+from raytun3r_plugin.apps.demo import POSE_SOURCE, adapt_config, supervised_config
 from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
 from raytun3r_plugin.errors import InputError
 
@@ -239,12 +240,14 @@ def sequence_rows(
     out: Path,
     progress: bool = False,
     baselines: tuple[str, ...] = (),
+    pose_source: str = POSE_SOURCE,
 ) -> list[dict]:
     """The rows of one held-out sequence: vanilla, Center-PH, Multi-PH, the zero adapter, an
     adapter fitted self-supervised on its first ``n_adapt`` frames and one fitted to their
     ground-truth depth (the upper bound; both written to ``out``), then the ``baselines``
     (:data:`BASELINES`: LoRA, calibration tokens) fitted like the first adapter with the
-    tables at zero and ``components=[]``; all scored on the rest.
+    tables at zero and ``components=[]``; all scored on the rest. ``pose_source``: that of the
+    self-supervised fits (:class:`~raytun3r_plugin.adaptation.train.AdaptConfig`).
 
     Every row has ``params`` (trainable parameters of what was fitted; 0 without a fit),
     ``ms_per_frame`` (:func:`timed_row`) and ``x_vanilla`` (its ``ms_per_frame`` over vanilla's
@@ -280,7 +283,7 @@ def sequence_rows(
         model,
         camera,
         seq.images[:n_adapt],
-        adapt_config(size, steps, seed=0),
+        adapt_config(size, steps, seed=0, pose_source=pose_source),
         out_path=path,
         resume=False,
         progress=progress,
@@ -322,7 +325,7 @@ def sequence_rows(
             camera,
             seq.images[:n_adapt],
             name,
-            adapt_config(size, steps, seed=0, components=[]),
+            adapt_config(size, steps, seed=0, components=[], pose_source=pose_source),
             out_path=path.with_name(f"{path.stem}_{name}.safetensors"),
             progress=progress,
         ) as (module, seconds):
@@ -348,6 +351,47 @@ def sequence_rows(
     return rows
 
 
+#: The methods whose rotation :func:`rotation_effect` compares, with their column labels.
+ROTATION_METHODS = {
+    "vanilla": "vanilla",
+    "center-ph": "center-ph",
+    ZERO_ADAPTER: "no adapter",
+    "raytun3r": "adapted",
+    SUPERVISED: "supervised",
+}
+
+
+def rotation_effect(sequences: list[dict]) -> list[dict]:
+    """What adaptation does to the network's own rotation error (issue 13), one row per
+    (camera, scene) of the benchmark's per-sequence ``sequences`` rows: the mean ``rot_deg``
+    (degrees) of each of :data:`ROTATION_METHODS`, vanilla's over the fit's (the paper's target:
+    at least 2) and on how many sequences the fit is below vanilla, Center-PH and the zero
+    adapter. Cells keep their first-seen order."""
+    by_sequence: dict[tuple, dict[str, float]] = defaultdict(dict)
+    for row in sequences:
+        if row["method"] in ROTATION_METHODS:
+            by_sequence[(row["camera"], row["scene"], row["seed"])][row["method"]] = row["rot_deg"]
+    cells: dict[tuple, list[dict[str, float]]] = defaultdict(list)
+    for (camera, scene, _), values in by_sequence.items():
+        cells[(camera, scene)].append(values)
+    rows = []
+    for (camera, scene), values in cells.items():
+        mean = {m: sum(v[m] for v in values) / len(values) for m in ROTATION_METHODS}
+        n = len(values)
+        rows.append(
+            {
+                "camera": camera,
+                "scene": scene,
+                **{f"rot_{ROTATION_METHODS[m]}": mean[m] for m in ROTATION_METHODS},
+                "vanilla_over_adapted": mean["vanilla"] / mean["raytun3r"],
+                "adapted_below_vanilla": f"{sum(v['raytun3r'] < v['vanilla'] for v in values)}/{n}",
+                "adapted_below_center_ph": f"{sum(v['raytun3r'] < v['center-ph'] for v in values)}/{n}",
+                "adapted_below_no_adapter": f"{sum(v['raytun3r'] < v[ZERO_ADAPTER] for v in values)}/{n}",
+            }
+        )
+    return rows
+
+
 def run_benchmark(
     model,
     out_dir: str | Path,
@@ -363,6 +407,7 @@ def run_benchmark(
     progress: bool = False,
     base_seed: int = HELD_OUT_SEED,
     baselines: tuple[str, ...] = (),
+    pose_source: str = POSE_SOURCE,
 ) -> str:
     """Run every (camera, scene) on ``sequences`` held-out sequences; return the markdown table.
 
@@ -397,6 +442,7 @@ def run_benchmark(
                     out=out,
                     progress=progress,
                     baselines=baselines,
+                    pose_source=pose_source,
                 )
                 print(
                     f"[{time.perf_counter() - began:6.0f} s] {spec.label} {scene} seed {seed}: done",
@@ -436,7 +482,7 @@ def run_benchmark(
     header = (
         f"Network: {network or 'see model card'}; input {size}x{size} px; {sequences} {'held-out' if base_seed == HELD_OUT_SEED else 'development'} sequences per camera and scene "
         f"(seeds {base_seed} + 100 k + 10 camera + scene); per sequence {n_adapt} adaptation frames "
-        f"(30 windows, {steps} steps) and {n_eval} scored frames"
+        f"(30 windows, {steps} steps, pose source '{pose_source}') and {n_eval} scored frames"
         + (
             f"; baselines {', '.join(BASELINES[b] for b in baselines)} fitted on the same frames with the same "
             "objective, windows and steps (raytun3r's tables at zero, no parameter-free corrections)"
@@ -459,12 +505,21 @@ def run_benchmark(
         + (f" (not met: {', '.join(missed_zero)})" if missed_zero else "")
         + ".\n"
     )
-    (out / "results.md").write_text(header + "\n" + table + "\n")
+    rotation = rotation_effect(rows)
+    (out / "results.md").write_text(
+        header
+        + "\n"
+        + table
+        + "\n\nRotation error (deg) of the network's own pose, per cell (rotation_effect):\n\n"
+        + format_table(rotation, list(rotation[0]))
+        + "\n"
+    )
     (out / "results.json").write_text(
         json.dumps(
             {
                 "sequences": rows,
                 "summary": summary,
+                "rotation": rotation,
                 "target_met_cells": met,
                 "target_met_cells_vs_zero_adapter": met_zero,
             },

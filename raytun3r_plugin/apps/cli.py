@@ -360,10 +360,12 @@ def _add_model_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     """The fitting options ``adapt`` and ``adapt-rig`` share (read by :func:`_adapt_settings`)."""
+    from raytun3r_plugin.adaptation.config import POSE_SOURCES
+
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--windows", type=int, default=30)
     parser.add_argument("--matcher", default="dis", help="dis | sift | a registered matcher")
-    parser.add_argument("--pose-source", default="model", choices=("model", "targets"))
+    parser.add_argument("--pose-source", default="model", choices=POSE_SOURCES)
     parser.add_argument("--cache-dir", default=None)
     parser.add_argument("--seed", type=int, default=0)
 
