@@ -17,6 +17,7 @@ import argparse
 import re
 from pathlib import Path
 
+from raytun3r_plugin.adaptation.config import POSE_SOURCES
 from raytun3r_plugin.apps.benchmark import (
     BASELINES,
     DEVELOPMENT_SEED,
@@ -24,7 +25,7 @@ from raytun3r_plugin.apps.benchmark import (
     SEQUENCES_PER_CELL,
     run_benchmark,
 )
-from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, POSE_SOURCES, default_network
+from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, NETWORK_POSE_SOURCE, default_network
 from raytun3r_plugin.registry import quiet_upstream
 
 START, END = "<!-- bench:start -->", "<!-- bench:end -->"
@@ -55,14 +56,14 @@ def main() -> None:
     parser.add_argument(
         "--network",
         default=DEFAULT_NETWORK,
-        choices=sorted(POSE_SOURCES),
+        choices=sorted(NETWORK_POSE_SOURCE),
         help="built-in network (v2 = raytun3r-da3-tiny measured the README's older tables)",
     )
     parser.add_argument(
         "--pose-source",
         default=None,
-        choices=("model", "targets", "hybrid"),
-        help="pose source of the self-supervised fits (default: the network's, demo.POSE_SOURCES)",
+        choices=POSE_SOURCES,
+        help="pose source of the self-supervised fits (default: the network's, demo.NETWORK_POSE_SOURCE)",
     )
     args = parser.parse_args()
     if args.development and args.readme:
@@ -80,7 +81,7 @@ def main() -> None:
         progress=False,
         base_seed=DEVELOPMENT_SEED if args.development else HELD_OUT_SEED,
         baselines=tuple(name for name in args.baselines.split(",") if name),
-        pose_source=args.pose_source or POSE_SOURCES[args.network],
+        pose_source=args.pose_source or NETWORK_POSE_SOURCE[args.network],
     )
     print(table)
     if args.readme:

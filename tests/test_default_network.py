@@ -461,14 +461,14 @@ def test_v3_is_a_second_built_in_of_the_same_architecture():
 def test_the_demo_and_benchmarks_run_v3_and_fit_through_its_own_pose():
     """Issue 13: v3 is the default network; its fits use the network's pose and the pose term,
     v2's (at chance) the MAGSAC++ targets."""
-    from raytun3r_plugin.apps.demo import POSE_SOURCES, adapt_config, default_network
+    from raytun3r_plugin.apps.demo import NETWORK_POSE_SOURCE, adapt_config, default_network
 
     model, description = default_network()
     assert model.raytun3r_name == "raytun3r-da3-tiny-v3" and description.startswith(
         model.raytun3r_name
     )
     assert adapt_config(112, 10).pose_source == "model" and adapt_config(112, 10).weights.pose > 0
-    assert POSE_SOURCES["raytun3r-da3-tiny"] == "targets"
+    assert NETWORK_POSE_SOURCE["raytun3r-da3-tiny"] == "targets"
     v2, _ = default_network("raytun3r-da3-tiny")
     assert v2.raytun3r_name == "raytun3r-da3-tiny"
     differs = any(

@@ -35,8 +35,8 @@ DEMO_SEQUENCES = 4
 #: take relative poses from the MAGSAC++ targets alone; v3's works, so its fits are the paper's:
 #: reprojection through the network's own pose plus the pose term (``"model"``; the choice, its
 #: rule and the development numbers: docs/decisions.md, "Pose source of the v3 fits").
-POSE_SOURCES = {"raytun3r-da3-tiny": "targets", "raytun3r-da3-tiny-v3": "model"}
-POSE_SOURCE = POSE_SOURCES[DEFAULT_NETWORK]
+NETWORK_POSE_SOURCE = {"raytun3r-da3-tiny": "targets", "raytun3r-da3-tiny-v3": "model"}
+POSE_SOURCE = NETWORK_POSE_SOURCE[DEFAULT_NETWORK]
 
 
 def adapt_config(size: int, steps: int, **changes):
@@ -76,7 +76,7 @@ def supervised_config(size: int, steps: int, **changes):
 
 
 def default_network(name: str = DEFAULT_NETWORK):
-    """(model, description) of the built-in network ``name`` (a key of :data:`POSE_SOURCES`);
+    """(model, description) of the built-in network ``name`` (a key of :data:`NETWORK_POSE_SOURCE`);
     honest about what it is."""
     from raytun3r_plugin.errors import WeightsError
     from raytun3r_plugin.weights import load_backbone
