@@ -296,15 +296,15 @@ def test_pose_from_targets_mode(camera, frames, cache_dir):
     assert all(float(t.abs().max()) > 0 for t in tables(adapter).values())
 
 
-def test_hybrid_mode_reprojects_through_the_targets_and_keeps_the_pose_term(
+def test_hybrid_and_both_modes_combine_the_reprojections_and_keep_the_pose_term(
     camera, frames, cache_dir, tmp_path
 ):
-    # The first step's terms are taken at the zero adapter, so the three modes see one
+    # The first step's terms are taken at the zero adapter, so the four modes see one
     # prediction: hybrid's reprojection must be the targets mode's, its pose term the model
     # mode's (a mode that reprojected through the network's pose, or dropped the pose term,
-    # would differ).
+    # would differ); "both" averages the two reprojections, so its term lies strictly between.
     first = {}
-    for source in ("targets", "model", "hybrid"):
+    for source in ("targets", "model", "hybrid", "both"):
         out = tmp_path / f"{source}.safetensors"
         adapt(
             build_tiny_network(),
@@ -319,6 +319,9 @@ def test_hybrid_mode_reprojects_through_the_targets_and_keeps_the_pose_term(
     assert first["hybrid"]["reproj"] == pytest.approx(first["targets"]["reproj"], rel=1e-5)
     assert first["hybrid"]["pose"] == pytest.approx(first["model"]["pose"], rel=1e-5)
     assert abs(first["model"]["reproj"] / first["targets"]["reproj"] - 1) > 1e-3
+    low, high = sorted((first["model"]["reproj"], first["targets"]["reproj"]))
+    assert low < first["both"]["reproj"] < high
+    assert first["both"]["pose"] == pytest.approx(first["model"]["pose"], rel=1e-5)
 
 
 def test_adapt_refuses_a_patched_model(camera, frames, cache_dir):

@@ -24,7 +24,12 @@ __all__ = [
     "AdaptConfig",
 ]
 
-POSE_SOURCES = ("model", "targets", "hybrid")
+POSE_SOURCES = ("model", "targets", "hybrid", "both")
+#: What each pose source does: reproject through the network's own relative pose, reproject
+#: through the MAGSAC++ targets (scaled per pair), and keep the pose term on the network's pose.
+MODEL_REPROJECTION_SOURCES = ("model", "both")
+TARGET_REPROJECTION_SOURCES = ("targets", "hybrid", "both")
+POSE_TERM_SOURCES = ("model", "hybrid", "both")
 SCALES = ("pixel", "least_squares")
 PE_REGULARISERS = ("relative", "absolute")
 TERMS = ("reproj", "smooth", "l2", "tv", "pose", "depth")
@@ -85,7 +90,10 @@ class AdaptConfig:
             themselves); ``"hybrid"`` reprojects through the targets as ``"targets"`` does (the
             scale-correct depth signal of issue 12) and keeps the paper's pose term on the
             network's own relative pose, so the fit can move the pose head towards the same
-            targets (for backbones whose pose head works; issue 13, docs/adaptation.md).
+            targets (for backbones whose pose head works; issue 13, docs/adaptation.md);
+            ``"both"`` adds the two reprojections (through the network's pose and through the
+            targets, one mean over both) and keeps the pose term, so the depth signal of the
+            targets and the rotation signal of the network's own reprojection act together.
         depth_convention: ``"range"`` (depth = distance along the unit ray, the fisheye
             default) or ``"z"`` (z-depth; FOV below 180 degrees only).
         components: corrections switched on during adaptation (None = all).

@@ -16,7 +16,12 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import nn
 
-from raytun3r_plugin.adaptation.config import AdaptConfig
+from raytun3r_plugin.adaptation.config import (
+    MODEL_REPROJECTION_SOURCES,
+    POSE_TERM_SOURCES,
+    TARGET_REPROJECTION_SOURCES,
+    AdaptConfig,
+)
 from raytun3r_plugin.adaptation.losses import (
     backproject,
     depth_parallax_px,
@@ -254,40 +259,60 @@ def prediction_terms(
         return {"depth": term, **regularisers}, {"n_matches": 0, "n_pose": 0, "n_depth": n_depth}
     reproj, pose_terms, n_matches = [], [], 0
     for pair in pairs:
-        if config.pose_source in ("model", "hybrid"):
+        relatives = []
+        if config.pose_source in POSE_TERM_SOURCES:
             relative = relative_pose(poses, pair.a, pair.b)
             if pair.rotation is not None:
                 pose_terms.append(pose_loss(relative, pair.rotation, pair.direction))
-        reproject_targets = config.pose_source in ("targets", "hybrid")
-        if pair.uv_i.shape[0] == 0 or (reproject_targets and pair.rotation is None):
+            if config.pose_source in MODEL_REPROJECTION_SOURCES:
+                relatives.append(relative)
+        through_targets = (
+            config.pose_source in TARGET_REPROJECTION_SOURCES and pair.rotation is not None
+        )
+        # A pair with nothing to reproject through draws no subset, so the generator's stream
+        # (and every fit of the single-pose modes) is what it was before "both" existed.
+        if pair.uv_i.shape[0] == 0 or not (relatives or through_targets):
             continue
         uv_i, uv_j, confidence, rays_i, rays_j = _subset(pair, config.max_matches, generator)
-        if reproject_targets:
-            relative = _targets_pose(
-                pair, depth[pair.a], uv_i, uv_j, confidence, rays_i, rays_j, layout.camera, config
+        if through_targets:
+            relatives.append(
+                _targets_pose(
+                    pair,
+                    depth[pair.a],
+                    uv_i,
+                    uv_j,
+                    confidence,
+                    rays_i,
+                    rays_j,
+                    layout.camera,
+                    config,
+                )
             )
-        loss, count = reprojection_loss(
-            depth[pair.a],
-            relative,
-            uv_i,
-            uv_j,
-            confidence,
-            layout.camera,
-            valid,
-            config.depth_convention,
-            rays_i=(rays_i, torch.ones_like(confidence, dtype=torch.bool)),
-            robust_px=config.robust_px,
-        )
-        if count:
-            reproj.append(loss)
-            n_matches += count
+        used = 0
+        for relative in relatives:
+            loss, count = reprojection_loss(
+                depth[pair.a],
+                relative,
+                uv_i,
+                uv_j,
+                confidence,
+                layout.camera,
+                valid,
+                config.depth_convention,
+                rays_i=(rays_i, torch.ones_like(confidence, dtype=torch.bool)),
+                robust_px=config.robust_px,
+            )
+            if count:
+                reproj.append(loss)
+                used = max(used, count)
+        n_matches += used
     zero = depth.sum() * 0.0
     terms = {
         "reproj": torch.stack(reproj).mean() if reproj else zero,
         "smooth": smoothness_loss(depth, images.to(depth.dtype), valid),
         **regularisers,
     }
-    if config.pose_source in ("model", "hybrid"):
+    if config.pose_source in POSE_TERM_SOURCES:
         terms["pose"] = torch.stack(pose_terms).mean() if pose_terms else zero
     return terms, {"n_matches": n_matches, "n_pose": len(pose_terms)}
 
