@@ -65,6 +65,12 @@ def main() -> None:
         choices=POSE_SOURCES,
         help="pose source of the self-supervised fits (default: the network's, demo.NETWORK_POSE_SOURCE)",
     )
+    parser.add_argument(
+        "--pose-weight",
+        type=float,
+        default=None,
+        help="weight of the pose term in the self-supervised fits (default 1)",
+    )
     args = parser.parse_args()
     if args.development and args.readme:
         parser.error(
@@ -82,6 +88,7 @@ def main() -> None:
         base_seed=DEVELOPMENT_SEED if args.development else HELD_OUT_SEED,
         baselines=tuple(name for name in args.baselines.split(",") if name),
         pose_source=args.pose_source or NETWORK_POSE_SOURCE[args.network],
+        pose_weight=args.pose_weight,
     )
     print(table)
     if args.readme:

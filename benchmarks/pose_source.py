@@ -19,7 +19,6 @@ import math
 from pathlib import Path
 
 from raytun3r_plugin.adaptation.config import SELF_SUPERVISED_WEIGHTS
-from raytun3r_plugin.adaptation.losses import LossWeights
 from raytun3r_plugin.apps.benchmark import (
     CAMERAS,
     DEVELOPMENT_SEED,
@@ -99,9 +98,8 @@ def main() -> None:
                         model, seq, "raytun3r", held_out, adapter=supervised
                     )
                 for source, weight in variants:
-                    weights = LossWeights(**{**SELF_SUPERVISED_WEIGHTS, "pose": weight})
                     config = adapt_config(
-                        args.size, args.steps, seed=0, pose_source=source, weights=weights
+                        args.size, args.steps, seed=0, pose_source=source, pose_weight=weight
                     )
                     adapter = adapt(
                         model, camera, seq.images[:n_adapt], config, resume=False, progress=False

@@ -476,3 +476,18 @@ def test_the_demo_and_benchmarks_run_v3_and_fit_through_its_own_pose():
         for a, b in zip(model.state_dict().values(), v2.state_dict().values(), strict=True)
     )
     assert differs
+
+
+def test_adapt_config_pose_weight_replaces_only_the_pose_term():
+    """The benchmarks pass a pose weight through ``adapt_config`` (issue 12 follow-up); the other
+    self-supervised weights stay the defaults, and a pose weight next to explicit weights is
+    refused rather than one of them being dropped."""
+    from raytun3r_plugin.adaptation.config import SELF_SUPERVISED_WEIGHTS
+    from raytun3r_plugin.adaptation.losses import LossWeights
+    from raytun3r_plugin.apps.demo import adapt_config
+
+    weights = adapt_config(112, 10, pose_source="hybrid", pose_weight=0.3).weights.as_dict()
+    assert weights == {**SELF_SUPERVISED_WEIGHTS, "pose": 0.3}
+    assert adapt_config(112, 10).weights.as_dict() == SELF_SUPERVISED_WEIGHTS
+    with pytest.raises(TypeError, match="pose_weight or weights"):
+        adapt_config(112, 10, pose_weight=0.3, weights=LossWeights())

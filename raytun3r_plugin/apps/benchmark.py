@@ -241,13 +241,15 @@ def sequence_rows(
     progress: bool = False,
     baselines: tuple[str, ...] = (),
     pose_source: str = POSE_SOURCE,
+    pose_weight: float | None = None,
 ) -> list[dict]:
     """The rows of one held-out sequence: vanilla, Center-PH, Multi-PH, the zero adapter, an
     adapter fitted self-supervised on its first ``n_adapt`` frames and one fitted to their
     ground-truth depth (the upper bound; both written to ``out``), then the ``baselines``
     (:data:`BASELINES`: LoRA, calibration tokens) fitted like the first adapter with the
-    tables at zero and ``components=[]``; all scored on the rest. ``pose_source``: that of the
-    self-supervised fits (:class:`~raytun3r_plugin.adaptation.train.AdaptConfig`).
+    tables at zero and ``components=[]``; all scored on the rest. ``pose_source``, ``pose_weight``:
+    those of the self-supervised fits (:class:`~raytun3r_plugin.adaptation.train.AdaptConfig`,
+    :func:`~raytun3r_plugin.apps.demo.adapt_config`; ``None``: the pose term's default weight, 1).
 
     Every row has ``params`` (trainable parameters of what was fitted; 0 without a fit),
     ``ms_per_frame`` (:func:`timed_row`) and ``x_vanilla`` (its ``ms_per_frame`` over vanilla's
@@ -283,7 +285,7 @@ def sequence_rows(
         model,
         camera,
         seq.images[:n_adapt],
-        adapt_config(size, steps, seed=0, pose_source=pose_source),
+        adapt_config(size, steps, seed=0, pose_source=pose_source, pose_weight=pose_weight),
         out_path=path,
         resume=False,
         progress=progress,
@@ -325,7 +327,14 @@ def sequence_rows(
             camera,
             seq.images[:n_adapt],
             name,
-            adapt_config(size, steps, seed=0, components=[], pose_source=pose_source),
+            adapt_config(
+                size,
+                steps,
+                seed=0,
+                components=[],
+                pose_source=pose_source,
+                pose_weight=pose_weight,
+            ),
             out_path=path.with_name(f"{path.stem}_{name}.safetensors"),
             progress=progress,
         ) as (module, seconds):
@@ -408,6 +417,7 @@ def run_benchmark(
     base_seed: int = HELD_OUT_SEED,
     baselines: tuple[str, ...] = (),
     pose_source: str = POSE_SOURCE,
+    pose_weight: float | None = None,
 ) -> str:
     """Run every (camera, scene) on ``sequences`` held-out sequences; return the markdown table.
 
@@ -443,6 +453,7 @@ def run_benchmark(
                     progress=progress,
                     baselines=baselines,
                     pose_source=pose_source,
+                    pose_weight=pose_weight,
                 )
                 print(
                     f"[{time.perf_counter() - began:6.0f} s] {spec.label} {scene} seed {seed}: done",
@@ -482,7 +493,9 @@ def run_benchmark(
     header = (
         f"Network: {network or 'see model card'}; input {size}x{size} px; {sequences} {'held-out' if base_seed == HELD_OUT_SEED else 'development'} sequences per camera and scene "
         f"(seeds {base_seed} + 100 k + 10 camera + scene); per sequence {n_adapt} adaptation frames "
-        f"(30 windows, {steps} steps, pose source '{pose_source}') and {n_eval} scored frames"
+        f"(30 windows, {steps} steps, pose source '{pose_source}'"
+        + ("" if pose_weight is None else f", pose weight {pose_weight:g}")
+        + f") and {n_eval} scored frames"
         + (
             f"; baselines {', '.join(BASELINES[b] for b in baselines)} fitted on the same frames with the same "
             "objective, windows and steps (raytun3r's tables at zero, no parameter-free corrections)"

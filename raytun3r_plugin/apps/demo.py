@@ -39,14 +39,20 @@ NETWORK_POSE_SOURCE = {"raytun3r-da3-tiny": "targets", "raytun3r-da3-tiny-v3": "
 POSE_SOURCE = NETWORK_POSE_SOURCE[DEFAULT_NETWORK]
 
 
-def adapt_config(size: int, steps: int, **changes):
+def adapt_config(size: int, steps: int, *, pose_weight: float | None = None, **changes):
     """The adaptation settings the demo and the benchmark use with the built-in network.
 
     Defaults of :class:`AdaptConfig` (30 windows) at input ``size`` px, no intermediate checkpoints,
-    the default network's pose source (:data:`POSE_SOURCE`); ``changes`` override any field.
+    the default network's pose source (:data:`POSE_SOURCE`); ``pose_weight`` replaces the pose
+    term's weight in the self-supervised defaults (``SELF_SUPERVISED_WEIGHTS``, where it is 1);
+    ``changes`` override any field.
     """
-    from raytun3r_plugin.adaptation.train import AdaptConfig
+    from raytun3r_plugin.adaptation.train import SELF_SUPERVISED_WEIGHTS, AdaptConfig, LossWeights
 
+    if pose_weight is not None:
+        if "weights" in changes:
+            raise TypeError("adapt_config: give pose_weight or weights, not both")
+        changes["weights"] = LossWeights(**{**SELF_SUPERVISED_WEIGHTS, "pose": float(pose_weight)})
     return AdaptConfig(
         **{
             "steps": steps,
