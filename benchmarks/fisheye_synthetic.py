@@ -25,7 +25,7 @@ from raytun3r_plugin.apps.benchmark import (
     SEQUENCES_PER_CELL,
     run_benchmark,
 )
-from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, NETWORK_POSE_SOURCE, default_network
+from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, NETWORK_FIT, default_network
 from raytun3r_plugin.registry import quiet_upstream
 
 START, END = "<!-- bench:start -->", "<!-- bench:end -->"
@@ -56,20 +56,21 @@ def main() -> None:
     parser.add_argument(
         "--network",
         default=DEFAULT_NETWORK,
-        choices=sorted(NETWORK_POSE_SOURCE),
+        choices=sorted(NETWORK_FIT),
         help="built-in network (v2 = raytun3r-da3-tiny measured the README's older tables)",
     )
     parser.add_argument(
         "--pose-source",
         default=None,
         choices=POSE_SOURCES,
-        help="pose source of the self-supervised fits (default: the network's, demo.NETWORK_POSE_SOURCE)",
+        help="pose source of the self-supervised fits (default: the network's, demo.NETWORK_FIT)",
     )
     parser.add_argument(
         "--pose-weight",
         type=float,
         default=None,
-        help="weight of the pose term in the self-supervised fits (default 1)",
+        help="weight of the pose term in the self-supervised fits (default: the network's with its own "
+        "pose source, 1 with another)",
     )
     args = parser.parse_args()
     if args.development and args.readme:
@@ -87,8 +88,10 @@ def main() -> None:
         progress=False,
         base_seed=DEVELOPMENT_SEED if args.development else HELD_OUT_SEED,
         baselines=tuple(name for name in args.baselines.split(",") if name),
-        pose_source=args.pose_source or NETWORK_POSE_SOURCE[args.network],
-        pose_weight=args.pose_weight,
+        pose_source=args.pose_source or NETWORK_FIT[args.network]["pose_source"],
+        pose_weight=args.pose_weight
+        if args.pose_weight is not None or args.pose_source
+        else NETWORK_FIT[args.network]["pose_weight"],
     )
     print(table)
     if args.readme:

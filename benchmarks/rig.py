@@ -15,7 +15,8 @@ Methods:
 * ``adapt_rig``: both adapters fitted together, both cameras' views in every forward;
 * ``supervised per camera``: ``adapt(..., depth=...)`` per camera (the upper bound), applied as a rig.
 
-The settings are the demo's (``apps.demo.adapt_config``: 300 steps, MAGSAC++ pose targets);
+The settings are the demo's (``apps.demo.adapt_config``: 300 steps, the network's pose source:
+v2's fits take their poses from the MAGSAC++ targets, v3's from its own pose head);
 ``min_parallax_px`` does not apply to ``adapt_rig``, which is why the scene is indoor, where the
 gate keeps every window.
 
@@ -27,6 +28,11 @@ Development seeds 70000 + k indoors, 70100 + k outdoors (never the benchmark's 9
 Its rule, fixed before its first run (2 outdoor rigs): the cross-camera terms "help outdoors"
 if that row's AbsRel is below the no-adapter row on at least 3 of the 4 camera-sequences; the
 option stays opt-in either way until a held-out comparison exists.
+``--held-out`` scores rigs no setting was chosen on (seeds 75000 + k indoors, 75100 + k outdoors).
+Rule for the held-out outdoor comparison, fixed before it was run (``--held-out --scene outdoor
+--baseline 0.4 --cross-camera``, 3 rigs, 6 camera-sequences): the README may say the cross-camera
+terms help outdoors on unseen rigs if that row's AbsRel is below the no-adapter row on at least 5
+of the 6 and its mean AbsRel is below both the no-adapter and the plain ``adapt_rig`` rows.
 
     python benchmarks/rig.py               # 3 rigs, about 15 minutes on one thread
     python benchmarks/rig.py --rigs 1 --steps 30
@@ -44,11 +50,18 @@ from raytun3r_plugin import apply, predict, synthetic
 from raytun3r_plugin.adaptation.rig import adapt_rig
 from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.apps.benchmark import CAMERAS, ZERO_ADAPTER, ground_truth_depth, make_camera
-from raytun3r_plugin.apps.demo import adapt_config, default_network, supervised_config
+from raytun3r_plugin.apps.demo import (
+    DEFAULT_NETWORK,
+    NETWORK_FIT,
+    adapt_config,
+    default_network,
+    supervised_config,
+)
 from raytun3r_plugin.apps.evaluation import MethodOutput, frame_windows, score
 from raytun3r_plugin.registry import quiet_upstream
 
 RIG_SEED = 70_000
+RIG_HELD_OUT_SEED = 75_000
 N_ADAPT, N_EVAL, SIZE = 24, 12, 112
 METHODS = ("vanilla", ZERO_ADAPTER, "per-camera adapt", "adapt_rig", "supervised per camera")
 CROSS = "adapt_rig + cross-camera"
@@ -88,6 +101,7 @@ def one_rig(
     scene: str = "indoor",
     baseline: float = 0.1,
     cross_camera: bool = False,
+    fit_settings: dict | None = None,
 ) -> list[dict]:
     cameras = {
         "left": make_camera(CAMERAS[1], SIZE),  # KB4 185
@@ -102,7 +116,8 @@ def one_rig(
     )
     fit, held_out = rig.subset(range(N_ADAPT)), list(range(N_ADAPT, N_ADAPT + N_EVAL))
     names, lenses = rig.names, rig.cameras
-    config = adapt_config(SIZE, steps, seed=0)
+    fit_settings = fit_settings or NETWORK_FIT[DEFAULT_NETWORK]
+    config = adapt_config(SIZE, steps, seed=0, **fit_settings)
     fitted: dict[str, list | None] = {"vanilla": None, ZERO_ADAPTER: [None, None]}
     seconds: dict[str, float] = {"vanilla": 0.0, ZERO_ADAPTER: 0.0}
     began = time.perf_counter()
@@ -128,7 +143,7 @@ def one_rig(
             model,
             seq.camera,
             seq.images[:N_ADAPT],
-            supervised_config(SIZE, steps, seed=0),
+            supervised_config(SIZE, steps, seed=0, pose_source=fit_settings["pose_source"]),
             depth=ground_truth_depth(seq, N_ADAPT),
             progress=False,
         )
@@ -163,18 +178,35 @@ def main() -> None:
     parser.add_argument(
         "--cross-camera", action="store_true", help="add an adapt_rig(cross_camera=True) row"
     )
+    parser.add_argument(
+        "--held-out",
+        action="store_true",
+        help=f"held-out rigs (seeds {RIG_HELD_OUT_SEED}+) instead of the development ones ({RIG_SEED}+)",
+    )
+    parser.add_argument(
+        "--network",
+        default=DEFAULT_NETWORK,
+        choices=sorted(NETWORK_FIT),
+        help="built-in network; its fits use its settings (demo.NETWORK_FIT)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
-    model, description = default_network()
+    model, description = default_network(args.network)
+    fit_settings = NETWORK_FIT[args.network]
+    base = RIG_HELD_OUT_SEED if args.held_out else RIG_SEED
     print(
-        f"network: {description}; {args.rigs} stereo rigs (left KB4 185, right DS 195, "
+        f"network: {description}; pose source '{fit_settings['pose_source']}', pose weight "
+        f"{fit_settings['pose_weight']:g}; {args.rigs} "
+        f"{'held-out' if args.held_out else 'development'} stereo rigs (left KB4 185, right DS 195, "
         f"{args.baseline:g} m), {args.scene}, {SIZE} px, fitted on {N_ADAPT} instants, scored on {N_EVAL}, {args.steps} steps\n"
     )
     rows = []
     with quiet_upstream():
         for k in range(args.rigs):
-            seed = RIG_SEED + (100 if args.scene == "outdoor" else 0) + k
-            rows += one_rig(model, seed, args.steps, args.scene, args.baseline, args.cross_camera)
+            seed = base + (100 if args.scene == "outdoor" else 0) + k
+            rows += one_rig(
+                model, seed, args.steps, args.scene, args.baseline, args.cross_camera, fit_settings
+            )
     print("| method | camera | AbsRel (mean over rigs) | d_reproj px | fit s (both cameras) |")
     print("|---|---|---|---|---|")
     for method in (*METHODS[:4], CROSS, METHODS[4]) if args.cross_camera else METHODS:

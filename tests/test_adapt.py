@@ -150,6 +150,9 @@ def test_config_validates_and_round_trips():
     assert AdaptConfig(steps=10).identity() == cfg.identity()  # steps may change on resume
     with pytest.raises(InputError, match="pose_source"):
         AdaptConfig(pose_source="gt")
+    for term, weight in (("pose", -0.3), ("tv", float("nan")), ("reproj", float("inf"))):
+        with pytest.raises(InputError, match=f"weights.{term}"):
+            AdaptConfig(weights={**SELF_SUPERVISED_WEIGHTS, term: weight})
 
 
 # --------------------------------------------------------------------------------------------

@@ -312,7 +312,7 @@ def test_objective_scores_the_supervised_solution_below_the_zero_adapter(tmp_pat
         progress=False,
     )
     # The objective of issue 12 with v2: reprojection through the pose targets (v2's pose head is
-    # at chance, so the model-pose objective has nothing to rank; apps.demo.NETWORK_POSE_SOURCE).
+    # at chance, so the model-pose objective has nothing to rank; apps.demo.NETWORK_FIT).
     config = adapt_config(112, 300, cache_dir=str(tmp_path), pose_source="targets")
     problem = prepare_problem(camera, seq.images, config)
     zero = objective_value(model, Adapter.for_model(model), problem, config)

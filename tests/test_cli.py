@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from raytun3r_plugin import cameras, synthetic
+from raytun3r_plugin import Adapter, cameras, synthetic
 from raytun3r_plugin.apps.cli import main
 from raytun3r_plugin.apps.export import read_ply
 from tests.helpers import fisheye, randomise_
@@ -120,10 +120,30 @@ def test_adapt_inspect_infer(setup, capsys):
     assert len(points) > 1000 and np.isfinite(points).all() and colours.dtype == np.uint8
 
 
+def test_pose_weight_reaches_the_saved_config_and_is_refused_with_depth(setup, tmp_path, capsys):
+    adapter = tmp_path / "hybrid.safetensors"
+    common = [*model_args(setup), "--camera", str(setup["camera"]), *frame_args(setup)]
+    code = main(
+        [
+            "adapt",
+            *common,
+            *("--steps", "1", "--windows", "2", "--pose-source", "hybrid"),
+            *("--pose-weight", "0.3", "--out", str(adapter)),
+        ]
+    )
+    assert code == 0
+    config = Adapter.load(adapter).training_info["config"]
+    assert config["pose_source"] == "hybrid" and config["weights"]["pose"] == pytest.approx(0.3)
+    refused = tmp_path / "refused.safetensors"
+    code = main(
+        ["adapt", *common, "--depth", str(tmp_path), "--pose-weight", "0.3", "--out", str(refused)]
+    )
+    assert code == 2 and not refused.exists()
+    assert "--pose-weight" in capsys.readouterr().err
+
+
 def test_supervised_adapt_from_a_depth_folder_and_the_pe_picture(setup, tmp_path, capsys):
     import cv2
-
-    from raytun3r_plugin import Adapter
 
     adapter = tmp_path / "supervised.safetensors"
     code = main(
@@ -183,8 +203,6 @@ def test_supervised_adapt_from_a_depth_folder_and_the_pe_picture(setup, tmp_path
 
 def test_mask_reaches_adaptation_and_inference(setup, tmp_path, capsys):
     import cv2
-
-    from raytun3r_plugin import Adapter
 
     mask = np.full((SIZE, SIZE), 255, np.uint8)
     mask[int(0.7 * SIZE) :] = 0  # the vehicle's body

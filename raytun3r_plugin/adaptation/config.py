@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -178,6 +179,13 @@ class AdaptConfig:
         for name, ok in checks:
             if not ok:
                 raise InputError(f"AdaptConfig.{name} = {getattr(self, name)!r} is not allowed")
+        for term, weight in self.weights.as_dict().items():
+            # A negative weight would reward the term it weighs; NaN would poison every step.
+            if not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
+                raise InputError(
+                    f"AdaptConfig.weights.{term} = {weight!r} is not allowed "
+                    "(expected a finite number >= 0)"
+                )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (``AdaptConfig(**d)`` rebuilds it)."""

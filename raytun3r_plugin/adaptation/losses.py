@@ -113,10 +113,17 @@ def sample_bilinear(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return out[0] if squeeze else out
 
 
-def _inside_mask(
-    uv: torch.Tensor, mask: torch.Tensor | None, width: int, height: int
+def inside_mask(
+    uv: torch.Tensor,
+    mask: torch.Tensor | None,
+    width: int | None = None,
+    height: int | None = None,
 ) -> torch.Tensor:
-    """(M,) bool: inside the image and, when given, the nearest pixel of ``mask`` (H, W) is set."""
+    """(M,) bool: pixel positions ``uv`` (M, 2) inside the ``width`` x ``height`` image (pixel
+    centres at integers, edges at -0.5) and, when given, on a set pixel of ``mask`` (H, W; its shape
+    is the image's when ``width`` and ``height`` are not given)."""
+    if width is None or height is None:
+        height, width = mask.shape
     inside = (
         (uv[:, 0] >= -0.5)
         & (uv[:, 0] <= width - 0.5)
@@ -195,7 +202,7 @@ def reprojection_loss(
         valid = camera.valid_mask()
     valid = valid.to(device).bool()
 
-    ok = _inside_mask(uv_i, valid, width, height) & _inside_mask(uv_j, valid, width, height)
+    ok = inside_mask(uv_i, valid, width, height) & inside_mask(uv_j, valid, width, height)
     if rays_i is None:
         with torch.no_grad():
             rays_i = camera.unproject(uv_i)

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from raytun3r_plugin.adaptation.config import AdaptConfig
-from raytun3r_plugin.adaptation.losses import to_input_pixels
+from raytun3r_plugin.adaptation.losses import inside_mask, to_input_pixels
 from raytun3r_plugin.adaptation.matchers import get_matcher
 from raytun3r_plugin.adaptation.windows import AdaptationSet, Window, prepare_adaptation_set
 from raytun3r_plugin.errors import InputError
@@ -93,19 +93,6 @@ class _Pair:
     direction: torch.Tensor | None  # (3,) float64 unit target translation
 
 
-def _inside(uv: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    height, width = valid.shape
-    inside = (
-        (uv[:, 0] >= -0.5)
-        & (uv[:, 0] <= width - 0.5)
-        & (uv[:, 1] >= -0.5)
-        & (uv[:, 1] <= height - 0.5)
-    )
-    col = torch.round(uv[:, 0]).clamp(0, width - 1).long()
-    row = torch.round(uv[:, 1]).clamp(0, height - 1).long()
-    return inside & valid[row, col]
-
-
 def _prepare_pairs(window: Window, layout: InputLayout, valid: torch.Tensor) -> list[_Pair]:
     camera = layout.camera
     pairs = []
@@ -125,7 +112,7 @@ def _prepare_pairs(window: Window, layout: InputLayout, valid: torch.Tensor) -> 
         with torch.no_grad():
             rays_i, ok_i = camera.unproject(uv_i)
             rays_j, ok_j = camera.unproject(uv_j)
-        keep = ok_i & ok_j & _inside(uv_i, valid) & _inside(uv_j, valid)
+        keep = ok_i & ok_j & inside_mask(uv_i, valid) & inside_mask(uv_j, valid)
         target = window.targets.get((a, b))
         usable = target is not None and target.ok
         pairs.append(

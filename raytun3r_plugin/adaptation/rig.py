@@ -39,6 +39,7 @@ from torch import nn
 from raytun3r_plugin.adaptation.checkpoint import write_loss_artifacts
 from raytun3r_plugin.adaptation.config import TERMS, AdaptConfig
 from raytun3r_plugin.adaptation.losses import (
+    inside_mask,
     pe_correction_grid,
     pe_l2,
     pe_tv,
@@ -47,7 +48,6 @@ from raytun3r_plugin.adaptation.losses import (
 )
 from raytun3r_plugin.adaptation.problem import (
     AdaptationProblem,
-    _inside,
     _Pair,
     prepare_problem,
 )
@@ -470,7 +470,7 @@ def _cross_pairs(
                 with torch.no_grad():
                     rays_i, ok_i = problem_i.layout.camera.unproject(uv_i)
                     rays_j, ok_j = problem_j.layout.camera.unproject(uv_j)
-                keep = ok_i & ok_j & _inside(uv_i, valid) & _inside(uv_j, valid)
+                keep = ok_i & ok_j & inside_mask(uv_i, valid) & inside_mask(uv_j, valid)
                 pair = _Pair(
                     offset_i,
                     offset_j,

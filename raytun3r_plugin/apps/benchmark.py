@@ -249,7 +249,8 @@ def sequence_rows(
     (:data:`BASELINES`: LoRA, calibration tokens) fitted like the first adapter with the
     tables at zero and ``components=[]``; all scored on the rest. ``pose_source``, ``pose_weight``:
     those of the self-supervised fits (:class:`~raytun3r_plugin.adaptation.train.AdaptConfig`,
-    :func:`~raytun3r_plugin.apps.demo.adapt_config`; ``None``: the pose term's default weight, 1).
+    :func:`~raytun3r_plugin.apps.demo.adapt_config`; ``None``: the default network's weight for
+    its own pose source, 1 for another).
 
     Every row has ``params`` (trainable parameters of what was fitted; 0 without a fit),
     ``ms_per_frame`` (:func:`timed_row`) and ``x_vanilla`` (its ``ms_per_frame`` over vanilla's
@@ -493,9 +494,9 @@ def run_benchmark(
     header = (
         f"Network: {network or 'see model card'}; input {size}x{size} px; {sequences} {'held-out' if base_seed == HELD_OUT_SEED else 'development'} sequences per camera and scene "
         f"(seeds {base_seed} + 100 k + 10 camera + scene); per sequence {n_adapt} adaptation frames "
-        f"(30 windows, {steps} steps, pose source '{pose_source}'"
-        + ("" if pose_weight is None else f", pose weight {pose_weight:g}")
-        + f") and {n_eval} scored frames"
+        f"(30 windows, {steps} steps, pose source '{pose_source}', pose weight "
+        f"{adapt_config(size, steps, pose_source=pose_source, pose_weight=pose_weight).weights.pose:g}"
+        f") and {n_eval} scored frames"
         + (
             f"; baselines {', '.join(BASELINES[b] for b in baselines)} fitted on the same frames with the same "
             "objective, windows and steps (raytun3r's tables at zero, no parameter-free corrections)"

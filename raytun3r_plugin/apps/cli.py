@@ -131,9 +131,11 @@ def cmd_infer(args: argparse.Namespace) -> int:
 
 def _adapt_settings(args: argparse.Namespace) -> dict:
     """The ``AdaptConfig`` fields the ``adapt`` and ``adapt-rig`` options set."""
+    from raytun3r_plugin.adaptation.config import SELF_SUPERVISED_WEIGHTS
+    from raytun3r_plugin.adaptation.losses import LossWeights
     from raytun3r_plugin.preprocess import DEFAULT_LONG_SIDE
 
-    return dict(
+    settings = dict(
         steps=args.steps,
         input_size=args.size or DEFAULT_LONG_SIDE,
         n_windows=args.windows,
@@ -142,6 +144,16 @@ def _adapt_settings(args: argparse.Namespace) -> dict:
         pose_source=args.pose_source,
         cache_dir=args.cache_dir,
     )
+    if args.pose_weight is not None:
+        if getattr(args, "depth", None):
+            raise InputError(
+                "--pose-weight weighs the self-supervised pose term; a fit with --depth uses the "
+                "depth loss alone, so leave one of the two out"
+            )
+        settings["weights"] = LossWeights(
+            **{**SELF_SUPERVISED_WEIGHTS, "pose": float(args.pose_weight)}
+        )
+    return settings
 
 
 def cmd_adapt(args: argparse.Namespace) -> int:
@@ -149,6 +161,7 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     from raytun3r_plugin.cameras import load as load_camera
     from raytun3r_plugin.images import read_depth_maps, read_frames, read_mask
 
+    settings = _adapt_settings(args)
     camera = load_camera(args.camera, camera=args.camera_id)
     frames, names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
     mask = read_mask(args.mask, frames.shape[2], frames.shape[1]) if args.mask else None
@@ -158,7 +171,6 @@ def cmd_adapt(args: argparse.Namespace) -> int:
         else None
     )
     model = _load_model(args.backbone, args.weights)
-    settings = _adapt_settings(args)
     config = AdaptConfig(**settings) if depth is None else AdaptConfig.supervised(**settings)
     adapter = adapt(model, camera, frames, config, out_path=args.out, mask=mask, depth=depth)
     paths = artifact_paths(args.out)
@@ -366,6 +378,13 @@ def _add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--windows", type=int, default=30)
     parser.add_argument("--matcher", default="dis", help="dis | sift | a registered matcher")
     parser.add_argument("--pose-source", default="model", choices=POSE_SOURCES)
+    parser.add_argument(
+        "--pose-weight",
+        type=float,
+        default=None,
+        help="weight of the pose term (default 1; the built-in network is fitted with 0.3 and "
+        "--pose-source hybrid, docs/decisions.md)",
+    )
     parser.add_argument("--cache-dir", default=None)
     parser.add_argument("--seed", type=int, default=0)
 
