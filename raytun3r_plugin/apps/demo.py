@@ -148,6 +148,9 @@ def run_demo(args: argparse.Namespace) -> int:
     print(f"network: {description}")
     camera = demo_camera(size)
     print(f"camera:  {camera!r}, field of view {camera.fov_deg:.0f} deg")
+    print(
+        f"fits:    {steps} steps at lr {DEMO_LR:g}, pose source '{POSE_SOURCE}', pose weight {POSE_WEIGHT:g}"
+    )
     n_adapt, n_eval = 24, 12
     labels = {
         "vanilla": "vanilla (unpatched)",
