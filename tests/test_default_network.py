@@ -488,6 +488,7 @@ def test_adapt_config_pose_weight_replaces_only_the_pose_term():
     from raytun3r_plugin.adaptation.config import SELF_SUPERVISED_WEIGHTS
     from raytun3r_plugin.adaptation.losses import LossWeights
     from raytun3r_plugin.apps.demo import adapt_config
+    from raytun3r_plugin.errors import InputError
 
     weights = adapt_config(112, 10, pose_source="model", pose_weight=3.0).weights.as_dict()
     assert weights == {**SELF_SUPERVISED_WEIGHTS, "pose": 3.0}
@@ -495,5 +496,5 @@ def test_adapt_config_pose_weight_replaces_only_the_pose_term():
     assert adapt_config(112, 10, pose_source="model").weights.as_dict() == SELF_SUPERVISED_WEIGHTS
     explicit = LossWeights(**{**SELF_SUPERVISED_WEIGHTS, "smooth": 5.0})
     assert adapt_config(112, 10, weights=explicit).weights == explicit
-    with pytest.raises(TypeError, match="pose_weight or weights"):
+    with pytest.raises(InputError, match="pose_weight or weights"):
         adapt_config(112, 10, pose_weight=0.3, weights=LossWeights())

@@ -64,11 +64,12 @@ def adapt_config(
     network's weight was chosen for its own source. ``changes`` override any field.
     """
     from raytun3r_plugin.adaptation.train import SELF_SUPERVISED_WEIGHTS, AdaptConfig, LossWeights
+    from raytun3r_plugin.errors import InputError
 
     fit = NETWORK_FIT[network]
     source = changes.pop("pose_source", fit["pose_source"])
     if pose_weight is not None and "weights" in changes:
-        raise TypeError("adapt_config: give pose_weight or weights, not both")
+        raise InputError("adapt_config: give pose_weight or weights, not both")
     if "weights" not in changes:
         if pose_weight is None:
             pose_weight = fit["pose_weight"] if source == fit["pose_source"] else None
