@@ -380,12 +380,17 @@ def test_eval_help_lists_every_method(capsys):
         assert method in text.split("--method METHOD")[-1].split("--adapter")[0]
 
 
-def test_demo_runs_on_the_built_in_default(tmp_path, capsys):
-    assert (
-        main(["demo", "--out", str(tmp_path), "--steps", "3", "--size", "84", "--sequences", "2"])
-        == 0
+def _demo(out, jobs: int) -> int:
+    return main(
+        ["demo", "--out", str(out), "--steps", "3", "--size", "84", "--sequences", "2"]
+        + ["--jobs", str(jobs)]
     )
+
+
+def test_demo_runs_on_the_built_in_default(tmp_path, capsys):
+    assert _demo(tmp_path, 2) == 0  # two worker processes, whatever this machine's CPU count
     out = capsys.readouterr().out
+    assert "jobs:    2 processes, 1 thread each" in out
     assert "raytun3r-da3-tiny-v3" in out and "trained by raytun3r on pinhole renders only" in out
     for label in (
         "vanilla (unpatched)",
@@ -402,6 +407,39 @@ def test_demo_runs_on_the_built_in_default(tmp_path, capsys):
         ).is_file()
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert len(metrics["rows"]) == 2 * 5
+
+    # In this process: the same rows in the same order (sequence by sequence), so the workers
+    # neither mixed sequences up nor scored another one. The rows before any fit only differ by
+    # the order of float sums (one thread against this process's pool).
+    assert _demo(tmp_path / "in_process", 1) == 0
+    assert "jobs:    1 process\n" in capsys.readouterr().out
+    alone = json.loads((tmp_path / "in_process" / "metrics.json").read_text())["rows"]
+    assert [(r["seed"], r["method"]) for r in alone] == [
+        (r["seed"], r["method"]) for r in metrics["rows"]
+    ]
+    assert [r["seed"] for r in alone] == [1000] * 5 + [1001] * 5
+    for a, b in zip(alone, metrics["rows"], strict=True):
+        if "adapted" not in a["method"] and "supervised" not in a["method"]:
+            for metric in ("abs_rel", "d_reproj_px", "rot_deg"):
+                assert a[metric] == pytest.approx(b[metric], rel=1e-3, abs=1e-4), (a, metric)
+    zero = [r["abs_rel"] for r in alone if r["method"] == "raytun3r, no adapter"]
+    assert abs(zero[0] - zero[1]) > 1e-3  # the comparison above can tell the sequences apart
+
+
+def test_demo_refuses_a_job_count_below_one(tmp_path, capsys):
+    assert _demo(tmp_path, 0) == 2
+    assert "--jobs must be at least 1, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "metrics.json").exists()
+
+
+def test_demo_jobs_default_to_the_cpus_and_the_sequences():
+    import os
+
+    from raytun3r_plugin.apps.demo import demo_jobs
+
+    assert demo_jobs(1) == 1
+    assert 1 <= demo_jobs(64) <= (os.cpu_count() or 1)
+    assert demo_jobs(64) == min(64, len(os.sched_getaffinity(0)))
 
 
 def _write_segment(folder, camera, n_frames: int = 6, seed: int = 5, render_camera=None):

@@ -547,6 +547,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=int, default=None)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sequences", type=int, default=None, help="sequences to score (default 4)")
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        help="worker processes, one thread each (default: one per CPU, at most one per sequence; 1 = in this process)",
+    )
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser(

@@ -133,16 +133,129 @@ def demo_camera(size: int):
     return fisheye(size, 190.0, "kb4", k=(0.02, 0.0, 0.0, 0.0))
 
 
-def run_demo(args: argparse.Namespace) -> int:
+def demo_jobs(count: int) -> int:
+    """Worker processes the demo uses by default for ``count`` sequences: one per CPU this
+    process may run on, at most one per sequence.
+
+    The built-in network is small (112 px, a few hundred tokens per frame), so its operators are
+    too short for intra-op threads to pay, and one-thread processes that score different
+    sequences at once use the cores better (README, "The demo", has the timing of both).
+    A fit's numbers can differ slightly from ``--jobs 1``: one thread sums in another order,
+    and 100 steps carry the difference on."""
+    import os
+
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(count, cpus))
+
+
+def score_sequence(model, k: int, seed: int, size: int, steps: int, out: Path, labels: dict):
+    """Render the demo's sequence ``k`` (render seed ``1000 + seed + k``), score the methods
+    without an adapter, fit the self-supervised and the supervised adapter on frames 0-23 and
+    score them on 24-35.
+
+    Returns (metric rows, {"adapted": s, "supervised": s} wall time of each fit)."""
     from raytun3r_plugin import synthetic
     from raytun3r_plugin.adaptation.train import adapt
-    from raytun3r_plugin.apps.benchmark import ground_truth_depth, summarise
-    from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
+    from raytun3r_plugin.apps.benchmark import ground_truth_depth
+    from raytun3r_plugin.apps.evaluation import headline, run_method, score
+
+    camera = demo_camera(size)
+    n_adapt, n_eval = 24, 12
+    render_seed = 1000 + seed + k
+    seq = synthetic.render_sequence("indoor", camera, n_frames=n_adapt + n_eval, seed=render_seed)
+    held_out = list(range(n_adapt, len(seq)))
+    cell = {"camera": "KB4 190", "scene": "indoor", "seed": render_seed}
+    rows, seconds = [], {}
+    for method, key in (("vanilla", "vanilla"), ("center-ph", "center-ph"), ("raytun3r", "zero")):
+        rows.append(
+            {
+                **cell,
+                "method": labels[key],
+                **headline(score(seq, run_method(model, seq, method, frames=held_out))),
+            }
+        )
+    fits = {
+        "adapted": (
+            adapt_config(size, steps, lr=DEMO_LR, seed=seed, cache_dir=str(out / "cache")),
+            None,
+        ),
+        "supervised": (
+            supervised_config(size, steps, seed=seed, cache_dir=str(out / "cache")),
+            ground_truth_depth(seq, n_adapt),
+        ),
+    }
+    for key, (config, depth) in fits.items():
+        began = time.perf_counter()
+        name = "adapter.safetensors" if key == "adapted" else "adapter_supervised.safetensors"
+        adapter = adapt(
+            model,
+            camera,
+            seq.images[:n_adapt],
+            config,
+            out_path=out / f"seq{k}" / name,
+            resume=False,
+            progress=False,
+            depth=depth,
+        )
+        seconds[key] = time.perf_counter() - began
+        rows.append(
+            {
+                **cell,
+                "method": labels[key],
+                **headline(
+                    score(seq, run_method(model, seq, "raytun3r", adapter=adapter, frames=held_out))
+                ),
+            }
+        )
+    return rows, seconds
+
+
+#: The network a demo worker process loaded once (:func:`_start_worker`), and the context that
+#: holds upstream logging back there (kept referenced: a collected generator context exits).
+_WORKER_MODEL = None
+_WORKER_CONTEXT = None
+
+
+def _start_worker() -> None:
+    """Initialiser of a demo worker: one intra-op thread (the processes share the cores),
+    upstream logging held back for the life of the process as the command line does, and the
+    built-in network loaded once."""
+    import contextlib
+    import signal
+
+    import torch
+
+    from raytun3r_plugin.registry import quiet_upstream
+
+    global _WORKER_MODEL, _WORKER_CONTEXT
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the pool (run_demo)
+    torch.set_num_threads(1)
+    _WORKER_CONTEXT = contextlib.ExitStack()
+    _WORKER_CONTEXT.enter_context(quiet_upstream())
+    _WORKER_MODEL = default_network()[0]
+
+
+def _score_in_worker(task: tuple):
+    return task[0], score_sequence(_WORKER_MODEL, *task)
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    from raytun3r_plugin.apps.benchmark import summarise
+    from raytun3r_plugin.apps.evaluation import format_table
+    from raytun3r_plugin.errors import InputError
 
     started = time.perf_counter()
     size = args.size or 112  # the default network's training resolution
     steps = args.steps if args.steps is not None else DEMO_STEPS
     count = args.sequences if getattr(args, "sequences", None) else DEMO_SEQUENCES
+    jobs = getattr(args, "jobs", None)
+    jobs = demo_jobs(count) if jobs is None else jobs
+    if jobs < 1:
+        raise InputError(f"--jobs must be at least 1, got {jobs}")
+    jobs = min(jobs, count)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     model, description = default_network()
@@ -152,6 +265,10 @@ def run_demo(args: argparse.Namespace) -> int:
     print(
         f"fits:    {steps} steps at lr {DEMO_LR:g}, pose source '{POSE_SOURCE}', pose weight {POSE_WEIGHT:g}"
     )
+    print(
+        f"jobs:    {jobs} process{'es' if jobs > 1 else ''}"
+        + (", 1 thread each" if jobs > 1 else "")
+    )
     n_adapt, n_eval = 24, 12
     labels = {
         "vanilla": "vanilla (unpatched)",
@@ -160,64 +277,31 @@ def run_demo(args: argparse.Namespace) -> int:
         "adapted": f"raytun3r, adapted ({steps} steps)",
         "supervised": f"raytun3r, supervised ({steps} steps, GT depth)",
     }
-    rows, seconds = [], {"adapted": [], "supervised": []}
-    for k in range(count):
-        seed = 1000 + args.seed + k
-        seq = synthetic.render_sequence("indoor", camera, n_frames=n_adapt + n_eval, seed=seed)
-        held_out = list(range(n_adapt, len(seq)))
-        cell = {"camera": "KB4 190", "scene": "indoor", "seed": seed}
-        for method, key in (
-            ("vanilla", "vanilla"),
-            ("center-ph", "center-ph"),
-            ("raytun3r", "zero"),
-        ):
-            rows.append(
-                {
-                    **cell,
-                    "method": labels[key],
-                    **headline(score(seq, run_method(model, seq, method, frames=held_out))),
-                }
-            )
-        fits = {
-            "adapted": (
-                adapt_config(size, steps, lr=DEMO_LR, seed=args.seed, cache_dir=str(out / "cache")),
-                None,
-            ),
-            "supervised": (
-                supervised_config(size, steps, seed=args.seed, cache_dir=str(out / "cache")),
-                ground_truth_depth(seq, n_adapt),
-            ),
-        }
-        for key, (config, depth) in fits.items():
-            began = time.perf_counter()
-            name = "adapter.safetensors" if key == "adapted" else "adapter_supervised.safetensors"
-            adapter = adapt(
-                model,
-                camera,
-                seq.images[:n_adapt],
-                config,
-                out_path=out / f"seq{k}" / name,
-                resume=False,
-                progress=False,
-                depth=depth,
-            )
-            seconds[key].append(time.perf_counter() - began)
-            rows.append(
-                {
-                    **cell,
-                    "method": labels[key],
-                    **headline(
-                        score(
-                            seq,
-                            run_method(model, seq, "raytun3r", adapter=adapter, frames=held_out),
-                        )
-                    ),
-                }
-            )
+    tasks = [(k, args.seed, size, steps, out, labels) for k in range(count)]
+    results: dict[int, tuple] = {}
+
+    def done(k: int, result: tuple) -> None:
+        results[k] = result
         print(
-            f"[{time.perf_counter() - started:4.0f} s] sequence {k + 1}/{count} (seed {seed}) done",
+            f"[{time.perf_counter() - started:4.0f} s] sequence {k + 1}/{count} (seed {1000 + args.seed + k}) done",
             flush=True,
         )
+
+    if jobs == 1:
+        for task in tasks:
+            done(task[0], score_sequence(model, *task))
+    else:
+        import multiprocessing
+
+        # spawn, not fork: a forked child of a process whose OpenMP pool already ran can hang.
+        # On Ctrl-C only this process sees the interrupt (the workers ignore it) and leaving the
+        # block terminates them, so nothing keeps fitting after the command has stopped.
+        context = multiprocessing.get_context("spawn")
+        with context.Pool(jobs, initializer=_start_worker) as pool:
+            for k, result in pool.imap_unordered(_score_in_worker, tasks):
+                done(k, result)
+    rows = [row for k in range(count) for row in results[k][0]]
+    seconds = {key: [results[k][1][key] for k in range(count)] for key in ("adapted", "supervised")}
 
     # Rotation is counted too: v3's fits keep the pose term on the network's own pose
     # (POSE_SOURCE), so the adapter can move it.
@@ -263,6 +347,7 @@ def run_demo(args: argparse.Namespace) -> int:
                 "rows": rows,
                 "summary": table_rows,
                 "adapt_seconds": seconds,
+                "jobs": jobs,
             },
             indent=2,
             default=float,
