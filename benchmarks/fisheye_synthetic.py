@@ -72,6 +72,13 @@ def main() -> None:
         help="weight of the pose term in the self-supervised fits (default: the network's with its own "
         "pose source, 1 with another)",
     )
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="worker processes of one thread each (run_benchmark(jobs=)); the timing columns "
+        "are then one thread's beside the other workers",
+    )
     args = parser.parse_args()
     if args.development and args.readme:
         parser.error(
@@ -92,6 +99,7 @@ def main() -> None:
         pose_weight=args.pose_weight
         if args.pose_weight is not None or args.pose_source
         else NETWORK_FIT[args.network]["pose_weight"],
+        jobs=args.jobs,
     )
     print(table)
     if args.readme:

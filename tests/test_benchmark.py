@@ -256,3 +256,47 @@ def test_rotation_effect_compares_the_fit_with_vanilla_and_center_ph_per_sequenc
     data, out = results["plain"]
     assert data["rotation"] == rotation_effect(data["sequences"])
     assert "rotation_effect" in (out / "results.md").read_text()
+
+
+def test_bench_in_worker_processes_scores_the_same_sequences_in_order(tmp_path):
+    """``run_benchmark(jobs=2)``: the model pickled to two one-thread workers, rows put back in
+    task order; against the in-process run the rows before any fit differ only by the order of
+    float sums, and the header says the timings are one thread's."""
+    pytest.importorskip("depth_anything_3")
+    from raytun3r_plugin.apps.benchmark import run_benchmark
+    from raytun3r_plugin.apps.demo import default_network
+    from raytun3r_plugin.errors import InputError
+
+    model, _ = default_network()
+    settings = {
+        "size": 84,
+        "n_adapt": 6,
+        "n_eval": 4,
+        "steps": 2,
+        "sequences": 2,
+        "cameras": CAMERAS[-1:],
+        "scenes": ("indoor",),
+    }
+    with pytest.raises(InputError, match="jobs must be at least 1, got 0"):
+        run_benchmark(model, tmp_path / "none", jobs=0, **settings)
+    assert not (tmp_path / "none").exists()
+    tables, rows = {}, {}
+    for jobs in (1, 2):
+        out = tmp_path / f"jobs{jobs}"
+        tables[jobs] = run_benchmark(model, out, jobs=jobs, **settings)
+        rows[jobs] = json.loads((out / "results.json").read_text())["sequences"]
+    assert "2 worker processes of one thread each" in tables[2]
+    assert "worker processes" not in tables[1]
+    keys = [(r["seed"], r["method"]) for r in rows[1]]
+    assert keys == [(r["seed"], r["method"]) for r in rows[2]]
+    seeds = [sequence_seed(2, 0, k) for k in (0, 1)]
+    assert [seed for seed, _ in keys] == [seeds[0]] * 6 + [seeds[1]] * 6
+    for a, b in zip(rows[1], rows[2], strict=True):
+        if a["method"] in ("vanilla", "center-ph", "multi-ph", "raytun3r, no adapter"):
+            for metric in ("abs_rel", "d_reproj_px"):
+                assert a[metric] == pytest.approx(b[metric], rel=1e-3, abs=1e-4), (a, metric)
+    zero = [r["abs_rel"] for r in rows[1] if r["method"] == "raytun3r, no adapter"]
+    assert abs(zero[0] - zero[1]) > 1e-3  # the comparison can tell the two sequences apart
+    for jobs in (1, 2):  # each worker wrote its sequences' adapters
+        for seed in seeds:
+            assert (tmp_path / f"jobs{jobs}" / f"DS_195_indoor_{seed}.safetensors").is_file()

@@ -435,11 +435,11 @@ def test_demo_refuses_a_job_count_below_one(tmp_path, capsys):
 def test_demo_jobs_default_to_the_cpus_and_the_sequences():
     import os
 
-    from raytun3r_plugin.apps.demo import demo_jobs
+    from raytun3r_plugin.apps.workers import cpu_jobs
 
-    assert demo_jobs(1) == 1
-    assert 1 <= demo_jobs(64) <= (os.cpu_count() or 1)
-    assert demo_jobs(64) == min(64, len(os.sched_getaffinity(0)))
+    assert cpu_jobs(1) == 1 and cpu_jobs(0) == 1
+    assert 1 <= cpu_jobs(64) <= (os.cpu_count() or 1)
+    assert cpu_jobs(64) == min(64, len(os.sched_getaffinity(0)))
 
 
 def _write_segment(folder, camera, n_frames: int = 6, seed: int = 5, render_camera=None):

@@ -402,6 +402,14 @@ def rotation_effect(sequences: list[dict]) -> list[dict]:
     return rows
 
 
+def _same(model):
+    return model
+
+
+def _sequence_rows_job(model, camera, label: str, scene: str, seed: int, settings: dict):
+    return sequence_rows(model, camera, label, scene, seed, **settings)
+
+
 def run_benchmark(
     model,
     out_dir: str | Path,
@@ -419,18 +427,37 @@ def run_benchmark(
     baselines: tuple[str, ...] = (),
     pose_source: str = POSE_SOURCE,
     pose_weight: float | None = None,
+    jobs: int = 1,
 ) -> str:
     """Run every (camera, scene) on ``sequences`` held-out sequences; return the markdown table.
 
     The table shows means over each cell's sequences; ``out_dir`` also gets every per-sequence
     row (``results.json``) and the table (``results.md``). ``baselines``: keys of
     :data:`BASELINES` (``("lora", "caltok")``) whose rows are added, each a fit per sequence;
-    they enter neither ``gap_closed`` nor the targets.
+    they enter neither ``gap_closed`` nor the targets. ``jobs`` > 1 scores the sequences in that
+    many one-thread worker processes (:func:`~raytun3r_plugin.apps.workers.map_in_workers`,
+    ``model`` pickled to each); the table is the same up to the order of float sums, and its
+    timing columns are then those of one thread beside the other workers (the header says so).
     """
+    from raytun3r_plugin.apps.workers import map_in_workers
+
     baselines = check_baselines(baselines)
+    if jobs < 1:
+        raise InputError(f"run_benchmark: jobs must be at least 1, got {jobs}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rows, began = [], time.perf_counter()
+    settings = {
+        "size": size,
+        "n_adapt": n_adapt,
+        "n_eval": n_eval,
+        "steps": steps,
+        "out": out,
+        "progress": progress and jobs == 1,
+        "baselines": baselines,
+        "pose_source": pose_source,
+        "pose_weight": pose_weight,
+    }
+    tasks = []
     for position, spec in enumerate(cameras):
         camera = make_camera(spec, size)
         # A sequence's seed is that of its cell in the full benchmark, so a run over some of the
@@ -440,26 +467,17 @@ def run_benchmark(
             scene_index = SCENES.index(scene) if scene in SCENES else place
             for k in range(sequences):
                 seed = sequence_seed(camera_index, scene_index, k, base_seed)
-                rows += sequence_rows(
-                    model,
-                    camera,
-                    spec.label,
-                    scene,
-                    seed,
-                    size=size,
-                    n_adapt=n_adapt,
-                    n_eval=n_eval,
-                    steps=steps,
-                    out=out,
-                    progress=progress,
-                    baselines=baselines,
-                    pose_source=pose_source,
-                    pose_weight=pose_weight,
-                )
-                print(
-                    f"[{time.perf_counter() - began:6.0f} s] {spec.label} {scene} seed {seed}: done",
-                    flush=True,
-                )
+                tasks.append((camera, spec.label, scene, seed, settings))
+    results, began = {}, time.perf_counter()
+    for index, result in map_in_workers(
+        _sequence_rows_job, tasks, jobs, initializer=_same, initargs=(model,)
+    ):
+        results[index] = result
+        _, label, scene, seed, _ = tasks[index]
+        print(
+            f"[{time.perf_counter() - began:6.0f} s] {label} {scene} seed {seed}: done", flush=True
+        )
+    rows = [row for index in range(len(tasks)) for row in results[index]]
     summary = summarise(rows)
     for row in summarise(rows, reference=ZERO_ADAPTER):
         if row["method"] in ("raytun3r", SUPERVISED):
@@ -497,6 +515,11 @@ def run_benchmark(
         f"(30 windows, {steps} steps, pose source '{pose_source}', pose weight "
         f"{adapt_config(size, steps, pose_source=pose_source, pose_weight=pose_weight).weights.pose:g}"
         f") and {n_eval} scored frames"
+        + (
+            f"; {jobs} worker processes of one thread each (timings are one thread's beside the other workers)"
+            if jobs > 1
+            else ""
+        )
         + (
             f"; baselines {', '.join(BASELINES[b] for b in baselines)} fitted on the same frames with the same "
             "objective, windows and steps (raytun3r's tables at zero, no parameter-free corrections)"

@@ -346,6 +346,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             scenes=("indoor",),
             network=description,
             baselines=baselines,
+            jobs=args.jobs,
         )
     else:
         table = run_benchmark(
@@ -355,6 +356,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             network=description,
             progress=True,
             baselines=baselines,
+            jobs=args.jobs,
         )
     print(table)
     return 0
@@ -574,6 +576,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="also fit and score these baselines per sequence (comma-separated: lora = LoRA r=8, "
         "caltok = calibration tokens t=4), on the adaptation frames and objective of raytun3r's "
         "fit; each adds a fit per sequence",
+    )
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="worker processes of one thread each (default 1: the timing columns are then one "
+        "process's; more makes the run shorter and the timings one thread's beside the others)",
     )
     p.set_defaults(func=cmd_bench)
 

@@ -19,6 +19,7 @@ and the targets pose source; not remeasured on v3).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import time
 from pathlib import Path
@@ -133,24 +134,6 @@ def demo_camera(size: int):
     return fisheye(size, 190.0, "kb4", k=(0.02, 0.0, 0.0, 0.0))
 
 
-def demo_jobs(count: int) -> int:
-    """Worker processes the demo uses by default for ``count`` sequences: one per CPU this
-    process may run on, at most one per sequence.
-
-    The built-in network is small (112 px, a few hundred tokens per frame), so its operators are
-    too short for intra-op threads to pay, and one-thread processes that score different
-    sequences at once use the cores better (README, "The demo", has the timing of both).
-    A fit's numbers can differ slightly from ``--jobs 1``: one thread sums in another order,
-    and 100 steps carry the difference on."""
-    import os
-
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cpus = os.cpu_count() or 1
-    return max(1, min(count, cpus))
-
-
 def score_sequence(model, k: int, seed: int, size: int, steps: int, out: Path, labels: dict):
     """Render the demo's sequence ``k`` (render seed ``1000 + seed + k``), score the methods
     without an adapter, fit the self-supervised and the supervised adapter on frames 0-23 and
@@ -213,38 +196,21 @@ def score_sequence(model, k: int, seed: int, size: int, steps: int, out: Path, l
     return rows, seconds
 
 
-#: The network a demo worker process loaded once (:func:`_start_worker`), and the context that
-#: holds upstream logging back there (kept referenced: a collected generator context exits).
-_WORKER_MODEL = None
-_WORKER_CONTEXT = None
+@functools.cache
+def _built_in_network():
+    """(model, description) of the default network, once per process: the demo's own process
+    and each of its workers (:func:`~raytun3r_plugin.apps.workers.map_in_workers`)."""
+    return default_network()
 
 
-def _start_worker() -> None:
-    """Initialiser of a demo worker: one intra-op thread (the processes share the cores),
-    upstream logging held back for the life of the process as the command line does, and the
-    built-in network loaded once."""
-    import contextlib
-    import signal
-
-    import torch
-
-    from raytun3r_plugin.registry import quiet_upstream
-
-    global _WORKER_MODEL, _WORKER_CONTEXT
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the pool (run_demo)
-    torch.set_num_threads(1)
-    _WORKER_CONTEXT = contextlib.ExitStack()
-    _WORKER_CONTEXT.enter_context(quiet_upstream())
-    _WORKER_MODEL = default_network()[0]
-
-
-def _score_in_worker(task: tuple):
-    return task[0], score_sequence(_WORKER_MODEL, *task)
+def _built_in_model():
+    return _built_in_network()[0]
 
 
 def run_demo(args: argparse.Namespace) -> int:
     from raytun3r_plugin.apps.benchmark import summarise
     from raytun3r_plugin.apps.evaluation import format_table
+    from raytun3r_plugin.apps.workers import cpu_jobs, map_in_workers
     from raytun3r_plugin.errors import InputError
 
     started = time.perf_counter()
@@ -252,13 +218,13 @@ def run_demo(args: argparse.Namespace) -> int:
     steps = args.steps if args.steps is not None else DEMO_STEPS
     count = args.sequences if getattr(args, "sequences", None) else DEMO_SEQUENCES
     jobs = getattr(args, "jobs", None)
-    jobs = demo_jobs(count) if jobs is None else jobs
+    jobs = cpu_jobs(count) if jobs is None else jobs
     if jobs < 1:
         raise InputError(f"--jobs must be at least 1, got {jobs}")
     jobs = min(jobs, count)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    model, description = default_network()
+    description = _built_in_network()[1]
     print(f"network: {description}")
     camera = demo_camera(size)
     print(f"camera:  {camera!r}, field of view {camera.fov_deg:.0f} deg")
@@ -279,27 +245,12 @@ def run_demo(args: argparse.Namespace) -> int:
     }
     tasks = [(k, args.seed, size, steps, out, labels) for k in range(count)]
     results: dict[int, tuple] = {}
-
-    def done(k: int, result: tuple) -> None:
+    for k, result in map_in_workers(score_sequence, tasks, jobs, initializer=_built_in_model):
         results[k] = result
         print(
             f"[{time.perf_counter() - started:4.0f} s] sequence {k + 1}/{count} (seed {1000 + args.seed + k}) done",
             flush=True,
         )
-
-    if jobs == 1:
-        for task in tasks:
-            done(task[0], score_sequence(model, *task))
-    else:
-        import multiprocessing
-
-        # spawn, not fork: a forked child of a process whose OpenMP pool already ran can hang.
-        # On Ctrl-C only this process sees the interrupt (the workers ignore it) and leaving the
-        # block terminates them, so nothing keeps fitting after the command has stopped.
-        context = multiprocessing.get_context("spawn")
-        with context.Pool(jobs, initializer=_start_worker) as pool:
-            for k, result in pool.imap_unordered(_score_in_worker, tasks):
-                done(k, result)
     rows = [row for k in range(count) for row in results[k][0]]
     seconds = {key: [results[k][1][key] for k in range(count)] for key in ("adapted", "supervised")}
 
