@@ -131,6 +131,18 @@ def test_params_summary_stays_an_integer():
     assert summarise(rows)[0]["params"] == 3604
 
 
+#: The tiny benchmark: one cell (DS 195 indoor), 6 + 4 frames at 84 px, 3 steps.
+TINY_BENCH = {
+    "size": 84,
+    "n_adapt": 6,
+    "n_eval": 4,
+    "steps": 3,
+    "sequences": 1,
+    "cameras": CAMERAS[-1:],
+    "scenes": ("indoor",),
+}
+
+
 @pytest.fixture(scope="module")
 def tiny_bench(tmp_path_factory):
     """The tiny benchmark (1 sequence, 6 + 4 frames, 3 steps) with and without the baselines."""
@@ -142,15 +154,7 @@ def tiny_bench(tmp_path_factory):
 
     torch.manual_seed(0)
     model, _ = default_network()
-    settings = {
-        "size": 84,
-        "n_adapt": 6,
-        "n_eval": 4,
-        "steps": 3,
-        "sequences": 1,
-        "cameras": CAMERAS[-1:],
-        "scenes": ("indoor",),
-    }
+    settings = TINY_BENCH
     results, tables = {}, {}
     for key, baselines in (("plain", ()), ("baselines", ("caltok", "lora"))):
         out = tmp_path_factory.mktemp(key)
@@ -268,15 +272,7 @@ def test_bench_in_worker_processes_scores_the_same_sequences_in_order(tmp_path):
     from raytun3r_plugin.errors import InputError
 
     model, _ = default_network()
-    settings = {
-        "size": 84,
-        "n_adapt": 6,
-        "n_eval": 4,
-        "steps": 2,
-        "sequences": 2,
-        "cameras": CAMERAS[-1:],
-        "scenes": ("indoor",),
-    }
+    settings = {**TINY_BENCH, "steps": 2, "sequences": 2}
     with pytest.raises(InputError, match="jobs must be at least 1, got 0"):
         run_benchmark(model, tmp_path / "none", jobs=0, **settings)
     assert not (tmp_path / "none").exists()
