@@ -23,6 +23,7 @@ CHECKED = [
     "raytun3r_plugin/cameras/",
     "raytun3r_plugin/datasets/rig.py",
     "raytun3r_plugin/adaptation/rig.py",
+    "raytun3r_plugin/apps/workers.py",
 ]
 
 
