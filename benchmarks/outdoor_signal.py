@@ -28,7 +28,6 @@ tenth of the AbsRel gap between no adapter and supervised on average.
 from __future__ import annotations
 
 import argparse
-import inspect
 import time
 
 import numpy as np
@@ -51,8 +50,6 @@ from raytun3r_plugin.registry import quiet_upstream
 SIZE, NATIVE, STRIDE, N_ADAPT, N_EVAL = 112, 448, 8, 24, 12
 METHODS = ("no adapter", f"native {NATIVE}", f"stride {STRIDE}", "supervised")
 VARIANTS = METHODS[1:3]
-#: The per-frame median motion the benchmark renders with (render_sequence's default), px at 112.
-BENCH_FLOW_PX = inspect.signature(synthetic.render_sequence).parameters["flow_px"].default
 
 
 def _load_network():
@@ -71,7 +68,7 @@ def score_outdoor_sequence(model, camera_index: int, k: int, steps: int) -> list
         sharp_camera,
         n_frames=N_ADAPT,
         seed=seed,
-        flow_px=BENCH_FLOW_PX * NATIVE / SIZE,
+        flow_px=synthetic.FLOW_PX * NATIVE / SIZE,
     )
     fits = {
         f"native {NATIVE}": (

@@ -21,7 +21,6 @@ many windows a threshold drops.
 from __future__ import annotations
 
 import argparse
-import inspect
 import math
 
 import numpy as np
@@ -41,9 +40,6 @@ from raytun3r_plugin.apps.benchmark import (
 )
 from raytun3r_plugin.apps.demo import adapt_config, default_network
 from raytun3r_plugin.registry import quiet_upstream
-
-#: The per-frame median motion the benchmark renders with (render_sequence's default), px at 112.
-BENCH_FLOW_PX = inspect.signature(synthetic.render_sequence).parameters["flow_px"].default
 
 
 def main() -> None:
@@ -98,7 +94,11 @@ def main() -> None:
                 # The renderer picks the step that gives this median motion in pixels, so
                 # scaling it with the size keeps the camera path of the 112 px benchmark.
                 seq = synthetic.render_sequence(
-                    scene, camera, n_frames=36, seed=seed, flow_px=BENCH_FLOW_PX * args.native / 112
+                    scene,
+                    camera,
+                    n_frames=36,
+                    seed=seed,
+                    flow_px=synthetic.FLOW_PX * args.native / 112,
                 )
                 config = adapt_config(112, 300, seed=0, stride=args.stride)
                 problem = prepare_problem(camera, seq.images[:24], config)

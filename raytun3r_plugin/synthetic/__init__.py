@@ -23,6 +23,7 @@ from raytun3r_plugin.synthetic.correspondence import (
     relative_pose,
 )
 from raytun3r_plugin.synthetic.generate import (
+    FLOW_PX,
     camera_centres,
     make_trajectory,
     median_flow,
@@ -43,6 +44,7 @@ from raytun3r_plugin.synthetic.scene import (
 from raytun3r_plugin.synthetic.trajectory import driving_trajectory, handheld_trajectory
 
 __all__ = [
+    "FLOW_PX",
     "Hit",
     "RenderedFrame",
     "Renderer",

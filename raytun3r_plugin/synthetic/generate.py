@@ -23,6 +23,7 @@ if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load 
     from raytun3r_plugin.cameras.base import Camera
 
 __all__ = [
+    "FLOW_PX",
     "camera_centres",
     "make_trajectory",
     "median_flow",
@@ -33,6 +34,12 @@ __all__ = [
 
 # Typical scene range (m) at which the apparent motion of a trajectory is measured.
 _DEPTH_SCALE = {"indoor": 2.5, "outdoor": 16.0}
+
+
+#: Default median apparent motion between consecutive frames (px) that the renderer chooses its
+#: time step for; the benchmark renders with it. A render at another size keeps the same camera
+#: path with ``FLOW_PX * size / 112`` (112 px being the benchmark's input).
+FLOW_PX = 6.0
 
 
 def camera_centres(cam_from_world: np.ndarray) -> np.ndarray:
@@ -69,7 +76,7 @@ def median_flow(
 
 
 def make_trajectory(
-    kind: str, motion: str, camera: Camera, n_frames: int, seed: int, flow_px: float = 6.0
+    kind: str, motion: str, camera: Camera, n_frames: int, seed: int, flow_px: float = FLOW_PX
 ) -> tuple[np.ndarray, float]:
     """Poses (N, 4, 4) for ``motion`` ("handheld" | "driving") in a ``kind`` scene, with the
     time step chosen so the median apparent motion between frames is about ``flow_px`` pixels.
@@ -116,7 +123,7 @@ def render_sequence(
     seed: int = 0,
     motion: str | None = None,
     *,
-    flow_px: float = 6.0,
+    flow_px: float = FLOW_PX,
     supersample: int = 2,
     adaptive: bool = True,
     fps: float = 10.0,
