@@ -31,9 +31,9 @@ POSE_SOURCES = ("model", "targets", "hybrid", "both")
 MODEL_REPROJECTION_SOURCES = ("model", "both")
 TARGET_REPROJECTION_SOURCES = ("targets", "hybrid", "both")
 POSE_TERM_SOURCES = ("model", "hybrid", "both")
-SCALES = ("pixel", "least_squares")
+SCALES = ("pixel", "least_squares", "photometric")
 PE_REGULARISERS = ("relative", "absolute")
-TERMS = ("reproj", "smooth", "l2", "tv", "pose", "depth")
+TERMS = ("reproj", "smooth", "l2", "tv", "pose", "depth", "photo")
 
 #: Default loss weights of the self-supervised fit. The paper's (reproj 1, smooth 10, L2 2, TV
 #: 20, pose 1) were set in absolute PE units; here L2 and TV count relative to the backbone's own
@@ -101,7 +101,10 @@ class AdaptConfig:
         scale: with ``pose_source="targets"``, how the unit target translation is scaled to the
             predicted depth: ``"pixel"`` (default, :func:`~raytun3r_plugin.adaptation.losses.pixel_optimal_scale`:
             the scale that minimises the robust pixel residual, held fixed for the gradient) or
-            ``"least_squares"`` (the 3-D least-squares scale, dominated by far points).
+            ``"least_squares"`` (the 3-D least-squares scale, dominated by far points) or
+            ``"photometric"`` (:func:`~raytun3r_plugin.adaptation.losses.photometric_optimal_scale`:
+            the length that best aligns the frames densely, near road included, on
+            ``photo_pixels`` pixels blurred by ``photo_sigma``; detached).
         robust_px: scale ``c`` of the log-L1 reprojection penalty ``c log(1 + e / c)`` in input
             pixels; None = the paper's plain L1.
         pe_regulariser: ``"relative"`` (default): L2 and TV of the PE correction divided by the
@@ -123,6 +126,13 @@ class AdaptConfig:
             (:func:`~raytun3r_plugin.adaptation.intrinsics.refine_intrinsics`, docs/intrinsics.md)
             and fit (and save) the adapter with the refined camera. Off by default; when off it
             is left out of :meth:`to_dict` so existing identities and checkpoints are unchanged.
+        photo_sigma: with ``weights.photo > 0`` (the dense photometric term,
+            :func:`~raytun3r_plugin.adaptation.losses.photometric_loss`): the Gaussian blur of
+            both frames, in input pixels. With the term on, the parallax gate records its window
+            medians but drops no window: the photometric term carries the depth signal that
+            far-only matches lack.
+        photo_pixels: with ``weights.photo > 0``: pixels of frame ``i`` warped per ordered pair
+            and step (a seeded random subset of the valid region, drawn again every step).
     """
 
     steps: int = 300
@@ -151,6 +161,8 @@ class AdaptConfig:
     guard_every: int = 25
     min_parallax_px: float = 0.3
     refine_intrinsics: bool = False
+    photo_sigma: float = 1.0
+    photo_pixels: int = 4096
 
     def __post_init__(self) -> None:
         if isinstance(self.weights, Mapping):
@@ -175,6 +187,8 @@ class AdaptConfig:
             ("guard_every", self.guard_every >= 1),
             ("min_parallax_px", self.min_parallax_px >= 0),
             ("refine_intrinsics", isinstance(self.refine_intrinsics, bool)),
+            ("photo_sigma", math.isfinite(self.photo_sigma) and self.photo_sigma >= 0),
+            ("photo_pixels", self.photo_pixels >= 1),
         )
         for name, ok in checks:
             if not ok:
@@ -194,6 +208,10 @@ class AdaptConfig:
         # configuration that does not use it stays what it was before the field existed.
         if not self.refine_intrinsics:
             del out["refine_intrinsics"]
+        if not self.weights.photo:
+            del out["weights"]["photo"]
+            if self.scale != "photometric":
+                del out["photo_sigma"], out["photo_pixels"]
         return out
 
     @classmethod

@@ -24,12 +24,15 @@ from raytun3r_plugin.adaptation.config import (
 )
 from raytun3r_plugin.adaptation.losses import (
     backproject,
+    blurred_gray,
     depth_parallax_px,
     fit_translation_scale,
     pe_correction_grid,
     pe_energy,
     pe_l2,
     pe_tv,
+    photometric_loss,
+    photometric_optimal_scale,
     pixel_optimal_scale,
     pose_loss,
     relative_pose,
@@ -140,11 +143,17 @@ def _pose_scaled_to(
     rays_j: torch.Tensor,
     camera: Camera,
     config: AdaptConfig,
+    scale: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """``cam_j_from_cam_i`` from the MAGSAC++ target, translation scaled to ``points``
-    (``config.scale``: pixel-optimal and detached, or the differentiable least-squares scale)."""
+    (``config.scale``: pixel-optimal and detached, or the differentiable least-squares scale),
+    or by ``scale`` where given (``config.scale="photometric"``: :func:`_photometric_scale`)."""
     rotation = pair.rotation.to(points.dtype)
     direction = pair.direction.to(points.dtype)
+    if scale is not None:
+        pose = torch.eye(4, dtype=points.dtype)
+        translation = (scale.to(points.dtype) * direction)[:, None]
+        return torch.cat((torch.cat((rotation, translation), dim=1), pose[3:]), dim=0)
     scale = fit_translation_scale(
         points[usable], rays_j[usable], rotation, direction, confidence[usable]
     )
@@ -173,11 +182,55 @@ def _targets_pose(
     rays_j: torch.Tensor,
     camera: Camera,
     config: AdaptConfig,
+    scale: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """``cam_j_from_cam_i`` from the MAGSAC++ target, translation scaled to the predicted depth
     (:func:`_pose_scaled_to`)."""
     points, usable = _matched_points(depth_i, uv_i, rays_i, config.depth_convention)
-    return _pose_scaled_to(pair, points, usable, uv_j, confidence, rays_j, camera, config)
+    return _pose_scaled_to(pair, points, usable, uv_j, confidence, rays_j, camera, config, scale)
+
+
+def _valid_pixels(
+    valid: torch.Tensor, camera: Camera, count: int, generator: torch.Generator, dtype: torch.dtype
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(K, 2) long (column, row) pixels, at most ``count`` drawn at random from ``valid``, and
+    their (K, 3) unit rays (pixels without a ray left out)."""
+    rows, cols = torch.nonzero(valid, as_tuple=True)
+    pick = torch.randperm(rows.shape[0], generator=generator)[:count]
+    pixels = torch.stack((cols[pick], rows[pick]), dim=-1)
+    with torch.no_grad():
+        rays, ok = camera.unproject(pixels.to(dtype))
+    return pixels[ok], rays[ok]
+
+
+def _photometric_scale(
+    depth_i: torch.Tensor,
+    gray_i: torch.Tensor,
+    gray_j: torch.Tensor,
+    pair: _Pair,
+    camera: Camera,
+    valid: torch.Tensor,
+    config: AdaptConfig,
+    generator: torch.Generator,
+) -> torch.Tensor:
+    """Translation length of ``pair``'s target for ``config.scale="photometric"``:
+    :func:`photometric_optimal_scale` of frame ``i``'s predicted depth (detached) on
+    ``config.photo_pixels`` random valid pixels."""
+    with torch.no_grad():
+        depth_i = depth_i.detach()
+        pixels, rays = _valid_pixels(valid, camera, config.photo_pixels, generator, depth_i.dtype)
+        depth = depth_i[pixels[:, 1], pixels[:, 0]]
+        usable = torch.isfinite(depth) & (depth > 0)
+        points = backproject(depth[usable], rays[usable], config.depth_convention)
+        return photometric_optimal_scale(
+            points,
+            gray_i[pixels[:, 1], pixels[:, 0]][usable].to(depth.dtype),
+            gray_j,
+            pair.rotation,
+            pair.direction,
+            camera,
+            valid,
+        )
 
 
 def window_terms(
@@ -258,6 +311,12 @@ def prediction_terms(
         term = torch.stack(losses).mean() if losses else depth.sum() * 0.0
         return {"depth": term, **regularisers}, {"n_matches": 0, "n_pose": 0, "n_depth": n_depth}
     reproj, pose_terms, n_matches = [], [], 0
+    photometric = config.scale == "photometric"
+    gray = (
+        blurred_gray(images.to(depth.dtype), config.photo_sigma)
+        if photometric or config.weights.photo > 0
+        else None
+    )
     for pair in pairs:
         relatives = []
         if config.pose_source in POSE_TERM_SOURCES:
@@ -275,6 +334,18 @@ def prediction_terms(
             continue
         uv_i, uv_j, confidence, rays_i, rays_j = _subset(pair, config.max_matches, generator)
         if through_targets:
+            scale = None
+            if photometric:
+                scale = _photometric_scale(
+                    depth[pair.a],
+                    gray[pair.a],
+                    gray[pair.b],
+                    pair,
+                    layout.camera,
+                    valid,
+                    config,
+                    generator,
+                )
             relatives.append(
                 _targets_pose(
                     pair,
@@ -286,6 +357,7 @@ def prediction_terms(
                     rays_j,
                     layout.camera,
                     config,
+                    scale,
                 )
             )
         used = 0
@@ -312,9 +384,47 @@ def prediction_terms(
         "smooth": smoothness_loss(depth, images.to(depth.dtype), valid),
         **regularisers,
     }
+    if config.weights.photo > 0:
+        terms["photo"] = _photometric_term(
+            depth, gray, pairs, layout.camera, valid, config, generator
+        )
     if config.pose_source in POSE_TERM_SOURCES:
         terms["pose"] = torch.stack(pose_terms).mean() if pose_terms else zero
     return terms, {"n_matches": n_matches, "n_pose": len(pose_terms)}
+
+
+def _photometric_term(
+    depth: torch.Tensor,
+    gray: torch.Tensor,
+    pairs: list[_Pair],
+    camera: Camera,
+    valid: torch.Tensor,
+    config: AdaptConfig,
+    generator: torch.Generator,
+) -> torch.Tensor:
+    """Mean :func:`photometric_loss` over the window's pairs with a usable target, each on
+    ``config.photo_pixels`` random valid pixels of its first frame; ``gray`` (S, h, w) are the
+    window's blurred grey frames (:func:`blurred_gray`)."""
+    losses = []
+    for pair in pairs:
+        if pair.rotation is None:
+            continue
+        pixels, rays = _valid_pixels(valid, camera, config.photo_pixels, generator, depth.dtype)
+        loss, count = photometric_loss(
+            depth[pair.a],
+            rays,
+            pixels,
+            gray[pair.a],
+            gray[pair.b],
+            pair.rotation,
+            pair.direction,
+            camera,
+            valid,
+            config.depth_convention,
+        )
+        if count:
+            losses.append(loss)
+    return torch.stack(losses).mean() if losses else depth.sum() * 0.0
 
 
 def window_parallax(
@@ -334,7 +444,14 @@ def window_parallax(
             frame: predict(model, problem.inputs[frame][None, None]).depth[0, 0] for frame in frames
         }
     medians = []
+    photometric = config.scale == "photometric"
+    generator = torch.Generator().manual_seed(int(config.seed))
     with torch.no_grad():
+        if photometric:
+            gray = {
+                frame: blurred_gray(problem.inputs[frame][None].double(), config.photo_sigma)[0]
+                for frame in frames
+            }
         for window, pairs in problem.windows:
             values = []
             for pair in pairs:
@@ -348,6 +465,19 @@ def window_parallax(
                 )
                 if not usable.any():
                     continue
+                scale = None
+                if photometric:
+                    i, j = window.frames[pair.a], window.frames[pair.b]
+                    scale = _photometric_scale(
+                        depth[i].double(),
+                        gray[i],
+                        gray[j],
+                        pair,
+                        camera,
+                        problem.valid,
+                        config,
+                        generator,
+                    )
                 pose = _pose_scaled_to(
                     pair,
                     points,
@@ -357,6 +487,7 @@ def window_parallax(
                     pair.rays_j.double(),
                     camera,
                     config,
+                    scale,
                 )
                 points = points[usable]
                 values.append(float(depth_parallax_px(points, pose, camera).median()))
