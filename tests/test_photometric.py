@@ -161,14 +161,11 @@ def test_bad_photometric_settings_are_refused(change):
         AdaptConfig(**change)
 
 
-def test_with_the_term_on_the_gate_keeps_every_window_and_the_fit_steps(tmp_path):
-    """A threshold no window reaches stops the match-only fit ("no signal"); with the
-    photometric term the same windows are kept, recorded, and fitted."""
-    from depth_anything_3.utils.logger import logger
-
+def _tiny_fit(tmp_path, **changes):
+    """(camera, frames, config) of a two-step fit of the tiny DA3 network on a 5-frame room."""
     camera = KannalaBrandt4(84, 70, [22.0, 22.0, 41.5, 34.5, 0.0, 0.0, 0.0, 0.0], max_fov_deg=190.0)
     frames = synthetic.render_sequence("indoor", camera, n_frames=5, seed=7).images
-    base = AdaptConfig(
+    config = AdaptConfig(
         steps=2,
         input_size=84,
         n_windows=2,
@@ -177,9 +174,18 @@ def test_with_the_term_on_the_gate_keeps_every_window_and_the_fit_steps(tmp_path
         matcher_options={"border_px": 2},
         seed=0,
         guard=False,
-        min_parallax_px=1e6,
         photo_pixels=256,
+        **changes,
     )
+    return camera, frames, config
+
+
+def test_with_the_term_on_the_gate_keeps_every_window_and_the_fit_steps(tmp_path):
+    """A threshold no window reaches stops the match-only fit ("no signal"); with the
+    photometric term the same windows are kept, recorded, and fitted."""
+    from depth_anything_3.utils.logger import logger
+
+    camera, frames, base = _tiny_fit(tmp_path, min_parallax_px=1e6)
     photo = dataclasses.replace(base, weights=dataclasses.replace(base.weights, photo=100.0))
     level, logger.level = logger.level, 1
     try:
@@ -210,20 +216,7 @@ def test_the_photometric_scale_is_recorded_and_scales_the_reprojection(tmp_path)
     saved = AdaptConfig(scale="photometric").to_dict()
     assert saved["scale"] == "photometric" and saved["photo_pixels"] == 4096
     assert "photo" not in saved["weights"]
-    camera = KannalaBrandt4(84, 70, [22.0, 22.0, 41.5, 34.5, 0.0, 0.0, 0.0, 0.0], max_fov_deg=190.0)
-    frames = synthetic.render_sequence("indoor", camera, n_frames=5, seed=7).images
-    config = AdaptConfig(
-        steps=2,
-        input_size=84,
-        n_windows=2,
-        checkpoint_every=0,
-        cache_dir=str(tmp_path),
-        matcher_options={"border_px": 2},
-        seed=0,
-        guard=False,
-        scale="photometric",
-        photo_pixels=256,
-    )
+    camera, frames, config = _tiny_fit(tmp_path, scale="photometric")
     level, logger.level = logger.level, 1
     try:
         model = build_tiny_network()
