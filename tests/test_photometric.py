@@ -55,7 +55,7 @@ def street():
     }
 
 
-def _loss(street, depth):
+def _loss(street, depth, valid=None):
     t = street["translation"]
     return photometric_loss(
         depth,
@@ -66,7 +66,7 @@ def _loss(street, depth):
         street["rotation"],
         t / t.norm(),
         street["camera"],
-        street["valid"],
+        street["valid"] if valid is None else valid,
     )
 
 
@@ -115,19 +115,8 @@ def test_the_searched_scale_is_the_true_translation_length(street):
 
 
 def test_a_pixel_warped_out_of_view_costs_outside_cost(street):
-    t = street["translation"]
     # A frame j with no valid pixel: every warped pixel is outside.
-    loss, count = photometric_loss(
-        street["depth"],
-        street["rays"],
-        street["pixels"],
-        street["gray"][0],
-        street["gray"][1],
-        street["rotation"],
-        t / t.norm(),
-        street["camera"],
-        torch.zeros_like(street["valid"]),
-    )
+    loss, count = _loss(street, street["depth"], torch.zeros_like(street["valid"]))
     assert count > 0 and float(loss) == pytest.approx(OUTSIDE_COST)
 
 
