@@ -208,10 +208,9 @@ class AdaptConfig:
         # configuration that does not use it stays what it was before the field existed.
         if not self.refine_intrinsics:
             del out["refine_intrinsics"]
-        if not self.weights.photo:
-            del out["weights"]["photo"]
-            if self.scale != "photometric":
-                del out["photo_sigma"], out["photo_pixels"]
+        out["weights"] = self.weights.as_dict()
+        if not self.weights.photo and self.scale != "photometric":
+            del out["photo_sigma"], out["photo_pixels"]
         return out
 
     @classmethod

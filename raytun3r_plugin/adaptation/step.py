@@ -150,24 +150,22 @@ def _pose_scaled_to(
     or by ``scale`` where given (``config.scale="photometric"``: :func:`_photometric_scale`)."""
     rotation = pair.rotation.to(points.dtype)
     direction = pair.direction.to(points.dtype)
-    if scale is not None:
-        pose = torch.eye(4, dtype=points.dtype)
-        translation = (scale.to(points.dtype) * direction)[:, None]
-        return torch.cat((torch.cat((rotation, translation), dim=1), pose[3:]), dim=0)
-    scale = fit_translation_scale(
-        points[usable], rays_j[usable], rotation, direction, confidence[usable]
-    )
-    if config.scale == "pixel":
-        scale = pixel_optimal_scale(
-            points[usable],
-            uv_j[usable],
-            rotation,
-            direction,
-            camera,
-            confidence[usable],
-            robust_px=config.robust_px or 1.0,
-            initial=scale.detach(),
+    if scale is None:
+        scale = fit_translation_scale(
+            points[usable], rays_j[usable], rotation, direction, confidence[usable]
         )
+        if config.scale == "pixel":
+            scale = pixel_optimal_scale(
+                points[usable],
+                uv_j[usable],
+                rotation,
+                direction,
+                camera,
+                confidence[usable],
+                robust_px=config.robust_px or 1.0,
+                initial=scale.detach(),
+            )
+    scale = scale.to(points.dtype)
     pose = torch.eye(4, dtype=points.dtype)
     return torch.cat((torch.cat((rotation, (scale * direction)[:, None]), dim=1), pose[3:]), dim=0)
 
@@ -219,12 +217,12 @@ def _photometric_scale(
     with torch.no_grad():
         depth_i = depth_i.detach()
         pixels, rays = _valid_pixels(valid, camera, config.photo_pixels, generator, depth_i.dtype)
-        depth = depth_i[pixels[:, 1], pixels[:, 0]]
-        usable = torch.isfinite(depth) & (depth > 0)
-        points = backproject(depth[usable], rays[usable], config.depth_convention)
+        points, usable = _matched_points(
+            depth_i, pixels.to(depth_i.dtype), rays, config.depth_convention
+        )
         return photometric_optimal_scale(
-            points,
-            gray_i[pixels[:, 1], pixels[:, 0]][usable].to(depth.dtype),
+            points[usable],
+            gray_i[pixels[:, 1], pixels[:, 0]][usable].to(depth_i.dtype),
             gray_j,
             pair.rotation,
             pair.direction,

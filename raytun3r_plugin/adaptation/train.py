@@ -273,10 +273,9 @@ def adapt(
         # Measured with the starting tables, before any checkpoint is restored, so a resumed run
         # keeps the same windows.
         medians = window_parallax(model, adapter, problem, config)
-        keep = [not median < config.min_parallax_px for median in medians]  # NaN: no evidence
-        if config.weights.photo > 0:
-            # The dense photometric term needs no match to move with depth.
-            keep = [True] * len(medians)
+        # NaN: no evidence. The dense photometric term needs no match to move with depth.
+        dense = config.weights.photo > 0
+        keep = [dense or not median < config.min_parallax_px for median in medians]
         parallax = {
             "min_parallax_px": config.min_parallax_px,
             "window_median_px": [round(m, 4) if math.isfinite(m) else None for m in medians],
