@@ -25,6 +25,23 @@ held-out seeds too.
         # the benchmark's held-out seeds (90000+) of the cells where the development rule was
         # met or nearly met: does the recommendation hold there?
     python benchmarks/shared_adapter.py --sequences 2 --steps 30 --jobs 1
+
+``--pooled``: one supervised fit on several segments at once (``adapt`` with a list of segments,
+the same 300 steps spread over their windows), the way a camera's adapter would be made from
+every drive that has depth. Development: per cell, for each of the 5 sequences t, the adapter
+fitted on frames 0-23 of the other 4 is scored on t's frames 24-35, beside no adapter and t's own
+supervised fit (the upper bound). ``--held-out``: the adapter fitted on all 5 development
+sequences of a cell is scored on the cell's 5 held-out sequences (90000+ seeds, never fitted on),
+beside no adapter and each held-out sequence's own supervised fit.
+
+Decision rule for ``--pooled``, fixed before its first run: the README recommends fitting a
+camera's adapter with depth on several segments and sharing it, for the kind of scene of a cell,
+only if in that cell the pooled adapter is below no adapter on both AbsRel and d_reproj on at
+least 80 % of the scored sequences (4 of 5) and never more than 5 % worse on AbsRel, on the
+development seeds and then on the held-out seeds.
+
+    python benchmarks/shared_adapter.py --pooled               # 6 cells, ~15 min, 2 jobs
+    python benchmarks/shared_adapter.py --pooled --held-out    # ~10 min, 2 jobs
 """
 
 from __future__ import annotations
@@ -93,6 +110,86 @@ def score_cell(
     return {"camera": spec.label, "scene": scene, "zero": zero, "fitted": fitted}
 
 
+def score_pooled(
+    model, camera_index: int, scene_index: int, sequences: int, steps: int, held_out: bool
+) -> dict:
+    """For one cell: per scored sequence t, the (AbsRel, d_reproj px) on t's frames 24-35 of no
+    adapter, of t's own supervised fit and of the supervised adapter fitted on several segments
+    at once: the other development sequences (leave one out) or, with ``held_out``, all the
+    development sequences scored on the held-out ones."""
+    spec, scene = CAMERAS[camera_index], SCENES[scene_index]
+    camera = make_camera(spec, SIZE)
+
+    def render(k: int, base: int):
+        return synthetic.render_sequence(
+            scene,
+            camera,
+            n_frames=N_ADAPT + N_EVAL,
+            seed=sequence_seed(camera_index, scene_index, k, base),
+        )
+
+    def fit(segments):
+        return adapt(
+            model,
+            camera,
+            [seq.images[:N_ADAPT] for seq in segments],
+            supervised_config(SIZE, steps),
+            depth=[ground_truth_depth(seq, N_ADAPT) for seq in segments],
+            progress=False,
+        )
+
+    frames = list(range(N_ADAPT, N_ADAPT + N_EVAL))
+
+    def evaluate(adapter, seq) -> tuple[float, float]:
+        values = headline(score(seq, run_method(model, seq, "raytun3r", adapter, frames=frames)))
+        return values["abs_rel"], values["d_reproj_px"]
+
+    development = [render(k, DEVELOPMENT_SEED) for k in range(sequences)]
+    targets = [render(k, HELD_OUT_SEED) for k in range(sequences)] if held_out else development
+    everything = fit(development) if held_out else None
+    rows = []
+    for t, target in enumerate(targets):
+        pooled = (
+            everything if held_out else fit([seq for k, seq in enumerate(development) if k != t])
+        )
+        rows.append(
+            {
+                "zero": evaluate(None, target),
+                "own": evaluate(fit([target]), target),
+                "pooled": evaluate(pooled, target),
+            }
+        )
+    return {"camera": spec.label, "scene": scene, "rows": rows}
+
+
+def _print_pooled(cells: list[dict]) -> None:
+    print(
+        "| camera | scene | no adapter AbsRel / d_reproj | own supervised | pooled (other segments') "
+        "| pooled gap closed | pooled below no adapter on both | worst pooled AbsRel | rule |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for cell in cells:
+        zero, own, pooled = (
+            np.asarray([row[key] for row in cell["rows"]]) for key in ("zero", "own", "pooled")
+        )
+        both = int(((pooled[:, 0] < zero[:, 0]) & (pooled[:, 1] < zero[:, 1])).sum())
+        worst = float((pooled[:, 0] / zero[:, 0] - 1).max())
+        met = both >= 0.8 * len(zero) and worst <= 0.05
+        gap = zero[:, 0].sum() - own[:, 0].sum()
+        closed = (zero[:, 0].sum() - pooled[:, 0].sum()) / gap if gap > 0 else float("nan")
+        print(
+            f"| {cell['camera']} | {cell['scene']} | {zero[:, 0].mean():.3f} / {zero[:, 1].mean():.2f} "
+            f"| {own[:, 0].mean():.3f} / {own[:, 1].mean():.2f} "
+            f"| {pooled[:, 0].mean():.3f} / {pooled[:, 1].mean():.2f} | {closed:.2f} "
+            f"| {both}/{len(zero)} | {worst * 100:+.1f} % | {'met' if met else 'not met'} |",
+            flush=True,
+        )
+    print(
+        "\npooled gap closed: (sum of no-adapter AbsRel - sum of pooled) / (sum of no-adapter - "
+        "sum of own supervised), over the cell's scored sequences"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sequences", type=int, default=5)
@@ -106,6 +203,12 @@ def main() -> None:
         "--cameras",
         default=",".join(spec.label for spec in CAMERAS),
         help="comma-separated camera labels",
+    )
+    parser.add_argument(
+        "--pooled",
+        action="store_true",
+        help="one supervised fit on several segments at once (leave one out; with --held-out: "
+        "all development segments, scored on the held-out ones)",
     )
     args = parser.parse_args()
     scenes = [scene for scene in args.scenes.split(",") if scene]
@@ -124,12 +227,18 @@ def main() -> None:
         f"{N_ADAPT}-{N_ADAPT + N_EVAL - 1}; {args.jobs} worker processes of one thread each\n",
         flush=True,
     )
-    tasks = [
-        (ci, si, args.sequences, args.steps, base)
+    cells_chosen = [
+        (ci, si)
         for ci, spec in enumerate(CAMERAS)
         for si, scene in enumerate(SCENES)
         if spec.label in labels and scene in scenes
     ]
+    if args.pooled:
+        tasks = [(ci, si, args.sequences, args.steps, args.held_out) for ci, si in cells_chosen]
+        done = dict(map_in_workers(score_pooled, tasks, args.jobs, initializer=_load_network))
+        _print_pooled([done[index] for index in range(len(tasks))])
+        return
+    tasks = [(ci, si, args.sequences, args.steps, base) for ci, si in cells_chosen]
     done = dict(map_in_workers(score_cell, tasks, args.jobs, initializer=_load_network))
     cells = [done[index] for index in range(len(tasks))]
     print(

@@ -511,8 +511,10 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
         parts = [
             f"{key} {_short(value)}"
             for key, value in segment.items()
-            if key not in ("windows",) and value is not None
+            if key not in ("windows", "segments") and value is not None
         ]
+        if "segments" in segment:  # a fit on several segments: their count, not their records
+            parts.insert(0, f"{len(segment['segments'])} segments")
         if "windows" in segment:
             parts.insert(0, f"{len(segment['windows'])} windows")
         lines.append(f"{indent}segment:")

@@ -142,6 +142,28 @@ def test_pose_weight_reaches_the_saved_config_and_is_refused_with_depth(setup, t
     assert "--pose-weight" in capsys.readouterr().err
 
 
+def test_adapt_fits_one_adapter_on_several_segments(setup, tmp_path, capsys):
+    common = [
+        "adapt",
+        *model_args(setup),
+        *("--camera", str(setup["camera"]), "--size", str(SIZE)),
+        *("--frames", str(setup["frames"]), str(setup["frames"])),
+        *("--steps", "2", "--windows", "2"),
+    ]
+    adapter = tmp_path / "two.safetensors"
+    code = main(
+        [*common, "--depth", str(setup["depth"]), str(setup["depth"]), "--out", str(adapter)]
+    )
+    assert code == 0
+    info = Adapter.load(adapter).training_info
+    assert info["supervision"]["segments"] == 2 and len(info["segment"]["segments"]) == 2
+    capsys.readouterr()
+    refused = tmp_path / "refused.safetensors"
+    assert main([*common, "--depth", str(setup["depth"]), "--out", str(refused)]) == 2
+    assert "one folder per --frames segment: 2 segments, 1 depth folders" in capsys.readouterr().err
+    assert not refused.exists()
+
+
 def test_supervised_adapt_from_a_depth_folder_and_the_pe_picture(setup, tmp_path, capsys):
     import cv2
 

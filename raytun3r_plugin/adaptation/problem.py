@@ -6,6 +6,7 @@ Part of :mod:`raytun3r_plugin.adaptation.train` (which re-exports the public nam
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -24,7 +25,13 @@ from raytun3r_plugin.preprocess import InputLayout, input_layout
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
 
-__all__ = ["MAX_DEPTH_SAMPLES", "AdaptationProblem", "prepare_problem", "scene_mask"]
+__all__ = [
+    "MAX_DEPTH_SAMPLES",
+    "AdaptationProblem",
+    "prepare_problem",
+    "scene_mask",
+    "split_segments",
+]
 
 
 def scene_mask(mask: Any, camera: Camera) -> np.ndarray:
@@ -237,6 +244,113 @@ def _depth_targets(
     }
 
 
+def split_segments(frames: Any, depth: Any = None) -> tuple[list[Any], list[Any]] | None:
+    """Several segments of one camera, or None when ``frames`` is one segment.
+
+    ``frames`` holds several segments when it is a list or tuple whose items are each a whole
+    segment: an (N, H, W, 3) array or tensor, or a ``datasets.Sequence``. A list of (H, W, 3)
+    frames stays one segment. ``depth`` is then None (self-supervised) or a list of the same
+    length, one (N, H, W) depth per segment.
+
+    Returns:
+        ``(segments, depths)`` with ``depths`` a list of None for a self-supervised fit.
+
+    Raises:
+        InputError: an empty list, a mix of segments and single frames, or a depth list that does
+            not pair one depth with each segment.
+    """
+    if not isinstance(frames, (list, tuple)) or not frames:
+        if isinstance(frames, (list, tuple)):
+            raise InputError("frames is an empty list: give at least one segment")
+        return None
+
+    def whole(item: Any) -> bool:
+        return (hasattr(item, "images") and hasattr(item, "camera")) or np.ndim(item) == 4
+
+    kinds = [whole(item) for item in frames]
+    if not any(kinds):
+        return None
+    if not all(kinds):
+        raise InputError(
+            "frames mixes whole segments ((N, H, W, 3) arrays or Sequences) with other items; "
+            "give one segment, or a list of segments"
+        )
+    if depth is None:
+        return list(frames), [None] * len(frames)
+    if not isinstance(depth, (list, tuple)) or len(depth) != len(frames):
+        found = f"a list of {len(depth)}" if isinstance(depth, (list, tuple)) else "one array"
+        raise InputError(
+            f"frames holds {len(frames)} segments, so depth must be a list of {len(frames)} "
+            f"(N, H, W) depths, one per segment; found {found}"
+        )
+    if any(item is None for item in depth):
+        raise InputError(
+            "depth has None for some segments: a fit is supervised on every segment or on none"
+        )
+    return list(frames), list(depth)
+
+
+def _merged(problems: list[AdaptationProblem]) -> AdaptationProblem:
+    """One problem from the problems of several segments of one camera.
+
+    Frame indices are renumbered into one range (segment k's frames follow segment k - 1's), so a
+    window never spans two segments; layout, valid region, geometry and mask are the first
+    segment's (the same camera and mask made them all).
+    """
+    windows, inputs, static, depth_targets = [], {}, [], {}
+    offset = 0
+    for problem in problems:
+        shifted = {}
+        for window in problem.adaptation.windows:
+            shifted[id(window)] = dataclasses.replace(
+                window, frames=tuple(frame + offset for frame in window.frames)
+            )
+        windows += [(shifted[id(window)], pairs) for window, pairs in problem.windows]
+        inputs.update({frame + offset: image for frame, image in problem.inputs.items()})
+        static += [
+            tuple(f + offset for f in frames) for frames in problem.adaptation.static_windows
+        ]
+        if problem.depth_targets is not None:
+            depth_targets.update({f + offset: t for f, t in problem.depth_targets.items()})
+        offset += problem.segment["n_frames"]
+    sets = [problem.adaptation for problem in problems]
+    adaptation = AdaptationSet(
+        windows=[window for window, _ in windows],
+        skipped_static=sum(s.skipped_static for s in sets),
+        static_windows=static,
+        cache_key=hashlib.sha256("+".join(s.cache_key for s in sets).encode()).hexdigest(),
+        from_cache=all(s.from_cache for s in sets),
+        settings={**sets[0].settings, "segments": [s.cache_key for s in sets]},
+    )
+    first = problems[0]
+    segment = {
+        "segments": [problem.segment for problem in problems],
+        "n_frames": offset,
+        "width": first.segment["width"],
+        "height": first.segment["height"],
+        "sequence_id": first.segment.get("sequence_id"),
+    }
+    if "mask" in first.segment:
+        segment["mask"] = first.segment["mask"]
+    merged = AdaptationProblem(
+        first.layout, adaptation, windows, inputs, first.valid, first.geometry, segment, first.mask
+    )
+    if first.supervision is not None:
+        frames = [problem.supervision["frames"] for problem in problems]
+        coverage = sum(
+            problem.supervision["coverage"] * n for problem, n in zip(problems, frames, strict=True)
+        ) / max(1, sum(frames))
+        merged.depth_targets = depth_targets
+        merged.supervision = {
+            **first.supervision,
+            "coverage": round(coverage, 4),
+            "dense": coverage > 0.5,
+            "frames": sum(frames),
+            "segments": len(problems),
+        }
+    return merged
+
+
 def prepare_problem(
     camera: Camera,
     frames: Any,
@@ -250,7 +364,38 @@ def prepare_problem(
     ``mask`` (optional, (H, W) like the frames, True where the scene is seen) keeps matches,
     reprojection and smoothness off the pixels it excludes (:func:`scene_mask`). ``depth``
     (optional, (N, H, W) like the frames) switches to the supervised fit (:func:`adapt`).
+
+    ``frames`` may also be a list of segments of the camera (:func:`split_segments`), with
+    ``depth`` a list of their depths: each segment gets ``config.n_windows`` windows of its own,
+    matched and cached on its own (``config.sequence_id``, when given, gets the suffix ``[k]``),
+    and one problem holds them all.
     """
+    several = split_segments(frames, depth)
+    if several is not None:
+        segments, depths = several
+        problems = []
+        for k, (segment, segment_depth) in enumerate(zip(segments, depths, strict=True)):
+            own = (
+                config
+                if config.sequence_id is None
+                else dataclasses.replace(config, sequence_id=f"{config.sequence_id}[{k}]")
+            )
+            try:
+                problems.append(_prepare_one(camera, segment, own, patch, mask, segment_depth))
+            except InputError as error:
+                raise InputError(f"segment {k} of {len(segments)}: {error}") from error
+        return problems[0] if len(problems) == 1 else _merged(problems)
+    return _prepare_one(camera, frames, config, patch, mask, depth)
+
+
+def _prepare_one(
+    camera: Camera,
+    frames: Any,
+    config: AdaptConfig,
+    patch: int,
+    mask: Any,
+    depth: Any,
+) -> AdaptationProblem:
     images, segment = _frames_array(frames)
     if (segment["width"], segment["height"]) != (int(camera.width), int(camera.height)):
         raise InputError(

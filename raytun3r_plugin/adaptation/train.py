@@ -196,7 +196,12 @@ def adapt(
         model: a supported backbone (not already patched); its weights are never changed.
         camera: camera of the native frames.
         frames: (N, H, W, 3) float32 RGB in [0, 1] (numpy or torch), or a
-            ``raytun3r_plugin.datasets.Sequence``.
+            ``raytun3r_plugin.datasets.Sequence``; or a list of such segments, all seen by
+            ``camera``, fitted together into one adapter (each segment gets
+            ``config.n_windows`` windows of its own, and no window spans two segments; the
+            steps are shared, so raise ``config.steps`` with the number of windows). A camera's
+            adapter file is meant for every segment the camera records, and a fit on several
+            segments learns the camera, less any one scene.
         config: :class:`AdaptConfig` (defaults if None).
         out_path: adapter file to write (``.safetensors``); the loss log and the checkpoint go
             next to it (:func:`artifact_paths`). None keeps everything in memory (no log file,
@@ -217,7 +222,8 @@ def adapt(
             the same tables fitted with the scale-invariant log depth loss
             (:func:`~raytun3r_plugin.adaptation.losses.silog_loss`); with ``config=None`` its
             settings are :meth:`AdaptConfig.supervised`. ``training_info["supervision"]``
-            records the kind and the coverage (fraction of lens pixels with a value).
+            records the kind and the coverage (fraction of lens pixels with a value). With
+            several segments, a list of one depth per segment.
 
     Returns:
         The fitted :class:`Adapter` (camera: the camera of the frames, cropped if the input

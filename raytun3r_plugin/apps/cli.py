@@ -162,17 +162,36 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     from raytun3r_plugin.images import read_depth_maps, read_frames, read_mask
 
     settings = _adapt_settings(args)
+    if args.depth and len(args.depth) != len(args.frames):
+        raise InputError(
+            f"--depth needs one folder per --frames segment: {len(args.frames)} segments, "
+            f"{len(args.depth)} depth folders"
+        )
     camera = load_camera(args.camera, camera=args.camera_id)
-    frames, names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
-    mask = read_mask(args.mask, frames.shape[2], frames.shape[1]) if args.mask else None
-    depth = (
-        read_depth_maps(args.depth, names, frames.shape[2], frames.shape[1], args.depth_png_scale)
-        if args.depth
-        else None
-    )
+    segments, depths = [], []
+    for k, source in enumerate(args.frames):
+        frames, names = read_frames(source, stride=args.stride, limit=args.max_frames)
+        segments.append(frames)
+        if args.depth:
+            depths.append(
+                read_depth_maps(
+                    args.depth[k], names, frames.shape[2], frames.shape[1], args.depth_png_scale
+                )
+            )
+    height, width = segments[0].shape[1:3]
+    mask = read_mask(args.mask, width, height) if args.mask else None
+    depth = (depths if len(segments) > 1 else depths[0]) if depths else None
     model = _load_model(args.backbone, args.weights)
     config = AdaptConfig(**settings) if depth is None else AdaptConfig.supervised(**settings)
-    adapter = adapt(model, camera, frames, config, out_path=args.out, mask=mask, depth=depth)
+    adapter = adapt(
+        model,
+        camera,
+        segments if len(segments) > 1 else segments[0],
+        config,
+        out_path=args.out,
+        mask=mask,
+        depth=depth,
+    )
     paths = artifact_paths(args.out)
     print(
         f"saved adapter to {args.out} ({adapter.num_parameters()['total']:,} parameters); losses: {paths['csv']}, {paths['curve']}"
@@ -391,10 +410,21 @@ def _add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0)
 
 
-def _add_frame_arguments(parser: argparse.ArgumentParser, size_help: str) -> None:
-    parser.add_argument(
-        "--frames", required=True, help="image folder (sorted by name) or video file"
-    )
+def _add_frame_arguments(
+    parser: argparse.ArgumentParser, size_help: str, several: bool = False
+) -> None:
+    if several:
+        parser.add_argument(
+            "--frames",
+            required=True,
+            nargs="+",
+            help="image folder (sorted by name) or video file; several are segments of the "
+            "camera, fitted together into one adapter",
+        )
+    else:
+        parser.add_argument(
+            "--frames", required=True, help="image folder (sorted by name) or video file"
+        )
     parser.add_argument("--stride", type=int, default=1, help="use every n-th frame")
     parser.add_argument("--max-frames", type=int, default=None)
     parser.add_argument("--size", type=int, default=None, help=size_help)
@@ -460,7 +490,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_model_arguments(p)
     _add_frame_arguments(
-        p, f"network input long side in pixels (default 504; recorded in the adapter); {rule}"
+        p,
+        f"network input long side in pixels (default 504; recorded in the adapter); {rule}",
+        several=True,
     )
     p.add_argument("--camera", required=True)
     p.add_argument("--camera-id", default=None)
@@ -468,7 +500,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--depth",
         default=None,
-        help="folder of ground-truth depth per frame (NAME.npy, or 16-bit NAME.png): supervised fit",
+        nargs="+",
+        help="folder of ground-truth depth per frame (NAME.npy, or 16-bit NAME.png): supervised "
+        "fit; one folder per --frames segment, in the same order",
     )
     p.add_argument(
         "--depth-png-scale",
