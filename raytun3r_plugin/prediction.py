@@ -70,12 +70,29 @@ def to_homogeneous(poses: torch.Tensor) -> torch.Tensor:
     return torch.cat((poses, bottom), dim=-2)
 
 
+def model_device(model: nn.Module) -> torch.device:
+    """The device of ``model``'s first parameter or buffer (CPU for a module with neither)."""
+    for tensor in model.parameters():
+        return tensor.device
+    for tensor in model.buffers():
+        return tensor.device
+    return torch.device("cpu")
+
+
 def predict(model: nn.Module, images: torch.Tensor, **kwargs) -> Prediction:
     """Run ``model`` (patched or not) on images in [0, 1], (S, 3, H, W) or (B, S, 3, H, W).
 
-    Each backbone's normalisation and pose conventions are handled by its registered spec.
+    The images may sit on any device: they are moved to the model's (:func:`model_device`), and
+    every output tensor is on the model's device. Each backbone's normalisation and pose
+    conventions are handled by its registered spec.
     """
     from raytun3r_plugin.registry import spec_for
 
     spec, root = spec_for(model)
+    if isinstance(images, torch.Tensor):
+        # Every caller (adapt's windows, eval, infer, Multi-PH's views) builds its inputs on the
+        # CPU; one move here lets a model on a GPU take them all.
+        device = model_device(root)
+        if images.device != device:
+            images = images.to(device)
     return spec.predict(root, images, **kwargs)

@@ -71,7 +71,7 @@ class _CollapseGuard:
 
     def _depth(self, model: nn.Module) -> torch.Tensor:
         with torch.no_grad():
-            return predict(model, self.images[None]).depth[0].float()
+            return predict(model, self.images[None]).depth[0].float().cpu()
 
     def check(self, model: nn.Module, adapter: Adapter | nn.Module, step: int) -> bool:
         """True when healthy (the tables are kept); False after restoring the last healthy ones.

@@ -355,7 +355,8 @@ def _rig_step(
         [batches[name][t] for t in range(frames_per_view) for name in names]
     )  # instant-major: view t V + c is camera c
     prediction = predict(model, views[None])
-    depth, poses = prediction.depth[0], prediction.cam_from_world[0]
+    # Terms on the CPU, as in step.window_terms (the network may run on a GPU).
+    depth, poses = prediction.depth[0].cpu(), prediction.cam_from_world[0].cpu()
     losses: list[torch.Tensor] = []
     record: dict[str, Any] = {"step": step}
     for offset, name in enumerate(names):

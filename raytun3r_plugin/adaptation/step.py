@@ -262,9 +262,12 @@ def window_terms(
         numbers of reprojection matches / pose targets that entered them.
     """
     prediction = predict(model, images[None])
+    # The network runs on its own device; the terms (a few thousand matches, the tables) are
+    # computed on the CPU, where the matches, rays and targets live. ``.cpu()`` is differentiable,
+    # so the gradient flows back into the network's device and on to the tables.
     return prediction_terms(
-        prediction.depth[0],
-        prediction.cam_from_world[0],
+        prediction.depth[0].cpu(),
+        prediction.cam_from_world[0].cpu(),
         adapter,
         images,
         pairs,
@@ -439,7 +442,8 @@ def window_parallax(
     frames = sorted({frame for window, _ in problem.windows for frame in window.frames})
     with _evaluated(model, adapter, problem, config):
         depth = {
-            frame: predict(model, problem.inputs[frame][None, None]).depth[0, 0] for frame in frames
+            frame: predict(model, problem.inputs[frame][None, None]).depth[0, 0].cpu()
+            for frame in frames
         }
     medians = []
     photometric = config.scale == "photometric"

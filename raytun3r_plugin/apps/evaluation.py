@@ -164,7 +164,7 @@ def run_method(
                 if method == "center-ph":
                     prediction = predict(model, fisheye_to_center_pinhole(images, camera, pinhole))
                     window_depth, covered = center_pinhole_depth_to_fisheye(
-                        prediction.depth[0], camera, pinhole
+                        prediction.depth[0].cpu(), camera, pinhole
                     )
                     coverage = float(covered.sum() / camera.valid_mask().sum())
                 elif method == "multi-ph":
@@ -183,8 +183,8 @@ def run_method(
                 else:
                     prediction = predict(model, images)
                     window_depth = prediction.depth[0]
-                depth[group] = window_depth.float().numpy()
-                poses.append((group, prediction.cam_from_world[0].double().numpy()))
+                depth[group] = window_depth.float().cpu().numpy()
+                poses.append((group, prediction.cam_from_world[0].double().cpu().numpy()))
     finally:
         if handle is not None:
             handle.remove()

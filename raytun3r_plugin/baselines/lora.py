@@ -125,8 +125,10 @@ class LoraWeights(nn.Module):
 
     def delta(self, index: int, x: torch.Tensor) -> torch.Tensor:
         """(alpha / r) B A x for the layer ``index``; x (..., in) -> (..., out)."""
-        a = self.lora_A[index].to(x.dtype)
-        b = self.lora_B[index].to(x.dtype)
+        # The factors stay where they were made (the CPU, like an adapter's tables); moved per
+        # call, differentiably, so a model on a GPU can carry them.
+        a = self.lora_A[index].to(device=x.device, dtype=x.dtype)
+        b = self.lora_B[index].to(device=x.device, dtype=x.dtype)
         return (x @ a.T) @ b.T * self.scaling
 
     # ------------------------------------------------------------------ files

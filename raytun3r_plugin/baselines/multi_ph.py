@@ -38,7 +38,7 @@ from torch import Tensor, nn
 from raytun3r_plugin.cameras import Camera, Pinhole
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
 from raytun3r_plugin.poses import relative_pose
-from raytun3r_plugin.prediction import predict
+from raytun3r_plugin.prediction import Prediction, predict
 
 __all__ = [
     "DEFAULT_FOV_DEG",
@@ -193,7 +193,7 @@ def resample_to_view(
     Returns:
         (..., 3, h, w) images of the view; pixels whose ray the fisheye does not see are black.
     """
-    grid = _view_sampling(camera, view, rotation)
+    grid = _view_sampling(camera, view, rotation).to(images.device)
     flat = images.reshape(-1, *images.shape[-3:])
     out = F.grid_sample(
         flat,
@@ -270,8 +270,10 @@ def view_depth_to_fisheye(
         range depth (..., H, W) (0 where the view does not cover the pixel) and the view's
         coverage mask (H, W) bool.
     """
-    grid = _fisheye_sampling(camera, view, rotation)
+    device = depth_z.device
+    grid = _fisheye_sampling(camera, view, rotation).to(device)
     _, q_z, inside = view_lookup(camera, view, rotation)
+    q_z, inside = q_z.to(device), inside.to(device)
     flat = depth_z.reshape(-1, 1, *depth_z.shape[-2:]).float()
     sampled = F.grid_sample(
         flat, grid[None].expand(flat.shape[0], -1, -1, -1), mode="bilinear", align_corners=False
@@ -500,6 +502,17 @@ class MultiPHPrediction:
     streams: list = field(default_factory=list, repr=False)
 
 
+def _on_cpu(prediction: Prediction) -> Prediction:
+    """``prediction`` with its depth, pose and confidence on the CPU."""
+    confidence = prediction.confidence
+    return Prediction(
+        depth=prediction.depth.cpu(),
+        cam_from_world=prediction.cam_from_world.cpu(),
+        confidence=None if confidence is None else confidence.cpu(),
+        extras=prediction.extras,
+    )
+
+
 def predict_multi_ph(
     model: nn.Module,
     images: Tensor,
@@ -551,7 +564,8 @@ def predict_multi_ph(
     ranges, inside, cosines, relatives, weights, streams = [], [], [], [], [], []
     for view in views:
         virtual = resample_to_view(images, camera, view.camera, view.rotation)
-        prediction = predict(model, virtual, **predict_kwargs)
+        # The fusion below is geometry on the CPU tables of the views: outputs come back first.
+        prediction = _on_cpu(predict(model, virtual, **predict_kwargs))
         streams.append(prediction)
         range_v, inside_v = view_depth_to_fisheye(
             prediction.depth[0], camera, view.camera, view.rotation
