@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from raytun3r_plugin.adaptation.losses import LossWeights
+from raytun3r_plugin.baselines.multi_ph import VIEW_NAMES as TEACHER_VIEWS
 from raytun3r_plugin.errors import InputError
 
 __all__ = [
@@ -21,6 +22,7 @@ __all__ = [
     "SCALES",
     "SELF_SUPERVISED_WEIGHTS",
     "SUPERVISED_WEIGHTS",
+    "TEACHER_VIEWS",
     "TERMS",
     "AdaptConfig",
 ]
@@ -33,7 +35,7 @@ TARGET_REPROJECTION_SOURCES = ("targets", "hybrid", "both")
 POSE_TERM_SOURCES = ("model", "hybrid", "both")
 SCALES = ("pixel", "least_squares", "photometric")
 PE_REGULARISERS = ("relative", "absolute")
-TERMS = ("reproj", "smooth", "l2", "tv", "pose", "depth", "photo")
+TERMS = ("reproj", "smooth", "l2", "tv", "pose", "depth", "photo", "teacher")
 
 #: Default loss weights of the self-supervised fit. The paper's (reproj 1, smooth 10, L2 2, TV
 #: 20, pose 1) were set in absolute PE units; here L2 and TV count relative to the backbone's own
@@ -133,6 +135,12 @@ class AdaptConfig:
             far-only matches lack.
         photo_pixels: with ``weights.photo > 0``: pixels of frame ``i`` warped per ordered pair
             and step (a seeded random subset of the valid region, drawn again every step).
+        teacher_views: with ``weights.teacher > 0`` (the pinhole-view teacher,
+            :mod:`~raytun3r_plugin.adaptation.teacher`): which virtual pinhole views of each
+            window the unpatched model predicts, out of ``"centre"``, ``"right"``, ``"left"``,
+            ``"down"``, ``"up"`` (the Multi-PH views). With the term on, the parallax gate keeps
+            every window for it and drops only the reprojection of the windows below the gate.
+        teacher_fov_deg: the views' field of view across their width, degrees.
     """
 
     steps: int = 300
@@ -163,10 +171,15 @@ class AdaptConfig:
     refine_intrinsics: bool = False
     photo_sigma: float = 1.0
     photo_pixels: int = 4096
+    teacher_views: tuple[str, ...] = ("centre",)
+    teacher_fov_deg: float = 110.0
 
     def __post_init__(self) -> None:
         if isinstance(self.weights, Mapping):
             self.weights = LossWeights(**self.weights)
+        if isinstance(self.teacher_views, str):
+            self.teacher_views = (self.teacher_views,)
+        self.teacher_views = tuple(self.teacher_views)
         if self.cache_dir is not None:
             self.cache_dir = str(self.cache_dir)
         checks = (
@@ -189,6 +202,18 @@ class AdaptConfig:
             ("refine_intrinsics", isinstance(self.refine_intrinsics, bool)),
             ("photo_sigma", math.isfinite(self.photo_sigma) and self.photo_sigma >= 0),
             ("photo_pixels", self.photo_pixels >= 1),
+            (
+                "teacher_views",
+                len(self.teacher_views) >= 1
+                and len(set(self.teacher_views)) == len(self.teacher_views)
+                and set(self.teacher_views) <= set(TEACHER_VIEWS),
+            ),
+            (
+                "teacher_fov_deg",
+                isinstance(self.teacher_fov_deg, (int, float))
+                and math.isfinite(self.teacher_fov_deg)
+                and 0 < self.teacher_fov_deg < 180,
+            ),
         )
         for name, ok in checks:
             if not ok:
@@ -211,6 +236,10 @@ class AdaptConfig:
         out["weights"] = self.weights.as_dict()
         if not self.weights.photo and self.scale != "photometric":
             del out["photo_sigma"], out["photo_pixels"]
+        if self.weights.teacher:
+            out["teacher_views"] = list(self.teacher_views)
+        else:
+            del out["teacher_views"], out["teacher_fov_deg"]
         return out
 
     @classmethod

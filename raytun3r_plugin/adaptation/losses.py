@@ -50,6 +50,7 @@ __all__ = [
     "relative_pose",
     "robust_px_error",
     "silog_loss",
+    "grouped_silog_loss",
     "reprojection_loss",
     "rotation_angle",
     "sample_bilinear",
@@ -68,8 +69,11 @@ class LossWeights:
     """Weights of the adaptation objective (paper: pose 1, smooth 10, L2 2, TV 20; reproj 1).
 
     ``depth`` weighs the supervised term (:func:`silog_loss`), present only when ground-truth
-    depth is given. How L2 and TV are measured (absolute PE units or relative to the backbone's
-    own PE energy) is :attr:`AdaptConfig.pe_regulariser` of the trainer.
+    depth is given. ``teacher`` weighs the pinhole-view term (:func:`grouped_silog_loss` against
+    the frozen model's own depth of virtual pinhole views,
+    :mod:`raytun3r_plugin.adaptation.teacher`). How L2 and TV are measured (absolute PE units or
+    relative to the backbone's own PE energy) is :attr:`AdaptConfig.pe_regulariser` of the
+    trainer.
     """
 
     reproj: float = 1.0
@@ -79,13 +83,15 @@ class LossWeights:
     pose: float = 1.0
     depth: float = 1.0
     photo: float = 0.0
+    teacher: float = 0.0
 
     def as_dict(self) -> dict[str, float]:
-        """The weights by term name; ``photo`` only when it is on, so the identity of every
-        configuration without the photometric term is what it was before the term existed."""
+        """The weights by term name; ``photo`` and ``teacher`` only when they are on, so the
+        identity of every configuration without them is what it was before they existed."""
         weights = asdict(self)
-        if not weights["photo"]:
-            del weights["photo"]
+        for optional in ("photo", "teacher"):
+            if not weights[optional]:
+                del weights[optional]
         return weights
 
 
@@ -560,6 +566,29 @@ def silog_loss(
     difference = torch.log(pred[ok]) - torch.log(target[ok].to(pred.dtype))
     mean = (w * difference).sum() / w.sum()
     return (w * (difference - mean).pow(2)).sum() / w.sum()
+
+
+def grouped_silog_loss(
+    pred: torch.Tensor, target: torch.Tensor, groups: torch.Tensor
+) -> torch.Tensor:
+    """Mean over groups of :func:`silog_loss`: one free scale per group.
+
+    The teacher term's targets come from several virtual pinhole views of one frame, each
+    predicted on its own and so each with its own unknown scale; one variance per view keeps a
+    view's scale from leaking into the others' residuals.
+
+    Args:
+        pred, target: (M,) depth samples; groups: (M,) integer group of each sample.
+
+    Returns:
+        0-d tensor (zero, attached to ``pred``, when no group has 2 usable samples).
+    """
+    losses = []
+    for group in torch.unique(groups):
+        chosen = groups == group
+        if int(chosen.sum()) >= 2:
+            losses.append(silog_loss(pred[chosen], target[chosen]))
+    return torch.stack(losses).mean() if losses else pred.sum() * 0.0
 
 
 # --------------------------------------------------------------------------------------------

@@ -161,6 +161,11 @@ class AdaptationProblem:
         pe_scale: divisor of the PE regularisers (set by :func:`adapt` from the backbone).
         depth_targets: supervised mode: ``{frame: (uv (K, 2) input pixels, depth (K,))}``.
         supervision: description of the ground truth (kind, coverage), or None.
+        teacher: the pinhole-view teacher's samples per window
+            (:func:`~raytun3r_plugin.adaptation.teacher.teacher_targets`), or None.
+        reproject: per window, whether its matches enter the reprojection term (False for the
+            windows the parallax gate finds without depth signal when the teacher keeps them);
+            None = every window.
     """
 
     layout: InputLayout
@@ -174,6 +179,8 @@ class AdaptationProblem:
     pe_scale: float = 1.0
     depth_targets: dict[int, tuple[torch.Tensor, torch.Tensor]] | None = None
     supervision: dict[str, Any] | None = None
+    teacher: dict[int, list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]] | None = None
+    reproject: list[bool] | None = None
 
     def batch(self, index: int) -> torch.Tensor:
         """(S, 3, h, w) network input of window ``index``."""
@@ -184,6 +191,23 @@ class AdaptationProblem:
         if self.depth_targets is None:
             return None
         return [self.depth_targets[frame] for frame in self.windows[index][0].frames]
+
+    def window_teacher(self, index: int) -> list[tuple[torch.Tensor, ...]] | None:
+        """The pinhole-view teacher's samples of window ``index``'s frames, or None."""
+        return None if self.teacher is None else self.teacher[index]
+
+    def window_reprojects(self, index: int) -> bool:
+        """Whether window ``index``'s matches enter the reprojection term."""
+        return True if self.reproject is None else self.reproject[index]
+
+    def keep_windows(self, keep: list[bool]) -> None:
+        """Keep only the windows marked True, with their teacher samples and flags."""
+        if self.teacher is not None:
+            kept = [index for index, flag in enumerate(keep) if flag]
+            self.teacher = {new: self.teacher[old] for new, old in enumerate(kept)}
+        if self.reproject is not None:
+            self.reproject = [flag for flag, k in zip(self.reproject, keep, strict=True) if k]
+        self.windows = [window for window, k in zip(self.windows, keep, strict=True) if k]
 
 
 #: Most ground-truth depth samples kept per frame (a seeded subset; 112 px frames have fewer).

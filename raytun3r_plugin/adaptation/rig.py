@@ -138,6 +138,11 @@ def adapt_rig(
         raise AlreadyAppliedError(
             "adapt_rig needs an unpatched model; remove the existing raytun3r patch first"
         )
+    if config.weights.teacher > 0:
+        raise InputError(
+            "adapt_rig has no pinhole-view teacher term yet: fit each camera with adapt() for "
+            "it, or set weights.teacher to 0"
+        )
     names = rig.names
     start = {} if adapters is None else dict(adapters)
     fitted = {

@@ -27,6 +27,7 @@ from raytun3r_plugin.adaptation.losses import (
     blurred_gray,
     depth_parallax_px,
     fit_translation_scale,
+    grouped_silog_loss,
     pe_correction_grid,
     pe_energy,
     pe_l2,
@@ -244,6 +245,8 @@ def window_terms(
     *,
     pe_scale: float = 1.0,
     depth_targets: list[tuple[torch.Tensor, torch.Tensor]] | None = None,
+    teacher_targets: list[tuple[torch.Tensor, ...]] | None = None,
+    reproject: bool = True,
 ) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
     """Forward one window through the patched model and compute every loss term.
 
@@ -256,6 +259,11 @@ def window_terms(
             ``pe_regulariser="relative"``, 1 for ``"absolute"``).
         depth_targets: supervised mode: per frame of the window ``(uv (K, 2) input pixels,
             depth (K,))``; the terms are then ``depth`` (:func:`silog_loss`), ``l2`` and ``tv``.
+        teacher_targets: per frame of the window ``(uv (K, 2) input pixels, range (K,), view
+            (K,))`` of the pinhole-view teacher; adds the ``teacher`` term
+            (:func:`grouped_silog_loss`, one scale per view).
+        reproject: False leaves the window's matches out of the reprojection term (the
+            parallax gate found no depth signal in them); the pose term stays.
 
     Returns:
         (terms, counts): 0-d tensors per term name (pose absent with ``pose_source="targets"``) and the
@@ -278,6 +286,8 @@ def window_terms(
         generator,
         pe_scale=pe_scale,
         depth_targets=depth_targets,
+        teacher_targets=teacher_targets,
+        reproject=reproject,
     )
 
 
@@ -295,6 +305,8 @@ def prediction_terms(
     *,
     pe_scale: float = 1.0,
     depth_targets: list[tuple[torch.Tensor, torch.Tensor]] | None = None,
+    teacher_targets: list[tuple[torch.Tensor, ...]] | None = None,
+    reproject: bool = True,
 ) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
     """The loss terms of one window from its predicted ``depth`` (S, h, w) and ``poses``
     (S, 4, 4) ``cam_from_world``: :func:`window_terms` after its forward, so a rig fit
@@ -318,7 +330,9 @@ def prediction_terms(
         if photometric or config.weights.photo > 0
         else None
     )
-    for pair in pairs:
+    # Without a weight on the match terms (a teacher-only fit) the pairs are not visited.
+    matched = config.weights.reproj > 0 or config.weights.pose > 0 or config.weights.photo > 0
+    for pair in pairs if matched else []:
         relatives = []
         if config.pose_source in POSE_TERM_SOURCES:
             relative = relative_pose(poses, pair.a, pair.b)
@@ -326,8 +340,12 @@ def prediction_terms(
                 pose_terms.append(pose_loss(relative, pair.rotation, pair.direction))
             if config.pose_source in MODEL_REPROJECTION_SOURCES:
                 relatives.append(relative)
+        if not reproject:
+            relatives = []
         through_targets = (
-            config.pose_source in TARGET_REPROJECTION_SOURCES and pair.rotation is not None
+            reproject
+            and config.pose_source in TARGET_REPROJECTION_SOURCES
+            and pair.rotation is not None
         )
         # A pair with nothing to reproject through draws no subset, so the generator's stream
         # (and every fit of the single-pose modes) is what it was before "both" existed.
@@ -391,7 +409,16 @@ def prediction_terms(
         )
     if config.pose_source in POSE_TERM_SOURCES:
         terms["pose"] = torch.stack(pose_terms).mean() if pose_terms else zero
-    return terms, {"n_matches": n_matches, "n_pose": len(pose_terms)}
+    counts = {"n_matches": n_matches, "n_pose": len(pose_terms)}
+    if config.weights.teacher > 0 and teacher_targets is not None:
+        losses = [
+            grouped_silog_loss(sample_bilinear(depth[k], uv), value, view)
+            for k, (uv, value, view) in enumerate(teacher_targets)
+            if uv.shape[0]
+        ]
+        terms["teacher"] = torch.stack(losses).mean() if losses else zero
+        counts["n_teacher"] = sum(int(uv.shape[0]) for uv, _, _ in teacher_targets)
+    return terms, counts
 
 
 def _photometric_term(
@@ -532,6 +559,8 @@ def problem_window_terms(
         generator,
         pe_scale=problem.pe_scale,
         depth_targets=problem.window_depth(index),
+        teacher_targets=problem.window_teacher(index),
+        reproject=problem.window_reprojects(index),
     )
 
 

@@ -91,6 +91,7 @@ from raytun3r_plugin.adaptation.step import (
     window_parallax,
     window_terms,
 )
+from raytun3r_plugin.adaptation.teacher import teacher_targets
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AlreadyAppliedError
 from raytun3r_plugin.patching import apply, handle_of
@@ -274,23 +275,32 @@ def adapt(
             )
     problem.pe_scale = regulariser_scale(model, config)
     adapter.camera = problem.layout.native_camera
+    teacher = depth is None and config.weights.teacher > 0
+    if teacher:
+        # The unpatched model on pinhole views of every window: computed once, before the patch.
+        problem.teacher = teacher_targets(
+            model, problem, config.teacher_views, config.teacher_fov_deg, config.seed
+        )
     parallax = None
     if depth is None and config.min_parallax_px > 0:
         # Measured with the starting tables, before any checkpoint is restored, so a resumed run
         # keeps the same windows.
         medians = window_parallax(model, adapter, problem, config)
         # NaN: no evidence. The dense photometric term needs no match to move with depth.
-        dense = config.weights.photo > 0
-        keep = [dense or not median < config.min_parallax_px for median in medians]
+        signal = [not median < config.min_parallax_px for median in medians]
+        keep = [config.weights.photo > 0 or teacher or ok for ok in signal]
         parallax = {
             "min_parallax_px": config.min_parallax_px,
             "window_median_px": [round(m, 4) if math.isfinite(m) else None for m in medians],
             "windows_kept": sum(keep),
             "windows_dropped": len(keep) - sum(keep),
         }
-        problem.windows = [
-            window for window, kept in zip(problem.windows, keep, strict=True) if kept
-        ]
+        if teacher:
+            # The teacher keeps every window; the matches of a window without depth signal
+            # still leave the reprojection term, as the gate would have left them out.
+            problem.reproject = signal
+            parallax["windows_reprojected"] = sum(signal)
+        problem.keep_windows(keep)
     if tune is not None:
         for table in adapter.parameters():
             table.requires_grad_(False)

@@ -1,0 +1,173 @@
+"""Issue 12: the pinhole-view teacher (``LossWeights.teacher``, ``adaptation/teacher.py``).
+
+The teacher's samples are the unpatched model's Center-PH depth read back on the fisheye pixels;
+its loss leaves one free scale per view; in the trainer the term is off by default (identities
+unchanged), validated, keeps the windows the parallax gate finds without signal while leaving
+their matches out of the reprojection, and a teacher fit lowers the teacher term.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+from raytun3r_plugin.patches.da3 import build_tiny_network
+
+from raytun3r_plugin import apply, synthetic
+from raytun3r_plugin.adaptation.losses import LossWeights, grouped_silog_loss, silog_loss
+from raytun3r_plugin.adaptation.teacher import teacher_targets, teacher_views
+from raytun3r_plugin.adaptation.train import AdaptConfig, adapt, objective_value, prepare_problem
+from raytun3r_plugin.adapter import Adapter
+from raytun3r_plugin.apps.evaluation import center_pinhole, run_method
+from raytun3r_plugin.cameras import KannalaBrandt4
+from raytun3r_plugin.errors import AlreadyAppliedError, InputError
+
+TEACHER_ONLY = LossWeights(reproj=0.0, smooth=0.0, l2=0.0, tv=0.0, pose=0.0, depth=0.0, teacher=1.0)
+
+
+@pytest.fixture(scope="module")
+def room():
+    camera = KannalaBrandt4(84, 70, [22.0, 22.0, 41.5, 34.5, 0.0, 0.0, 0.0, 0.0], max_fov_deg=190.0)
+    return camera, synthetic.render_sequence("indoor", camera, n_frames=6, seed=7)
+
+
+def _config(tmp_path, **changes) -> AdaptConfig:
+    settings = {
+        "steps": 4,
+        "input_size": 84,
+        "n_windows": 2,
+        "checkpoint_every": 0,
+        "cache_dir": str(tmp_path),
+        "matcher_options": {"border_px": 2},
+        "seed": 0,
+        "guard": False,
+        **changes,
+    }
+    return AdaptConfig(**settings)
+
+
+def test_grouped_silog_leaves_one_scale_per_group():
+    generator = torch.Generator().manual_seed(0)
+    target = torch.rand(40, generator=generator) + 0.5
+    groups = torch.arange(40) % 2
+    # The prediction is the target with another scale in each group: no error per group.
+    pred = torch.where(groups == 0, 2.0 * target, 0.5 * target)
+    assert float(grouped_silog_loss(pred, target, groups)) < 1e-12
+    assert float(silog_loss(pred, target)) > 0.1  # one shared scale cannot explain it
+    noisy = pred * (1 + 0.1 * torch.rand(40, generator=generator))
+    expected = (
+        silog_loss(noisy[groups == 0], target[groups == 0])
+        + silog_loss(noisy[groups == 1], target[groups == 1])
+    ) / 2
+    assert torch.allclose(grouped_silog_loss(noisy, target, groups), expected)
+    # A group with one sample has no variance to measure and is left out.
+    single = torch.tensor([0, 0, 0, 1])
+    values = torch.tensor([1.0, 2.0, 3.0, 4.0])
+    assert torch.allclose(
+        grouped_silog_loss(values * 1.5, values, single), torch.tensor(0.0), atol=1e-12
+    )
+
+
+def test_teacher_samples_are_the_center_ph_depth_on_the_fisheye_pixels(room, tmp_path):
+    camera, seq = room
+    model = build_tiny_network()
+    config = _config(tmp_path)
+    problem = prepare_problem(camera, seq.images, config)
+    targets = teacher_targets(model, problem, ("centre",), 110.0, seed=0, max_samples=10_000)
+    assert sorted(targets) == list(range(len(problem.windows)))
+    window = problem.windows[0][0]
+    center = run_method(model, seq, "center-ph", frames=list(window.frames), window=3)
+    valid = problem.valid.numpy()
+    for k, frame in enumerate(window.frames):
+        uv, values, views = targets[0][k]
+        assert uv.shape[0] > 50 and bool((views == 0).all())
+        cols, rows = uv[:, 0].long(), uv[:, 1].long()
+        assert valid[rows, cols].all() and bool((values > 0).all())
+        np.testing.assert_allclose(
+            values.numpy(), center.depth[frame][rows, cols], rtol=1e-4, atol=1e-6
+        )
+    # Seeded: the same call gives the same samples; another seed another subset.
+    again = teacher_targets(model, problem, ("centre",), 110.0, seed=0, max_samples=40)
+    other = teacher_targets(model, problem, ("centre",), 110.0, seed=1, max_samples=40)
+    twice = teacher_targets(model, problem, ("centre",), 110.0, seed=0, max_samples=40)
+    assert torch.equal(again[0][0][0], twice[0][0][0])
+    assert not torch.equal(again[0][0][0], other[0][0][0])
+    assert again[0][0][0].shape[0] == 40
+
+
+def test_teacher_views_are_named_and_the_teacher_is_the_unpatched_model(room, tmp_path):
+    camera, seq = room
+    views = teacher_views(camera, ("centre", "left", "right"), 110.0)
+    assert {view.name for view in views} == {"centre", "left", "right"}
+    assert teacher_views(camera, ("centre",), 90.0)[0].camera.fx == pytest.approx(
+        center_pinhole(camera, 90.0).fx
+    )
+    for bad in ((), ("centre", "centre"), ("front",)):
+        with pytest.raises(InputError, match="teacher views"):
+            teacher_views(camera, bad, 110.0)
+    model = build_tiny_network()
+    problem = prepare_problem(camera, seq.images, _config(tmp_path))
+    with apply(model, camera), pytest.raises(AlreadyAppliedError, match="unpatched"):
+        teacher_targets(model, problem, ("centre",), 110.0, seed=0)
+
+
+def test_teacher_options_are_validated_and_out_of_the_identity_when_off():
+    off = AdaptConfig()
+    assert "teacher_views" not in off.to_dict() and "teacher" not in off.to_dict()["weights"]
+    on = AdaptConfig(weights=dataclasses.replace(off.weights, teacher=2.0), teacher_fov_deg=90.0)
+    record = on.to_dict()
+    assert record["teacher_views"] == ["centre"] and record["teacher_fov_deg"] == 90.0
+    assert AdaptConfig(**json.loads(json.dumps(record))) == on
+    assert on.identity() != off.identity()
+    for changes in (
+        {"teacher_views": ("centre", "sideways")},
+        {"teacher_views": ()},
+        {"teacher_views": ("left", "left")},
+        {"teacher_fov_deg": 180.0},
+        {"teacher_fov_deg": 0.0},
+        {"teacher_fov_deg": float("nan")},
+    ):
+        with pytest.raises(InputError, match="AdaptConfig.teacher"):
+            AdaptConfig(**changes)
+    with pytest.raises(InputError, match="weights.teacher"):
+        AdaptConfig(weights=dataclasses.replace(off.weights, teacher=-1.0))
+
+
+def test_a_teacher_fit_lowers_the_teacher_term_and_leaves_the_backbone(room, tmp_path):
+    camera, seq = room
+    model = build_tiny_network()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    config = _config(tmp_path, steps=12, lr=3e-2, weights=TEACHER_ONLY)
+    adapter = adapt(model, camera, seq.images, config, progress=False, out_path=tmp_path / "t")
+    assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())
+    problem = prepare_problem(camera, seq.images, config)
+    problem.teacher = teacher_targets(model, problem, ("centre",), 110.0, seed=0)
+    start = objective_value(model, Adapter.for_model(model), problem, config)
+    end = objective_value(model, adapter, problem, config)
+    assert end["teacher"] < 0.9 * start["teacher"]
+    assert adapter.training_info["config"]["teacher_views"] == ["centre"]
+    records = [json.loads(line) for line in (tmp_path / "t.log.jsonl").read_text().splitlines()]
+    assert all(r["n_teacher"] > 0 and r["n_matches"] == 0 for r in records)
+
+
+def test_with_a_teacher_the_gate_keeps_every_window_but_not_its_reprojection(room, tmp_path):
+    """A threshold no window reaches stops the match fit ("no signal"); with the teacher term the
+    windows are kept for it and the pose term, and none of them reprojects."""
+    camera, seq = room
+    base = _config(tmp_path, min_parallax_px=1e6, pose_source="hybrid")
+    stopped = adapt(build_tiny_network(), camera, seq.images, base, progress=False)
+    assert stopped.training_info["verdict"]["status"] == "no signal"
+    taught = dataclasses.replace(base, weights=dataclasses.replace(base.weights, teacher=10.0))
+    fitted = adapt(
+        build_tiny_network(), camera, seq.images, taught, progress=False, out_path=tmp_path / "g"
+    )
+    gate = fitted.training_info["parallax_gate"]
+    assert gate["windows_kept"] == 2 and gate["windows_dropped"] == 0
+    assert gate["windows_reprojected"] == 0
+    records = [json.loads(line) for line in (tmp_path / "g.log.jsonl").read_text().splitlines()]
+    assert len(records) == 4
+    assert all(r["reproj"] == 0.0 and r["teacher"] > 0 and r["n_pose"] > 0 for r in records)
+    assert fitted.training_info["verdict"]["status"] != "no signal"
