@@ -15,8 +15,8 @@ Checks (the built-in network v3, 112 px, TF32 off so float32 means float32):
 * ``two models``: two models on the GPU patched with different cameras give each one's outputs.
 * ``bf16 autocast``: the patched model runs under ``torch.autocast("cuda", torch.bfloat16)`` and
   stays near its float32 output.
-* ``adapt``: a self-supervised and a supervised fit on the GPU (the backbone's weights stay
-  bit-identical; the tables agree with the same fit on the CPU).
+* ``adapt``: a self-supervised, a pinhole-view teacher and a supervised fit on the GPU (the
+  backbone's weights stay bit-identical; the tables agree with the same fit on the CPU).
 * ``eval``: vanilla, Center-PH, Multi-PH and raytun3r through ``run_method`` on the GPU score like
   on the CPU.
 * ``lora``: LoRA injected into a model on the GPU starts as the identity and trains.
@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import json
 import statistics
 import tempfile
@@ -236,6 +237,27 @@ def run_checks(cuda: torch.device) -> None:
             "tables_corr_gpu_cpu": correlation,
             "verdict_gpu": verdict,
             "verdict_cpu": on_cpu.training_info["verdict"]["status"],
+        }
+
+    @check("adapt teacher")
+    def _():
+        from raytun3r_plugin.adaptation.losses import LossWeights
+
+        config = adapt_config(
+            size,
+            30,
+            n_windows=6,
+            lr=3e-2,
+            guard=False,
+            weights=LossWeights(
+                reproj=0.0, smooth=0.0, l2=0.0, tv=0.0, pose=0.0, depth=0.0, teacher=1.0
+            ),
+        )
+        untouched, correlation, on_gpu, _ = fits(config)
+        return untouched and correlation > 0.95, {
+            "backbone_bit_identical": untouched,
+            "tables_corr_gpu_cpu": correlation,
+            "verdict_gpu": on_gpu.training_info["verdict"]["status"],
         }
 
     @check("adapt supervised")
@@ -444,6 +466,24 @@ def adapt_run(cuda: torch.device, size: int, steps: int) -> None:
         began = time.perf_counter()
         fitted = adapt(model, camera, frames, config, progress=False)
         whole_s = time.perf_counter() - began
+        from raytun3r_plugin.adaptation.losses import LossWeights
+
+        teacher = dataclasses.replace(
+            config,
+            lr=3e-2,
+            guard=False,
+            weights=LossWeights(
+                reproj=0.0, smooth=0.0, l2=0.0, tv=0.0, pose=0.0, depth=0.0, teacher=1.0
+            ),
+        )
+        began = time.perf_counter()
+        taught = adapt(model, camera, frames, teacher, progress=False)
+        teacher_s = time.perf_counter() - began
+        print(
+            f"whole teacher adapt(): {teacher_s:.1f} s for {taught.training_info['steps']} steps "
+            f"(teacher targets included), verdict: {taught.training_info['verdict']['summary']}",
+            flush=True,
+        )
         print(
             f"whole adapt(): {whole_s:.1f} s for {fitted.training_info['steps']} steps "
             f"(matches from the cache), verdict: {fitted.training_info['verdict']['summary']}",
@@ -455,6 +495,7 @@ def adapt_run(cuda: torch.device, size: int, steps: int) -> None:
         "step_ms": 1000 * step_s,
         "plain_ms": 1000 * plain_s,
         "whole_adapt_s": whole_s,
+        "whole_teacher_adapt_s": teacher_s,
         "steps": fitted.training_info["steps"],
     }
 

@@ -142,6 +142,40 @@ def test_pose_weight_reaches_the_saved_config_and_is_refused_with_depth(setup, t
     assert "--pose-weight" in capsys.readouterr().err
 
 
+def test_teacher_options_reach_the_saved_config_and_bad_mixes_are_refused(setup, tmp_path, capsys):
+    common = [*model_args(setup), "--camera", str(setup["camera"]), *frame_args(setup)]
+    common += ["--steps", "1", "--windows", "2"]
+    taught = tmp_path / "taught.safetensors"
+    assert main(["adapt", *common, "--teacher", "5", "--out", str(taught)]) == 0
+    config = Adapter.load(taught).training_info["config"]
+    assert config["weights"]["teacher"] == 5.0 and config["weights"]["reproj"] == 1.0
+    assert config["teacher_views"] == ["centre"] and config["teacher_fov_deg"] == 110.0
+    alone = tmp_path / "alone.safetensors"
+    code = main(
+        [
+            "adapt",
+            *common,
+            *("--teacher-only", "--teacher-views", "centre", "left", "--teacher-fov", "90"),
+            *("--out", str(alone)),
+        ]
+    )
+    assert code == 0
+    config = Adapter.load(alone).training_info["config"]
+    assert config["weights"]["teacher"] == 1.0 and config["weights"]["reproj"] == 0.0
+    assert config["teacher_views"] == ["centre", "left"] and config["teacher_fov_deg"] == 90.0
+    assert config["lr"] == pytest.approx(3e-2)
+    capsys.readouterr()
+    refused = tmp_path / "refused.safetensors"
+    for extra, message in (
+        (["--depth", str(tmp_path), "--teacher", "1"], "depth loss alone"),
+        (["--teacher-only", "--teacher", "1"], "leave out --teacher"),
+        (["--teacher-fov", "90"], "need --teacher WEIGHT"),
+    ):
+        assert main(["adapt", *common, *extra, "--out", str(refused)]) == 2
+        assert message in capsys.readouterr().err
+        assert not refused.exists()
+
+
 def test_adapt_fits_one_adapter_on_several_segments(setup, tmp_path, capsys):
     common = [
         "adapt",

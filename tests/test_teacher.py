@@ -171,3 +171,11 @@ def test_with_a_teacher_the_gate_keeps_every_window_but_not_its_reprojection(roo
     assert len(records) == 4
     assert all(r["reproj"] == 0.0 and r["teacher"] > 0 and r["n_pose"] > 0 for r in records)
     assert fitted.training_info["verdict"]["status"] != "no signal"
+
+
+def test_a_rig_fit_refuses_the_teacher_term_before_any_work():
+    from raytun3r_plugin.adaptation.rig import adapt_rig
+
+    config = AdaptConfig(weights=dataclasses.replace(AdaptConfig().weights, teacher=1.0))
+    with pytest.raises(InputError, match="no pinhole-view teacher term"):
+        adapt_rig(build_tiny_network(), None, config, progress=False)

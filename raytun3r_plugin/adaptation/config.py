@@ -23,6 +23,7 @@ __all__ = [
     "SELF_SUPERVISED_WEIGHTS",
     "SUPERVISED_WEIGHTS",
     "TEACHER_VIEWS",
+    "TEACHER_WEIGHTS",
     "TERMS",
     "AdaptConfig",
 ]
@@ -55,6 +56,9 @@ SELF_SUPERVISED_WEIGHTS = {
 #: Loss weights of the supervised fit (:func:`adapt` with ``depth=``): the scale-invariant depth
 #: term alone, no regulariser (the ground truth decides the correction).
 SUPERVISED_WEIGHTS = {"reproj": 0.0, "smooth": 0.0, "l2": 0.0, "tv": 0.0, "pose": 0.0, "depth": 1.0}
+#: Loss weights of the teacher-only fit (:meth:`AdaptConfig.teacher_only`): the pinhole-view
+#: teacher term alone (:mod:`~raytun3r_plugin.adaptation.teacher`), no match term.
+TEACHER_WEIGHTS = {**SUPERVISED_WEIGHTS, "depth": 0.0, "teacher": 1.0}
 
 # Configuration fields that may change between an interrupted run and its resumption.
 _RESUMABLE_CHANGES = {"steps", "checkpoint_every", "cache_dir"}
@@ -248,6 +252,15 @@ class AdaptConfig:
         log depth loss alone, Adam lr 3e-2, no regularisers, no collapse guard (the ground truth
         cannot collapse); ``changes`` override any field."""
         defaults = {"lr": 3e-2, "weights": LossWeights(**SUPERVISED_WEIGHTS), "guard": False}
+        return cls(**{**defaults, **changes})
+
+    @classmethod
+    def teacher_only(cls, **changes: Any) -> AdaptConfig:
+        """Settings of a fit to the pinhole-view teacher alone: :data:`TEACHER_WEIGHTS`, the
+        supervised fit's optimiser (Adam lr 3e-2, no regulariser, no collapse guard: the
+        targets hold the depth in place), the 110-degree centre view; ``changes`` override any
+        field. No match enters the objective (windows are still chosen from the matches)."""
+        defaults = {"lr": 3e-2, "weights": LossWeights(**TEACHER_WEIGHTS), "guard": False}
         return cls(**{**defaults, **changes})
 
     def identity(self) -> str:

@@ -65,6 +65,7 @@ from raytun3r_plugin.adaptation.config import (
     SCALES,
     SELF_SUPERVISED_WEIGHTS,
     SUPERVISED_WEIGHTS,
+    TEACHER_WEIGHTS,
     TERMS,
     AdaptConfig,
 )
@@ -111,6 +112,7 @@ __all__ = [
     "SCALES",
     "SELF_SUPERVISED_WEIGHTS",
     "SUPERVISED_WEIGHTS",
+    "TEACHER_WEIGHTS",
     "TERMS",
     "AdaptConfig",
     "AdaptationProblem",

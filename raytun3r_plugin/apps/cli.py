@@ -156,12 +156,54 @@ def _adapt_settings(args: argparse.Namespace) -> dict:
     return settings
 
 
+def _adapt_config(args: argparse.Namespace, settings: dict, supervised: bool):
+    """The ``AdaptConfig`` of ``raytun3r adapt``: supervised with ``--depth``, the teacher alone
+    with ``--teacher-only``, else self-supervised (plus ``--teacher WEIGHT``)."""
+    import dataclasses
+
+    from raytun3r_plugin.adaptation.train import AdaptConfig
+
+    teacher = {
+        key: value
+        for key, value in (
+            ("teacher_views", args.teacher_views),
+            ("teacher_fov_deg", args.teacher_fov),
+        )
+        if value is not None
+    }
+    asked = args.teacher is not None or args.teacher_only or teacher
+    if supervised:
+        if asked:
+            raise InputError(
+                "--teacher, --teacher-only, --teacher-views and --teacher-fov add the pinhole-view "
+                "teacher to a self-supervised fit; a fit with --depth uses the depth loss alone"
+            )
+        return AdaptConfig.supervised(**settings)
+    if args.teacher_only:
+        if args.teacher is not None or "weights" in settings:
+            raise InputError(
+                "--teacher-only fits the teacher term alone: leave out --teacher and --pose-weight"
+            )
+        return AdaptConfig.teacher_only(**settings, **teacher)
+    config = AdaptConfig(**settings, **teacher)
+    if args.teacher is not None:
+        config = dataclasses.replace(
+            config, weights=dataclasses.replace(config.weights, teacher=float(args.teacher))
+        )
+    elif teacher:
+        raise InputError(
+            "--teacher-views and --teacher-fov need --teacher WEIGHT or --teacher-only"
+        )
+    return config
+
+
 def cmd_adapt(args: argparse.Namespace) -> int:
-    from raytun3r_plugin.adaptation.train import AdaptConfig, adapt, artifact_paths
+    from raytun3r_plugin.adaptation.train import adapt, artifact_paths
     from raytun3r_plugin.cameras import load as load_camera
     from raytun3r_plugin.images import read_depth_maps, read_frames, read_mask
 
     settings = _adapt_settings(args)
+    config = _adapt_config(args, settings, supervised=bool(args.depth))
     if args.depth and len(args.depth) != len(args.frames):
         raise InputError(
             f"--depth needs one folder per --frames segment: {len(args.frames)} segments, "
@@ -182,7 +224,6 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     mask = read_mask(args.mask, width, height) if args.mask else None
     depth = (depths if len(segments) > 1 else depths[0]) if depths else None
     model = _load_model(args.backbone, args.weights)
-    config = AdaptConfig(**settings) if depth is None else AdaptConfig.supervised(**settings)
     adapter = adapt(
         model,
         camera,
@@ -509,6 +550,31 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=1000.0,
         help="16-bit depth PNG values per depth unit (1000 = millimetres)",
+    )
+    from raytun3r_plugin.adaptation.config import TEACHER_VIEWS
+
+    p.add_argument(
+        "--teacher",
+        type=float,
+        default=None,
+        metavar="WEIGHT",
+        help="add the pinhole-view teacher term at this weight: the unpatched model's depth on "
+        "a virtual pinhole view of each window (docs/adaptation.md)",
+    )
+    p.add_argument(
+        "--teacher-only",
+        action="store_true",
+        help="fit to the pinhole-view teacher alone (AdaptConfig.teacher_only: lr 3e-2, no match term)",
+    )
+    p.add_argument(
+        "--teacher-views",
+        nargs="+",
+        default=None,
+        choices=TEACHER_VIEWS,
+        help="the teacher's pinhole views (default centre)",
+    )
+    p.add_argument(
+        "--teacher-fov", type=float, default=None, help="the teacher views' FOV, deg (default 110)"
     )
     p.add_argument("--out", required=True, help="output adapter .safetensors")
     p.set_defaults(func=cmd_adapt)
