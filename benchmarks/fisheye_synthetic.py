@@ -73,6 +73,13 @@ def main() -> None:
         "pose source, 1 with another)",
     )
     parser.add_argument(
+        "--teacher-weight",
+        type=float,
+        default=None,
+        help="weight of the pinhole-view teacher term in the self-supervised fits (default: the "
+        "network's, demo.NETWORK_FIT)",
+    )
+    parser.add_argument(
         "--jobs",
         type=int,
         default=1,
@@ -99,6 +106,7 @@ def main() -> None:
         pose_weight=args.pose_weight
         if args.pose_weight is not None or args.pose_source
         else NETWORK_FIT[args.network]["pose_weight"],
+        teacher_weight=args.teacher_weight,
         jobs=args.jobs,
     )
     print(table)

@@ -202,7 +202,14 @@ def test_config_field_is_off_by_default_and_out_of_the_identity():
     assert off.refine_intrinsics is False and "refine_intrinsics" not in off.to_dict()
     # The identity of a configuration without the option is what it was before it existed.
     # (The photometric and teacher options, added later, are left out the same way.)
-    later = ("refine_intrinsics", "photo_sigma", "photo_pixels", "teacher_views", "teacher_fov_deg")
+    later = (
+        "refine_intrinsics",
+        "photo_sigma",
+        "photo_pixels",
+        "teacher_views",
+        "teacher_fov_deg",
+        "teacher_max_coverage",
+    )
     legacy = {k: v for k, v in asdict(off).items() if k not in later}
     del legacy["weights"]["photo"], legacy["weights"]["teacher"]
     for resumable in ("steps", "checkpoint_every", "cache_dir"):

@@ -179,3 +179,29 @@ def test_a_rig_fit_refuses_the_teacher_term_before_any_work():
     config = AdaptConfig(weights=dataclasses.replace(AdaptConfig().weights, teacher=1.0))
     with pytest.raises(InputError, match="no pinhole-view teacher term"):
         adapt_rig(build_tiny_network(), None, config, progress=False)
+
+
+def test_on_a_lens_the_views_cover_the_fit_runs_without_the_term_bit_for_bit(room, tmp_path):
+    """The lens gate: above ``teacher_max_coverage`` the teacher is left out and the fit is the
+    one without the term, table for table; the choice and the coverage are recorded."""
+    camera, seq = room
+    base = _config(tmp_path, pose_source="hybrid", min_parallax_px=0.0)
+    taught = dataclasses.replace(base, weights=dataclasses.replace(base.weights, teacher=10.0))
+    plain = adapt(build_tiny_network(), camera, seq.images, base, progress=False)
+    gated = adapt(
+        build_tiny_network(),
+        camera,
+        seq.images,
+        dataclasses.replace(taught, teacher_max_coverage=0.0),
+        progress=False,
+    )
+    record = gated.training_info["teacher"]
+    assert record["used"] is False and 0.2 < record["coverage"] < 0.5
+    for a, b in zip(plain.parameters(), gated.parameters(), strict=True):
+        assert torch.equal(a, b)
+    used = adapt(build_tiny_network(), camera, seq.images, taught, progress=False)
+    assert used.training_info["teacher"]["used"] is True
+    assert not all(
+        torch.equal(a, b) for a, b in zip(plain.parameters(), used.parameters(), strict=True)
+    )
+    assert "teacher" not in plain.training_info

@@ -145,6 +145,12 @@ class AdaptConfig:
             ``"down"``, ``"up"`` (the Multi-PH views). With the term on, the parallax gate keeps
             every window for it and drops only the reprojection of the windows below the gate.
         teacher_fov_deg: the views' field of view across their width, degrees.
+        teacher_max_coverage: the teacher term is used only when its views together cover at
+            most this fraction of the lens's valid pixels (0.5: lenses wider than about 160
+            degrees for the 110-degree centre view); on a lens they cover almost entirely the
+            views show the network what the fisheye shows it, resampled, and the term made
+            depth worse on the development sequences (docs/adaptation.md section 6). The fit then
+            runs without it; ``training_info["teacher"]`` records the coverage and the choice.
     """
 
     steps: int = 300
@@ -177,6 +183,7 @@ class AdaptConfig:
     photo_pixels: int = 4096
     teacher_views: tuple[str, ...] = ("centre",)
     teacher_fov_deg: float = 110.0
+    teacher_max_coverage: float = 0.5
 
     def __post_init__(self) -> None:
         if isinstance(self.weights, Mapping):
@@ -218,6 +225,11 @@ class AdaptConfig:
                 and math.isfinite(self.teacher_fov_deg)
                 and 0 < self.teacher_fov_deg < 180,
             ),
+            (
+                "teacher_max_coverage",
+                isinstance(self.teacher_max_coverage, (int, float))
+                and 0 <= self.teacher_max_coverage <= 1,
+            ),
         )
         for name, ok in checks:
             if not ok:
@@ -243,7 +255,7 @@ class AdaptConfig:
         if self.weights.teacher:
             out["teacher_views"] = list(self.teacher_views)
         else:
-            del out["teacher_views"], out["teacher_fov_deg"]
+            del out["teacher_views"], out["teacher_fov_deg"], out["teacher_max_coverage"]
         return out
 
     @classmethod

@@ -29,6 +29,7 @@ from raytun3r_plugin.baselines.multi_ph import (
     VIEW_NAMES,
     multi_pinhole_views,
     resample_to_view,
+    view_coverage,
     view_depth_to_fisheye,
 )
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
@@ -37,7 +38,13 @@ from raytun3r_plugin.prediction import predict
 if TYPE_CHECKING:
     from raytun3r_plugin.adaptation.problem import AdaptationProblem
 
-__all__ = ["MAX_TEACHER_SAMPLES", "TeacherTargets", "teacher_targets", "teacher_views"]
+__all__ = [
+    "MAX_TEACHER_SAMPLES",
+    "TeacherTargets",
+    "teacher_coverage",
+    "teacher_targets",
+    "teacher_views",
+]
 
 #: Most teacher samples kept per frame and view (a seeded subset; 112 px views have fewer).
 MAX_TEACHER_SAMPLES = 4096
@@ -61,6 +68,17 @@ def teacher_views(camera: Any, names: tuple[str, ...], fov_deg: float) -> list:
     tilt = 0.0 if tuple(names) == ("centre",) else None
     views = multi_pinhole_views(camera, tilt_deg=tilt, fov_deg=fov_deg)
     return [view for view in views if view.name in names]
+
+
+def teacher_coverage(camera: Any, names: tuple[str, ...], fov_deg: float) -> float:
+    """Fraction of ``camera``'s valid pixels that the teacher views ``names`` cover together.
+
+    A lens that its views cover almost entirely gives the network nearly the same image through
+    them as through the fisheye itself, only resampled: there is little to teach, and on the
+    development sequences the term then made depth worse (docs/adaptation.md section 6; the
+    trainer's gate :attr:`AdaptConfig.teacher_max_coverage`).
+    """
+    return view_coverage(camera, teacher_views(camera, names, fov_deg))
 
 
 def teacher_targets(

@@ -92,7 +92,7 @@ from raytun3r_plugin.adaptation.step import (
     window_parallax,
     window_terms,
 )
-from raytun3r_plugin.adaptation.teacher import teacher_targets
+from raytun3r_plugin.adaptation.teacher import teacher_coverage, teacher_targets
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AlreadyAppliedError
 from raytun3r_plugin.patching import apply, handle_of
@@ -278,6 +278,17 @@ def adapt(
     problem.pe_scale = regulariser_scale(model, config)
     adapter.camera = problem.layout.native_camera
     teacher = depth is None and config.weights.teacher > 0
+    teacher_record = None
+    if teacher:
+        coverage = teacher_coverage(
+            problem.layout.camera, config.teacher_views, config.teacher_fov_deg
+        )
+        teacher = coverage <= config.teacher_max_coverage
+        teacher_record = {
+            "used": teacher,
+            "coverage": round(coverage, 4),
+            "max_coverage": config.teacher_max_coverage,
+        }
     if teacher:
         # The unpatched model on pinhole views of every window: computed once, before the patch.
         problem.teacher = teacher_targets(
@@ -398,6 +409,8 @@ def adapt(
         adapter.training_info["guard"] = guard.report()
     if parallax is not None:
         adapter.training_info["parallax_gate"] = parallax
+    if teacher_record is not None:
+        adapter.training_info["teacher"] = teacher_record
     adapter.training_info["verdict"] = fit_verdict(adapter, history, problem, guard, parallax)
     if tune is not None:
         tuned = {

@@ -242,6 +242,7 @@ def sequence_rows(
     baselines: tuple[str, ...] = (),
     pose_source: str = POSE_SOURCE,
     pose_weight: float | None = None,
+    teacher_weight: float | None = None,
 ) -> list[dict]:
     """The rows of one held-out sequence: vanilla, Center-PH, Multi-PH, the zero adapter, an
     adapter fitted self-supervised on its first ``n_adapt`` frames and one fitted to their
@@ -250,7 +251,8 @@ def sequence_rows(
     tables at zero and ``components=[]``; all scored on the rest. ``pose_source``, ``pose_weight``:
     those of the self-supervised fits (:class:`~raytun3r_plugin.adaptation.train.AdaptConfig`,
     :func:`~raytun3r_plugin.apps.demo.adapt_config`; ``None``: the default network's weight for
-    its own pose source, 1 for another).
+    its own pose source, 1 for another). ``teacher_weight``: that of the pinhole-view teacher term
+    (``None``: the network's, :data:`~raytun3r_plugin.apps.demo.NETWORK_FIT`).
 
     Every row has ``params`` (trainable parameters of what was fitted; 0 without a fit),
     ``ms_per_frame`` (:func:`timed_row`) and ``x_vanilla`` (its ``ms_per_frame`` over vanilla's
@@ -286,7 +288,14 @@ def sequence_rows(
         model,
         camera,
         seq.images[:n_adapt],
-        adapt_config(size, steps, seed=0, pose_source=pose_source, pose_weight=pose_weight),
+        adapt_config(
+            size,
+            steps,
+            seed=0,
+            pose_source=pose_source,
+            pose_weight=pose_weight,
+            teacher_weight=teacher_weight,
+        ),
         out_path=path,
         resume=False,
         progress=progress,
@@ -427,6 +436,7 @@ def run_benchmark(
     baselines: tuple[str, ...] = (),
     pose_source: str = POSE_SOURCE,
     pose_weight: float | None = None,
+    teacher_weight: float | None = None,
     jobs: int = 1,
 ) -> str:
     """Run every (camera, scene) on ``sequences`` held-out sequences; return the markdown table.
@@ -456,6 +466,7 @@ def run_benchmark(
         "baselines": baselines,
         "pose_source": pose_source,
         "pose_weight": pose_weight,
+        "teacher_weight": teacher_weight,
     }
     tasks = []
     for position, spec in enumerate(cameras):
@@ -509,12 +520,22 @@ def run_benchmark(
     table = format_table(
         summary, COLUMNS + ["gap_closed", "lower_than_vanilla", f"lower_than_{ZERO_ADAPTER}"]
     )
+    fit = adapt_config(
+        size, steps, pose_source=pose_source, pose_weight=pose_weight, teacher_weight=teacher_weight
+    )
     header = (
         f"Network: {network or 'see model card'}; input {size}x{size} px; {sequences} {'held-out' if base_seed == HELD_OUT_SEED else 'development'} sequences per camera and scene "
         f"(seeds {base_seed} + 100 k + 10 camera + scene); per sequence {n_adapt} adaptation frames "
         f"(30 windows, {steps} steps, pose source '{pose_source}', pose weight "
-        f"{adapt_config(size, steps, pose_source=pose_source, pose_weight=pose_weight).weights.pose:g}"
-        f") and {n_eval} scored frames"
+        f"{fit.weights.pose:g}"
+        + (
+            f", pinhole-view teacher weight {fit.weights.teacher:g} where its "
+            f"{fit.teacher_fov_deg:g}-degree view covers at most {fit.teacher_max_coverage:.0%} "
+            "of the lens"
+            if fit.weights.teacher
+            else ""
+        )
+        + f") and {n_eval} scored frames"
         + (
             f"; {jobs} worker processes of one thread each (timings are one thread's beside the other workers)"
             if jobs > 1

@@ -53,6 +53,7 @@ def adapt_config(
     *,
     network: str = DEFAULT_NETWORK,
     pose_weight: float | None = None,
+    teacher_weight: float | None = None,
     **changes,
 ):
     """The adaptation settings the demo and the benchmark use with the built-in network.
@@ -62,21 +63,26 @@ def adapt_config(
     ``pose_weight`` replaces the pose term's weight in the self-supervised defaults
     (``SELF_SUPERVISED_WEIGHTS``); without it the weight is the network's when the pose source is
     the network's and the library's (1) when ``changes`` pick another pose source, since the
-    network's weight was chosen for its own source. ``changes`` override any field.
+    network's weight was chosen for its own source. ``teacher_weight`` sets the pinhole-view
+    teacher term's weight (``LossWeights.teacher``; None: the network's, :data:`NETWORK_FIT`).
+    ``changes`` override any field.
     """
     from raytun3r_plugin.adaptation.train import SELF_SUPERVISED_WEIGHTS, AdaptConfig, LossWeights
     from raytun3r_plugin.errors import InputError
 
     fit = NETWORK_FIT[network]
     source = changes.pop("pose_source", fit["pose_source"])
-    if pose_weight is not None and "weights" in changes:
-        raise InputError("adapt_config: give pose_weight or weights, not both")
+    if (pose_weight is not None or teacher_weight is not None) and "weights" in changes:
+        raise InputError("adapt_config: give pose_weight / teacher_weight or weights, not both")
     if "weights" not in changes:
         if pose_weight is None:
             pose_weight = fit["pose_weight"] if source == fit["pose_source"] else None
-        if pose_weight is not None:
+        if teacher_weight is None:
+            teacher_weight = fit.get("teacher_weight", 0.0)
+        if pose_weight is not None or teacher_weight:
+            pose = SELF_SUPERVISED_WEIGHTS["pose"] if pose_weight is None else float(pose_weight)
             changes["weights"] = LossWeights(
-                **{**SELF_SUPERVISED_WEIGHTS, "pose": float(pose_weight)}
+                **{**SELF_SUPERVISED_WEIGHTS, "pose": pose, "teacher": float(teacher_weight)}
             )
     return AdaptConfig(
         **{
