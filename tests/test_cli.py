@@ -457,7 +457,9 @@ def test_demo_runs_on_the_built_in_default(tmp_path, capsys):
     ):
         assert label in out
     assert "Mean over 2 held-out sequences" in out and "/2" in out  # per-sequence win counts
-    assert "stops with 'no signal'" in out  # the demo says what its indoor table leaves out
+    # The demo says what its indoor table leaves out, and what its fits use.
+    assert "These are indoor sequences" in out and "pinhole-view teacher alone" in out
+    assert "pinhole-view teacher weight 10" in out
     for k in (0, 1):
         assert (tmp_path / f"seq{k}" / "adapter.safetensors").is_file() and (
             tmp_path / f"seq{k}" / "adapter.losses.png"

@@ -461,7 +461,8 @@ def test_v3_is_a_second_built_in_of_the_same_architecture():
 def test_the_demo_and_benchmarks_run_v3_and_keep_the_pose_term_on_its_own_pose():
     """Issue 13: v3 is the default network; its fits reproject through the MAGSAC++ targets and
     keep the pose term on the network's pose at weight 0.3 (the held-out rule of
-    docs/decisions.md), v2's (pose head at chance) use the targets alone."""
+    docs/decisions.md) and add the lens-gated teacher; v2's (pose head at chance) use the targets
+    alone."""
     from raytun3r_plugin.apps.demo import NETWORK_FIT, adapt_config, default_network
 
     model, description = default_network()
@@ -470,6 +471,10 @@ def test_the_demo_and_benchmarks_run_v3_and_keep_the_pose_term_on_its_own_pose()
     )
     assert adapt_config(112, 10).pose_source == "hybrid"
     assert adapt_config(112, 10).weights.pose == pytest.approx(0.3)
+    # The lens-gated pinhole-view teacher (the held-out rule of docs/decisions.md).
+    assert adapt_config(112, 10).weights.teacher == pytest.approx(10.0)
+    assert adapt_config(112, 10).teacher_max_coverage == 0.5
+    assert adapt_config(112, 10, teacher_weight=0.0).weights.teacher == 0.0
     assert NETWORK_FIT["raytun3r-da3-tiny"]["pose_source"] == "targets"
     assert adapt_config(112, 10, network="raytun3r-da3-tiny").pose_source == "targets"
     v2, _ = default_network("raytun3r-da3-tiny")
