@@ -228,6 +228,12 @@ def adapt(
             records the kind and the coverage (fraction of lens pixels with a value). With
             several segments, a list of one depth per segment.
 
+    Without ``depth``, ``config.weights.teacher > 0`` adds the pinhole-view teacher: before the
+    patch is applied, the model's own depth on virtual pinhole views of every window
+    (:func:`~raytun3r_plugin.adaptation.teacher.teacher_targets`) becomes a per-view
+    scale-invariant target, on lenses the views cover at most ``config.teacher_max_coverage``
+    of (``training_info["teacher"]`` records the coverage and whether it was used).
+
     Returns:
         The fitted :class:`Adapter` (camera: the camera of the frames, cropped if the input
         layout needed a crop); ``adapter.training_info`` records the steps done, the final
