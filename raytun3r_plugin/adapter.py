@@ -532,11 +532,26 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
             + (f"crop {crop}" if crop else "no crop")
             + rule
         )
+    verdict = training.get("verdict")
+    if isinstance(verdict, Mapping) and verdict.get("summary"):
+        lines.append(f"{indent}verdict:")
+        lines.extend(
+            f"{indent}  {part}" for part in _wrap(str(verdict["summary"]), 100 - len(indent))
+        )
+    teacher = training.get("teacher")
+    if isinstance(teacher, Mapping) and "used" in teacher:
+        lines.append(
+            f"{indent}pinhole-view teacher: {'used' if teacher['used'] else 'left out'} (its "
+            f"views cover {float(teacher.get('coverage', 0.0)):.0%} of the lens, at most "
+            f"{float(teacher.get('max_coverage', 0.0)):.0%} for it to be used)"
+        )
     extra = [
         key
         for key in training
         if key
         not in (
+            "verdict",
+            "teacher",
             "method",
             "steps",
             "requested_steps",

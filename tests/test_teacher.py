@@ -20,7 +20,7 @@ from raytun3r_plugin import apply, synthetic
 from raytun3r_plugin.adaptation.losses import LossWeights, grouped_silog_loss, silog_loss
 from raytun3r_plugin.adaptation.teacher import teacher_targets, teacher_views
 from raytun3r_plugin.adaptation.train import AdaptConfig, adapt, objective_value, prepare_problem
-from raytun3r_plugin.adapter import Adapter
+from raytun3r_plugin.adapter import Adapter, describe_file
 from raytun3r_plugin.apps.evaluation import center_pinhole, run_method
 from raytun3r_plugin.cameras import KannalaBrandt4
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
@@ -205,3 +205,10 @@ def test_on_a_lens_the_views_cover_the_fit_runs_without_the_term_bit_for_bit(roo
         torch.equal(a, b) for a, b in zip(plain.parameters(), used.parameters(), strict=True)
     )
     assert "teacher" not in plain.training_info
+    # raytun3r inspect says which it was, and the fit's verdict.
+    for adapter, word in ((gated, "left out"), (used, "used")):
+        path = tmp_path / f"{word.replace(' ', '_')}.safetensors"
+        adapter.save(path)
+        summary = describe_file(path)
+        assert f"pinhole-view teacher: {word} (its views cover" in summary
+        assert "verdict:" in summary
