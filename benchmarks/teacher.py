@@ -63,7 +63,15 @@ SIZE, N_ADAPT, N_EVAL = 112, 24, 12
 #: near 0.01-0.03 where the reprojection's log-L1 starts near 0.3-0.5).
 HYBRID_TEACHER_WEIGHT = 10.0
 TEACHER_ONLY = LossWeights(reproj=0.0, smooth=0.0, l2=0.0, tv=0.0, pose=0.0, depth=0.0, teacher=1.0)
-VARIANTS = ("hybrid", "teacher 110", "teacher 90", "hybrid + teacher", "hybrid + teacher, gated")
+VARIANTS = (
+    "hybrid",
+    "teacher 110",
+    "teacher 90",
+    "hybrid + teacher",
+    "hybrid + teacher, gated",
+    "hybrid + teacher 30",
+    "hybrid + teacher, 3 views",
+)
 METHODS = ("no adapter", *VARIANTS, "supervised")
 
 
@@ -90,6 +98,18 @@ def variant_config(method: str, steps: int):
         )
     if method == "hybrid + teacher, gated":
         return adapt_config(SIZE, steps, seed=0, teacher_weight=HYBRID_TEACHER_WEIGHT)
+    # The second round (docs/decisions.md): the shipped fit with a stronger teacher, or with the
+    # left and right views beside the centre one.
+    if method == "hybrid + teacher 30":
+        return adapt_config(SIZE, steps, seed=0, teacher_weight=3 * HYBRID_TEACHER_WEIGHT)
+    if method == "hybrid + teacher, 3 views":
+        return adapt_config(
+            SIZE,
+            steps,
+            seed=0,
+            teacher_weight=HYBRID_TEACHER_WEIGHT,
+            teacher_views=("centre", "left", "right"),
+        )
     return adapt_config(SIZE, steps, seed=0, teacher_weight=HYBRID_TEACHER_WEIGHT, **ungated)
 
 
@@ -222,6 +242,9 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=cpu_jobs(2))
     parser.add_argument("--methods", nargs="+", choices=VARIANTS, default=list(VARIANTS))
     parser.add_argument("--scenes", default=",".join(SCENES))
+    parser.add_argument(
+        "--cameras", default=",".join(spec.label for spec in CAMERAS), help="comma-separated labels"
+    )
     args = parser.parse_args()
     if args.sequences < 1 or args.steps < 1 or args.jobs < 1:
         parser.error("--sequences, --steps and --jobs must be at least 1")
@@ -235,9 +258,11 @@ def main() -> None:
         f"{args.jobs} worker processes of one thread each\n",
         flush=True,
     )
+    labels = [label for label in args.cameras.split(",") if label]
     tasks = [
         (ci, SCENES.index(scene), k, args.steps, methods)
-        for ci in range(len(CAMERAS))
+        for ci, spec in enumerate(CAMERAS)
+        if spec.label in labels
         for scene in scenes
         for k in range(args.sequences)
     ]
