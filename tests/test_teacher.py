@@ -212,3 +212,20 @@ def test_on_a_lens_the_views_cover_the_fit_runs_without_the_term_bit_for_bit(roo
         summary = describe_file(path)
         assert f"pinhole-view teacher: {word} (its views cover" in summary
         assert "verdict:" in summary
+
+
+def test_the_lens_gate_counts_each_view_on_its_own(room):
+    """Three views cover most of a 190-degree lens together, each about a third of it: the gate
+    reads the largest single view, so a wide lens keeps a three-view teacher."""
+    from raytun3r_plugin.adaptation.teacher import teacher_coverage
+    from raytun3r_plugin.baselines.multi_ph import view_coverage
+
+    camera, _ = room
+    names = ("centre", "left", "right")
+    views = teacher_views(camera, names, 110.0)
+    assert view_coverage(camera, views) > 0.6
+    single = teacher_coverage(camera, names, 110.0)
+    assert single == max(view_coverage(camera, [view]) for view in views)
+    assert 0.2 < single < AdaptConfig().teacher_max_coverage
+    narrow = KannalaBrandt4(84, 70, [40.0, 40.0, 41.5, 34.5, 0.0, 0.0, 0.0, 0.0], max_fov_deg=120.0)
+    assert teacher_coverage(narrow, ("centre",), 110.0) > 0.8

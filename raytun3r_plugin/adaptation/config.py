@@ -145,12 +145,12 @@ class AdaptConfig:
             ``"down"``, ``"up"`` (the Multi-PH views). With the term on, the parallax gate keeps
             every window for it and drops only the reprojection of the windows below the gate.
         teacher_fov_deg: the views' field of view across their width, degrees.
-        teacher_max_coverage: the teacher term is used only when its views together cover at
-            most this fraction of the lens's valid pixels (0.5: lenses wider than about 160
-            degrees for the 110-degree centre view); on a lens they cover almost entirely the
-            views show the network what the fisheye shows it, resampled, and the term made
-            depth worse on the development sequences (docs/adaptation.md section 6). The fit then
-            runs without it; ``training_info["teacher"]`` records the coverage and the choice.
+        teacher_max_coverage: the teacher term is used only when none of its views covers more
+            than this fraction of the lens's valid pixels (0.5: lenses wider than about 160
+            degrees for the 110-degree centre view); on a lens a view covers almost entirely it
+            shows the network what the fisheye shows it, resampled, and the term made depth
+            worse on the development sequences (docs/adaptation.md section 6). The fit then runs
+            without it; ``training_info["teacher"]`` records the coverage and the choice.
     """
 
     steps: int = 300

@@ -71,14 +71,16 @@ def teacher_views(camera: Any, names: tuple[str, ...], fov_deg: float) -> list:
 
 
 def teacher_coverage(camera: Any, names: tuple[str, ...], fov_deg: float) -> float:
-    """Fraction of ``camera``'s valid pixels that the teacher views ``names`` cover together.
+    """The largest fraction of ``camera``'s valid pixels that one of the teacher views ``names``
+    covers.
 
-    A lens that its views cover almost entirely gives the network nearly the same image through
-    them as through the fisheye itself, only resampled: there is little to teach, and on the
+    A lens that a view covers almost entirely gives the network nearly the same image through it
+    as through the fisheye itself, only resampled: there is little to teach, and on the
     development sequences the term then made depth worse (docs/adaptation.md section 6; the
-    trainer's gate :attr:`AdaptConfig.teacher_max_coverage`).
+    trainer's gate :attr:`AdaptConfig.teacher_max_coverage`). Each view counts on its own: views
+    that together cover most of a wide lens each still show a part of it as a pinhole would.
     """
-    return view_coverage(camera, teacher_views(camera, names, fov_deg))
+    return max(view_coverage(camera, [view]) for view in teacher_views(camera, names, fov_deg))
 
 
 def teacher_targets(

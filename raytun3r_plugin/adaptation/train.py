@@ -231,8 +231,9 @@ def adapt(
     Without ``depth``, ``config.weights.teacher > 0`` adds the pinhole-view teacher: before the
     patch is applied, the model's own depth on virtual pinhole views of every window
     (:func:`~raytun3r_plugin.adaptation.teacher.teacher_targets`) becomes a per-view
-    scale-invariant target, on lenses the views cover at most ``config.teacher_max_coverage``
-    of (``training_info["teacher"]`` records the coverage and whether it was used).
+    scale-invariant target, on lenses of which no view covers more than
+    ``config.teacher_max_coverage`` (``training_info["teacher"]`` records the largest view's
+    coverage and whether the term was used).
 
     Returns:
         The fitted :class:`Adapter` (camera: the camera of the frames, cropped if the input
