@@ -242,6 +242,7 @@ def run_checks(cuda: torch.device) -> None:
     @check("adapt teacher")
     def _():
         from raytun3r_plugin.adaptation.losses import LossWeights
+        from raytun3r_plugin.adaptation.train import TEACHER_WEIGHTS
 
         config = adapt_config(
             size,
@@ -249,9 +250,7 @@ def run_checks(cuda: torch.device) -> None:
             n_windows=6,
             lr=3e-2,
             guard=False,
-            weights=LossWeights(
-                reproj=0.0, smooth=0.0, l2=0.0, tv=0.0, pose=0.0, depth=0.0, teacher=1.0
-            ),
+            weights=LossWeights(**TEACHER_WEIGHTS),
         )
         untouched, correlation, on_gpu, _ = fits(config)
         return untouched and correlation > 0.95, {
@@ -467,14 +466,13 @@ def adapt_run(cuda: torch.device, size: int, steps: int) -> None:
         fitted = adapt(model, camera, frames, config, progress=False)
         whole_s = time.perf_counter() - began
         from raytun3r_plugin.adaptation.losses import LossWeights
+        from raytun3r_plugin.adaptation.train import TEACHER_WEIGHTS
 
         teacher = dataclasses.replace(
             config,
             lr=3e-2,
             guard=False,
-            weights=LossWeights(
-                reproj=0.0, smooth=0.0, l2=0.0, tv=0.0, pose=0.0, depth=0.0, teacher=1.0
-            ),
+            weights=LossWeights(**TEACHER_WEIGHTS),
         )
         began = time.perf_counter()
         taught = adapt(model, camera, frames, teacher, progress=False)

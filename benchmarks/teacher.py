@@ -44,7 +44,7 @@ import numpy as np
 
 from raytun3r_plugin import synthetic
 from raytun3r_plugin.adaptation.losses import LossWeights
-from raytun3r_plugin.adaptation.train import adapt
+from raytun3r_plugin.adaptation.train import TEACHER_WEIGHTS, adapt
 from raytun3r_plugin.apps.benchmark import (
     CAMERAS,
     DEVELOPMENT_SEED,
@@ -62,7 +62,7 @@ SIZE, N_ADAPT, N_EVAL = 112, 24, 12
 #: Weight of the teacher term next to the hybrid objective (its scale-invariant log error starts
 #: near 0.01-0.03 where the reprojection's log-L1 starts near 0.3-0.5).
 HYBRID_TEACHER_WEIGHT = 10.0
-TEACHER_ONLY = LossWeights(reproj=0.0, smooth=0.0, l2=0.0, tv=0.0, pose=0.0, depth=0.0, teacher=1.0)
+TEACHER_ONLY = LossWeights(**TEACHER_WEIGHTS)
 VARIANTS = (
     "hybrid",
     "teacher 110",

@@ -19,13 +19,19 @@ from raytun3r_plugin.patches.da3 import build_tiny_network
 from raytun3r_plugin import apply, synthetic
 from raytun3r_plugin.adaptation.losses import LossWeights, grouped_silog_loss, silog_loss
 from raytun3r_plugin.adaptation.teacher import teacher_targets, teacher_views
-from raytun3r_plugin.adaptation.train import AdaptConfig, adapt, objective_value, prepare_problem
+from raytun3r_plugin.adaptation.train import (
+    TEACHER_WEIGHTS,
+    AdaptConfig,
+    adapt,
+    objective_value,
+    prepare_problem,
+)
 from raytun3r_plugin.adapter import Adapter, describe_file
 from raytun3r_plugin.apps.evaluation import center_pinhole, run_method
 from raytun3r_plugin.cameras import KannalaBrandt4
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
 
-TEACHER_ONLY = LossWeights(reproj=0.0, smooth=0.0, l2=0.0, tv=0.0, pose=0.0, depth=0.0, teacher=1.0)
+TEACHER_ONLY = LossWeights(**TEACHER_WEIGHTS)
 
 
 @pytest.fixture(scope="module")
