@@ -40,22 +40,21 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import time
 
 import numpy as np
 
 from raytun3r_plugin import synthetic
-from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.apps.benchmark import (
     CAMERAS,
     DEVELOPMENT_SEED,
     SCENES,
+    fit_and_score,
     ground_truth_depth,
     make_camera,
+    sequence_line,
     sequence_seed,
 )
 from raytun3r_plugin.apps.demo import adapt_config, default_network, supervised_config
-from raytun3r_plugin.apps.evaluation import headline, run_method, score
 from raytun3r_plugin.apps.workers import cpu_jobs, map_in_workers
 from raytun3r_plugin.registry import quiet_upstream
 
@@ -123,28 +122,15 @@ def score_outdoor_sequence(
             None,
         )
     held_out = list(range(N_ADAPT, N_ADAPT + N_EVAL))
-    rows = []
-    for method in methods:
-        adapter, verdict, seconds = None, "-", 0.0
-        if method in fits:
-            fit_camera, images, config, depth = fits[method]
-            start = time.perf_counter()
-            adapter = adapt(model, fit_camera, images, config, depth=depth, progress=False)
-            seconds = time.perf_counter() - start
-            verdict = adapter.training_info["verdict"]["status"]
-        values = headline(score(seq, run_method(model, seq, "raytun3r", adapter, frames=held_out)))
-        rows.append(
-            {
-                "camera": spec.label,
-                "k": k,
-                "method": method,
-                "abs_rel": values["abs_rel"],
-                "d_reproj_px": values["d_reproj_px"],
-                "verdict": verdict,
-                "fit_s": seconds,
-            }
-        )
-    return rows
+    return [
+        {
+            "camera": spec.label,
+            "k": k,
+            "method": method,
+            **fit_and_score(model, seq, held_out, fits.get(method)),
+        }
+        for method in methods
+    ]
 
 
 def main() -> None:
@@ -180,15 +166,7 @@ def main() -> None:
     ):
         rows += sequence_rows
         first = sequence_rows[0]
-        print(
-            f"{first['camera']} k={first['k']}: "
-            + ", ".join(
-                f"{r['method']} {r['abs_rel']:.3f} / {r['d_reproj_px']:.2f} px"
-                + (f" ({r['verdict']}, {r['fit_s']:.0f} s)" if r["verdict"] != "-" else "")
-                for r in sequence_rows
-            ),
-            flush=True,
-        )
+        print(sequence_line(f"{first['camera']} k={first['k']}", sequence_rows), flush=True)
     print("\n| camera | method | AbsRel | d_reproj px | fits with a signal | fit s (max) |")
     print("|---|---|---|---|---|---|")
     for spec in CAMERAS:

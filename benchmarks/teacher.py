@@ -38,23 +38,23 @@ qualifies, ``hybrid`` stays and the teacher stays an option.
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 
 from raytun3r_plugin import synthetic
 from raytun3r_plugin.adaptation.losses import LossWeights
-from raytun3r_plugin.adaptation.train import TEACHER_WEIGHTS, adapt
+from raytun3r_plugin.adaptation.train import TEACHER_WEIGHTS
 from raytun3r_plugin.apps.benchmark import (
     CAMERAS,
     DEVELOPMENT_SEED,
     SCENES,
+    fit_and_score,
     ground_truth_depth,
     make_camera,
+    sequence_line,
     sequence_seed,
 )
 from raytun3r_plugin.apps.demo import adapt_config, default_network, supervised_config
-from raytun3r_plugin.apps.evaluation import headline, run_method, score
 from raytun3r_plugin.apps.workers import cpu_jobs, map_in_workers
 from raytun3r_plugin.registry import quiet_upstream
 
@@ -122,38 +122,23 @@ def score_sequence(
     camera = make_camera(spec, SIZE)
     seq = synthetic.render_sequence(scene, camera, n_frames=N_ADAPT + N_EVAL, seed=seed)
     held_out = list(range(N_ADAPT, N_ADAPT + N_EVAL))
-    rows = []
-    for method in methods:
-        adapter, verdict, seconds = None, "-", 0.0
-        if method != "no adapter":
-            supervised = method == "supervised"
-            config = supervised_config(SIZE, steps) if supervised else variant_config(method, steps)
-            start = time.perf_counter()
-            adapter = adapt(
-                model,
-                camera,
-                seq.images[:N_ADAPT],
-                config,
-                depth=ground_truth_depth(seq, N_ADAPT) if supervised else None,
-                progress=False,
-            )
-            seconds = time.perf_counter() - start
-            verdict = adapter.training_info["verdict"]["status"]
-        values = headline(score(seq, run_method(model, seq, "raytun3r", adapter, frames=held_out)))
-        rows.append(
-            {
-                "camera": spec.label,
-                "scene": scene,
-                "k": k,
-                "method": method,
-                "abs_rel": values["abs_rel"],
-                "d_reproj_px": values["d_reproj_px"],
-                "rot_deg": values["rot_deg"],
-                "verdict": verdict,
-                "fit_s": seconds,
-            }
-        )
-    return rows
+    images = seq.images[:N_ADAPT]
+    fits = {
+        method: (camera, images, variant_config(method, steps), None)
+        for method in methods
+        if method not in ("no adapter", "supervised")
+    }
+    fits["supervised"] = (
+        camera,
+        images,
+        supervised_config(SIZE, steps),
+        ground_truth_depth(seq, N_ADAPT),
+    )
+    cell = {"camera": spec.label, "scene": scene, "k": k}
+    return [
+        {**cell, "method": method, **fit_and_score(model, seq, held_out, fits.get(method))}
+        for method in methods
+    ]
 
 
 def report(rows: list[dict], variants: tuple[str, ...]) -> None:
@@ -272,15 +257,8 @@ def main() -> None:
     ):
         rows += sequence_rows
         first = sequence_rows[0]
-        print(
-            f"{first['camera']} {first['scene']} k={first['k']}: "
-            + ", ".join(
-                f"{r['method']} {r['abs_rel']:.3f} / {r['d_reproj_px']:.2f}"
-                + (f" ({r['verdict']}, {r['fit_s']:.0f} s)" if r["verdict"] != "-" else "")
-                for r in sequence_rows
-            ),
-            flush=True,
-        )
+        name = f"{first['camera']} {first['scene']} k={first['k']}"
+        print(sequence_line(name, sequence_rows), flush=True)
     report(rows, variants)
 
 

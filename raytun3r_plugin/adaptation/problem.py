@@ -200,15 +200,6 @@ class AdaptationProblem:
         """Whether window ``index``'s matches enter the reprojection term."""
         return True if self.reproject is None else self.reproject[index]
 
-    def keep_windows(self, keep: list[bool]) -> None:
-        """Keep only the windows marked True, with their teacher samples and flags."""
-        if self.teacher is not None:
-            kept = [index for index, flag in enumerate(keep) if flag]
-            self.teacher = {new: self.teacher[old] for new, old in enumerate(kept)}
-        if self.reproject is not None:
-            self.reproject = [flag for flag, k in zip(self.reproject, keep, strict=True) if k]
-        self.windows = [window for window, k in zip(self.windows, keep, strict=True) if k]
-
 
 #: Most ground-truth depth samples kept per frame (a seeded subset; 112 px frames have fewer).
 MAX_DEPTH_SAMPLES = 8192

@@ -320,7 +320,7 @@ def adapt(
             # still leave the reprojection term, as the gate would have left them out.
             problem.reproject = signal
             parallax["windows_reprojected"] = sum(signal)
-        problem.keep_windows(keep)
+        problem.windows = [window for window, k in zip(problem.windows, keep, strict=True) if k]
     if tune is not None:
         for table in adapter.parameters():
             table.requires_grad_(False)

@@ -226,6 +226,42 @@ def fitted_baseline(
         yield module, time.perf_counter() - start
 
 
+def fit_and_score(
+    model, seq, frames: list[int], fit: tuple | None = None
+) -> dict[str, float | str]:
+    """One method of a development script: fit an adapter (``fit`` = ``(camera, images, config,
+    depth)`` for :func:`~raytun3r_plugin.adaptation.train.adapt`; None: the zero adapter) and
+    score the patched model on ``frames`` of ``seq``. Returns ``abs_rel``, ``d_reproj_px``,
+    ``rot_deg``, the fit's ``verdict`` ("-" without a fit) and ``fit_s`` (its wall time, s)."""
+    from raytun3r_plugin.adaptation.train import adapt
+
+    adapter, verdict, seconds = None, "-", 0.0
+    if fit is not None:
+        camera, images, config, depth = fit
+        start = time.perf_counter()
+        adapter = adapt(model, camera, images, config, depth=depth, progress=False)
+        seconds = time.perf_counter() - start
+        verdict = adapter.training_info["verdict"]["status"]
+    values = headline(score(seq, run_method(model, seq, "raytun3r", adapter, frames=frames)))
+    return {
+        "abs_rel": values["abs_rel"],
+        "d_reproj_px": values["d_reproj_px"],
+        "rot_deg": values["rot_deg"],
+        "verdict": verdict,
+        "fit_s": seconds,
+    }
+
+
+def sequence_line(name: str, rows: list[dict]) -> str:
+    """One progress line of a development script: ``name: method AbsRel / d_reproj px (verdict,
+    fit s), ...`` over the rows of :func:`fit_and_score` (each with its ``method``)."""
+    return f"{name}: " + ", ".join(
+        f"{r['method']} {r['abs_rel']:.3f} / {r['d_reproj_px']:.2f} px"
+        + (f" ({r['verdict']}, {r['fit_s']:.0f} s)" if r["verdict"] != "-" else "")
+        for r in rows
+    )
+
+
 def sequence_rows(
     model,
     camera,

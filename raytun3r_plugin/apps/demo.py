@@ -85,9 +85,8 @@ def adapt_config(
     if "weights" not in changes:
         if pose_weight is None:
             pose_weight = fit["pose_weight"] if source == fit["pose_source"] else None
-        if (
-            teacher_weight is None
-        ):  # chosen with the network's own pose source, like its pose weight
+        if teacher_weight is None:
+            # Chosen with the network's own pose source, like its pose weight.
             own = source == fit["pose_source"]
             teacher_weight = fit.get("teacher_weight", 0.0) if own else 0.0
         if pose_weight is not None or teacher_weight:
