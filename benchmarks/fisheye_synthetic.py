@@ -26,6 +26,7 @@ from raytun3r_plugin.apps.benchmark import (
     run_benchmark,
 )
 from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, NETWORK_FIT, default_network
+from raytun3r_plugin.baselines.multi_ph import VIEW_NAMES
 from raytun3r_plugin.registry import quiet_upstream
 
 START, END = "<!-- bench:start -->", "<!-- bench:end -->"
@@ -80,6 +81,13 @@ def main() -> None:
         "network's, demo.NETWORK_FIT)",
     )
     parser.add_argument(
+        "--teacher-views",
+        nargs="+",
+        default=None,
+        choices=VIEW_NAMES,
+        help="views of the pinhole-view teacher (default: the network's, demo.NETWORK_FIT)",
+    )
+    parser.add_argument(
         "--jobs",
         type=int,
         default=1,
@@ -107,6 +115,7 @@ def main() -> None:
         if args.pose_weight is not None or args.pose_source
         else NETWORK_FIT[args.network]["pose_weight"],
         teacher_weight=args.teacher_weight,
+        teacher_views=tuple(args.teacher_views) if args.teacher_views else None,
         jobs=args.jobs,
     )
     print(table)

@@ -82,6 +82,29 @@ def test_a_partial_run_scores_the_full_runs_sequences(monkeypatch, tmp_path):
     ]
 
 
+def test_run_benchmark_passes_the_teacher_views_to_every_sequences_fit(monkeypatch, tmp_path):
+    """``fisheye_synthetic.py --teacher-views``: the views reach each sequence's fit settings, and
+    a run without them leaves the network's (the third teacher round, docs/decisions.md)."""
+    from raytun3r_plugin.apps import benchmark
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def record(model, camera, label, scene, seed, **kwargs):
+        seen.append(kwargs["teacher_views"])
+        raise Stop
+
+    monkeypatch.setattr(benchmark, "sequence_rows", record)
+    for views in (("centre", "left", "right"), None):
+        with pytest.raises(Stop):
+            benchmark.run_benchmark(
+                None, tmp_path, cameras=(CAMERAS[1],), scenes=("outdoor",), teacher_views=views
+            )
+    assert seen == [("centre", "left", "right"), None]
+
+
 def test_summarise_means_per_cell_and_counts_paired_wins():
     rows = [
         row("KB4 120", "indoor", "vanilla", 1, 1.0, 0.20),

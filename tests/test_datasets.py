@@ -126,6 +126,14 @@ def test_sequence_basics(tmp_path):
     )
     with pytest.raises(IndexError):
         seq.image(4)
+    # an adaptation segment: the first frames, as a copy
+    head = seq.first_images(3)
+    assert head.shape == (3, H, W, 3) and np.array_equal(head, imgs[:3])
+    head[0] = 0.0
+    assert np.array_equal(seq.images, imgs) and not np.array_equal(head, imgs[:3])
+    for count in (0, 5):
+        with pytest.raises(IndexError, match=f"{count} frames"):
+            seq.first_images(count)
     with pytest.raises(DatasetError):
         Sequence("bad", cam, np.arange(3), poses(2))
     with pytest.raises(DatasetError):
@@ -136,7 +144,7 @@ def test_sequence_basics(tmp_path):
     lazy = Sequence(
         "lazy", cam, [0.0, 1.0], None, image_paths=[tmp_path / "ok.png", tmp_path / "big.png"]
     )
-    assert lazy.image(0).shape == (H, W, 3)
+    assert lazy.image(0).shape == (H, W, 3) and lazy.first_images(1).shape == (1, H, W, 3)
     with pytest.raises(DatasetError, match="big.png"):
         lazy.image(1)
     # z-depth to range

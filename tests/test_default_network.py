@@ -475,6 +475,13 @@ def test_the_demo_and_benchmarks_run_v3_and_keep_the_pose_term_on_its_own_pose()
     assert adapt_config(112, 10).weights.teacher == pytest.approx(10.0)
     assert adapt_config(112, 10).teacher_max_coverage == 0.5
     assert adapt_config(112, 10, teacher_weight=0.0).weights.teacher == 0.0
+    # The views: the network's (the centre view; the third round kept it, docs/decisions.md)
+    # unless given, and a fit on other views is another configuration.
+    assert adapt_config(112, 10).teacher_views == ("centre",)
+    three = adapt_config(112, 10, teacher_views=["centre", "left", "right"])
+    assert three.teacher_views == ("centre", "left", "right")
+    assert three.to_dict()["teacher_views"] == ["centre", "left", "right"]
+    assert three.to_dict() != adapt_config(112, 10).to_dict()
     assert NETWORK_FIT["raytun3r-da3-tiny"]["pose_source"] == "targets"
     assert adapt_config(112, 10, network="raytun3r-da3-tiny").pose_source == "targets"
     v2, _ = default_network("raytun3r-da3-tiny")

@@ -24,6 +24,8 @@ CHECKED = [
     "raytun3r_plugin/datasets/rig.py",
     "raytun3r_plugin/adaptation/rig.py",
     "raytun3r_plugin/apps/workers.py",
+    "raytun3r_plugin/apps/demo.py",
+    "raytun3r_plugin/apps/benchmark.py",
 ]
 
 

@@ -15,7 +15,7 @@ import json
 import math
 import time
 from collections import defaultdict
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -206,10 +206,11 @@ def fitted_baseline(
     from raytun3r_plugin.adaptation.train import adapt
     from raytun3r_plugin.baselines import inject_calibration_tokens, inject_lora
 
-    inject, attribute = {
+    injectors: dict[str, tuple[Callable[..., Any], str]] = {
         "lora": (inject_lora, "weights"),
         "caltok": (inject_calibration_tokens, "tokens"),
-    }[name]
+    }
+    inject, attribute = injectors[name]
     with inject(model) as handle:
         module = getattr(handle, attribute)
         start = time.perf_counter()
@@ -279,6 +280,7 @@ def sequence_rows(
     pose_source: str = POSE_SOURCE,
     pose_weight: float | None = None,
     teacher_weight: float | None = None,
+    teacher_views: tuple[str, ...] | None = None,
 ) -> list[dict]:
     """The rows of one held-out sequence: vanilla, Center-PH, Multi-PH, the zero adapter, an
     adapter fitted self-supervised on its first ``n_adapt`` frames and one fitted to their
@@ -287,8 +289,9 @@ def sequence_rows(
     tables at zero and ``components=[]``; all scored on the rest. ``pose_source``, ``pose_weight``:
     those of the self-supervised fits (:class:`~raytun3r_plugin.adaptation.train.AdaptConfig`,
     :func:`~raytun3r_plugin.apps.demo.adapt_config`; ``None``: the default network's weight for
-    its own pose source, 1 for another). ``teacher_weight``: that of the pinhole-view teacher term
-    (``None``: the network's, :data:`~raytun3r_plugin.apps.demo.NETWORK_FIT`).
+    its own pose source, 1 for another). ``teacher_weight``, ``teacher_views``: the pinhole-view
+    teacher term's weight and views (``None``: the network's,
+    :data:`~raytun3r_plugin.apps.demo.NETWORK_FIT`).
 
     Every row has ``params`` (trainable parameters of what was fitted; 0 without a fit),
     ``ms_per_frame`` (:func:`timed_row`) and ``x_vanilla`` (its ``ms_per_frame`` over vanilla's
@@ -323,7 +326,7 @@ def sequence_rows(
     adapter = adapt(
         model,
         camera,
-        seq.images[:n_adapt],
+        seq.first_images(n_adapt),
         adapt_config(
             size,
             steps,
@@ -331,6 +334,7 @@ def sequence_rows(
             pose_source=pose_source,
             pose_weight=pose_weight,
             teacher_weight=teacher_weight,
+            teacher_views=teacher_views,
         ),
         out_path=path,
         resume=False,
@@ -350,7 +354,7 @@ def sequence_rows(
     supervised = adapt(
         model,
         camera,
-        seq.images[:n_adapt],
+        seq.first_images(n_adapt),
         supervised_config(size, steps),
         out_path=path.with_name(path.stem + "_supervised.safetensors"),
         resume=False,
@@ -371,7 +375,7 @@ def sequence_rows(
         with fitted_baseline(
             model,
             camera,
-            seq.images[:n_adapt],
+            seq.first_images(n_adapt),
             name,
             adapt_config(
                 size,
@@ -427,8 +431,8 @@ def rotation_effect(sequences: list[dict]) -> list[dict]:
         if row["method"] in ROTATION_METHODS:
             by_sequence[(row["camera"], row["scene"], row["seed"])][row["method"]] = row["rot_deg"]
     cells: dict[tuple, list[dict[str, float]]] = defaultdict(list)
-    for (camera, scene, _), values in by_sequence.items():
-        cells[(camera, scene)].append(values)
+    for (camera, scene, _), per_method in by_sequence.items():
+        cells[(camera, scene)].append(per_method)
     rows = []
     for (camera, scene), values in cells.items():
         mean = {m: sum(v[m] for v in values) / len(values) for m in ROTATION_METHODS}
@@ -473,6 +477,7 @@ def run_benchmark(
     pose_source: str = POSE_SOURCE,
     pose_weight: float | None = None,
     teacher_weight: float | None = None,
+    teacher_views: tuple[str, ...] | None = None,
     jobs: int = 1,
 ) -> str:
     """Run every (camera, scene) on ``sequences`` held-out sequences; return the markdown table.
@@ -503,6 +508,7 @@ def run_benchmark(
         "pose_source": pose_source,
         "pose_weight": pose_weight,
         "teacher_weight": teacher_weight,
+        "teacher_views": teacher_views,
     }
     tasks = []
     for position, spec in enumerate(cameras):
@@ -557,7 +563,12 @@ def run_benchmark(
         summary, COLUMNS + ["gap_closed", "lower_than_vanilla", f"lower_than_{ZERO_ADAPTER}"]
     )
     fit = adapt_config(
-        size, steps, pose_source=pose_source, pose_weight=pose_weight, teacher_weight=teacher_weight
+        size,
+        steps,
+        pose_source=pose_source,
+        pose_weight=pose_weight,
+        teacher_weight=teacher_weight,
+        teacher_views=teacher_views,
     )
     header = (
         f"Network: {network or 'see model card'}; input {size}x{size} px; {sequences} {'held-out' if base_seed == HELD_OUT_SEED else 'development'} sequences per camera and scene "
@@ -565,9 +576,10 @@ def run_benchmark(
         f"(30 windows, {steps} steps, pose source '{pose_source}', pose weight "
         f"{fit.weights.pose:g}"
         + (
-            f", pinhole-view teacher weight {fit.weights.teacher:g} where its "
-            f"{fit.teacher_fov_deg:g}-degree view covers at most {fit.teacher_max_coverage:.0%} "
-            "of the lens"
+            f", pinhole-view teacher weight {fit.weights.teacher:g} on the "
+            f"{fit.teacher_fov_deg:g}-degree {' + '.join(fit.teacher_views)} "
+            f"view{'s' if len(fit.teacher_views) > 1 else ''} where each covers at most "
+            f"{fit.teacher_max_coverage:.0%} of the lens"
             if fit.weights.teacher
             else ""
         )

@@ -23,6 +23,7 @@ import functools
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -43,11 +44,11 @@ DEMO_SEQUENCES = 4
 #: view; ``AdaptConfig.teacher_max_coverage``), chosen on the 30 development sequences and
 #: switched on by a rule written before the held-out run (docs/decisions.md, "The lens-gated
 #: teacher").
-NETWORK_FIT = {
+NETWORK_FIT: dict[str, dict[str, Any]] = {
     "raytun3r-da3-tiny": {"pose_source": "targets", "pose_weight": 1.0},
     "raytun3r-da3-tiny-v3": {"pose_source": "hybrid", "pose_weight": 0.3, "teacher_weight": 10.0},
 }
-POSE_SOURCE = NETWORK_FIT[DEFAULT_NETWORK]["pose_source"]
+POSE_SOURCE: str = NETWORK_FIT[DEFAULT_NETWORK]["pose_source"]
 POSE_WEIGHT = NETWORK_FIT[DEFAULT_NETWORK]["pose_weight"]
 TEACHER_WEIGHT = NETWORK_FIT[DEFAULT_NETWORK].get("teacher_weight", 0.0)
 
@@ -59,6 +60,7 @@ def adapt_config(
     network: str = DEFAULT_NETWORK,
     pose_weight: float | None = None,
     teacher_weight: float | None = None,
+    teacher_views: tuple[str, ...] | None = None,
     **changes,
 ):
     """The adaptation settings the demo and the benchmark use with the built-in network.
@@ -70,7 +72,8 @@ def adapt_config(
     the network's and the library's (1) when ``changes`` pick another pose source, since the
     network's weight was chosen for its own source. ``teacher_weight`` sets the pinhole-view
     teacher term's weight (``LossWeights.teacher``; None: the network's, :data:`NETWORK_FIT`,
-    with its own pose source, else 0).
+    with its own pose source, else 0); ``teacher_views`` its views (``AdaptConfig.teacher_views``;
+    None: the network's, else the library's).
     ``changes`` override any field.
     """
     from raytun3r_plugin.adaptation.train import SELF_SUPERVISED_WEIGHTS, AdaptConfig, LossWeights
@@ -94,6 +97,10 @@ def adapt_config(
             changes["weights"] = LossWeights(
                 **{**SELF_SUPERVISED_WEIGHTS, "pose": pose, "teacher": float(teacher_weight)}
             )
+    if teacher_views is None:
+        teacher_views = fit.get("teacher_views")
+    if teacher_views is not None:
+        changes["teacher_views"] = tuple(teacher_views)
     return AdaptConfig(
         **{
             "steps": steps,
@@ -192,7 +199,7 @@ def score_sequence(model, k: int, seed: int, size: int, steps: int, out: Path, l
         adapter = adapt(
             model,
             camera,
-            seq.images[:n_adapt],
+            seq.first_images(n_adapt),
             config,
             out_path=out / f"seq{k}" / name,
             resume=False,

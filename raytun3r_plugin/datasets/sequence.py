@@ -129,6 +129,13 @@ class Sequence:
         """Image width in pixels (the camera's)."""
         return int(self.camera.width)
 
+    def first_images(self, count: int) -> np.ndarray:
+        """Frames ``0 .. count - 1`` as (count, H, W, 3) float32 RGB in [0, 1] (a copy; read from
+        disk for lazy sequences): an adaptation segment."""
+        if not 0 < count <= len(self):
+            raise IndexError(f"{count} frames asked of a sequence of {len(self)}")
+        return np.stack([self.image(i) for i in range(count)])
+
     def image(self, i: int) -> np.ndarray:
         """Frame ``i`` as (H, W, 3) float32 RGB in [0, 1] (read from disk for lazy sequences)."""
         n = len(self)
