@@ -85,7 +85,7 @@ def main() -> None:
         nargs="+",
         default=None,
         choices=VIEW_NAMES,
-        help="views of the pinhole-view teacher (default: the network's, demo.NETWORK_FIT)",
+        help="views of the pinhole-view teacher (default: the library's, the centre view)",
     )
     parser.add_argument(
         "--jobs",

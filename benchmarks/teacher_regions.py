@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from raytun3r_plugin import synthetic
-from raytun3r_plugin.adaptation.teacher import teacher_views
+from raytun3r_plugin.adaptation.teacher import teacher_views, view_range
 from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.apps.benchmark import (
     CAMERAS,
@@ -37,8 +37,8 @@ from raytun3r_plugin.apps.benchmark import (
 )
 from raytun3r_plugin.apps.demo import adapt_config, default_network, supervised_config
 from raytun3r_plugin.apps.evaluation import run_method
-from raytun3r_plugin.baselines.multi_ph import resample_to_view, view_depth_to_fisheye, view_lookup
-from raytun3r_plugin.prediction import predict
+from raytun3r_plugin.baselines.multi_ph import view_lookup
+from raytun3r_plugin.metrics import align_scale
 from raytun3r_plugin.registry import quiet_upstream
 
 SIZE, N_ADAPT, N_EVAL, STEPS = 112, 24, 12, 300
@@ -52,7 +52,7 @@ def per_pixel_abs_rel(depth: np.ndarray, gt: np.ndarray, valid: np.ndarray) -> n
     for f in range(gt.shape[0]):
         used = valid[f] & (depth[f] > 0)
         if used.any():
-            scale = np.median(gt[f][used]) / np.median(depth[f][used])
+            scale = align_scale(depth[f], gt[f], used)
             errors[f][used] = np.abs(scale * depth[f][used] - gt[f][used]) / gt[f][used]
     return errors
 
@@ -64,9 +64,7 @@ def teacher_range(model, seq, camera, view, frames: list[int]) -> np.ndarray:
         for start in range(0, len(frames), 3):
             group = frames[start : start + 3]
             images = torch.from_numpy(np.stack([seq.image(k) for k in group])).permute(0, 3, 1, 2)
-            virtual = resample_to_view(images.float(), camera, view.camera, view.rotation)
-            depth_z = predict(model, virtual[None]).depth[0].float().cpu()
-            mapped, _ = view_depth_to_fisheye(depth_z, camera, view.camera, view.rotation)
+            mapped, _ = view_range(model, images.float(), camera, view)
             ranges[start : start + len(group)] = mapped.numpy()
     return ranges
 

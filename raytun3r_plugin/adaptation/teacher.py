@@ -44,6 +44,7 @@ __all__ = [
     "teacher_coverage",
     "teacher_targets",
     "teacher_views",
+    "view_range",
 ]
 
 #: Most teacher samples kept per frame and view (a seeded subset; 112 px views have fewer).
@@ -81,6 +82,26 @@ def teacher_coverage(camera: Any, names: tuple[str, ...], fov_deg: float) -> flo
     that together cover most of a wide lens each still show a part of it as a pinhole would.
     """
     return max(view_coverage(camera, [view]) for view in teacher_views(camera, names, fov_deg))
+
+
+def view_range(
+    model: nn.Module, images: torch.Tensor, camera: Any, view: Any
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The model's depth on one virtual pinhole ``view`` of fisheye ``images``, as fisheye range.
+
+    Args:
+        model: the backbone as it is (the teacher calls it unpatched).
+        images: (S, 3, H, W) fisheye frames in [0, 1], predicted together as one multi-view input.
+        camera: their fisheye camera; view: a :class:`~raytun3r_plugin.baselines.multi_ph.
+            PinholeView` of it.
+
+    Returns:
+        (S, H, W) range along each fisheye pixel's ray (CPU, float32) and the (H, W) bool mask of
+        the pixels the view covers.
+    """
+    virtual = resample_to_view(images, camera, view.camera, view.rotation)
+    depth_z = predict(model, virtual[None]).depth[0].float().cpu()
+    return view_depth_to_fisheye(depth_z, camera, view.camera, view.rotation)
 
 
 def teacher_targets(
@@ -123,9 +144,7 @@ def teacher_targets(
                 [] for _ in range(images.shape[0])
             ]
             for number, view in enumerate(views):
-                virtual = resample_to_view(images, camera, view.camera, view.rotation)
-                depth_z = predict(model, virtual[None]).depth[0].float().cpu()
-                ranges, inside = view_depth_to_fisheye(depth_z, camera, view.camera, view.rotation)
+                ranges, inside = view_range(model, images, camera, view)
                 for k in range(images.shape[0]):
                     usable = inside & valid & torch.isfinite(ranges[k]) & (ranges[k] > 0)
                     rows, cols = torch.nonzero(usable, as_tuple=True)

@@ -289,9 +289,9 @@ def sequence_rows(
     tables at zero and ``components=[]``; all scored on the rest. ``pose_source``, ``pose_weight``:
     those of the self-supervised fits (:class:`~raytun3r_plugin.adaptation.train.AdaptConfig`,
     :func:`~raytun3r_plugin.apps.demo.adapt_config`; ``None``: the default network's weight for
-    its own pose source, 1 for another). ``teacher_weight``, ``teacher_views``: the pinhole-view
-    teacher term's weight and views (``None``: the network's,
-    :data:`~raytun3r_plugin.apps.demo.NETWORK_FIT`).
+    its own pose source, 1 for another). ``teacher_weight``: that of the pinhole-view teacher
+    term (``None``: the network's, :data:`~raytun3r_plugin.apps.demo.NETWORK_FIT`);
+    ``teacher_views``: its views (``None``: the library's).
 
     Every row has ``params`` (trainable parameters of what was fitted; 0 without a fit),
     ``ms_per_frame`` (:func:`timed_row`) and ``x_vanilla`` (its ``ms_per_frame`` over vanilla's

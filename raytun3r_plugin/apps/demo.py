@@ -73,7 +73,7 @@ def adapt_config(
     network's weight was chosen for its own source. ``teacher_weight`` sets the pinhole-view
     teacher term's weight (``LossWeights.teacher``; None: the network's, :data:`NETWORK_FIT`,
     with its own pose source, else 0); ``teacher_views`` its views (``AdaptConfig.teacher_views``;
-    None: the network's, else the library's).
+    None: the library's, the centre view, which every network's fit uses).
     ``changes`` override any field.
     """
     from raytun3r_plugin.adaptation.train import SELF_SUPERVISED_WEIGHTS, AdaptConfig, LossWeights
@@ -97,8 +97,6 @@ def adapt_config(
             changes["weights"] = LossWeights(
                 **{**SELF_SUPERVISED_WEIGHTS, "pose": pose, "teacher": float(teacher_weight)}
             )
-    if teacher_views is None:
-        teacher_views = fit.get("teacher_views")
     if teacher_views is not None:
         changes["teacher_views"] = tuple(teacher_views)
     return AdaptConfig(
