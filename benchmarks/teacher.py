@@ -21,6 +21,10 @@ cells at development seeds (80000 + 100 k + 10 camera + scene, k < 5; never the 
 * ``hybrid + teacher``: the hybrid fit plus the 110-degree teacher term at weight
   :data:`HYBRID_TEACHER_WEIGHT` (windows that the gate finds without parallax keep the teacher
   term and the pose term, not their reprojection);
+* ``hybrid + teacher 30``, ``hybrid + teacher, 3 views`` and ``hybrid + teacher, 3 views,
+  sides 0.3``: the second, third and fourth rounds' candidates (docs/decisions.md): weight 30;
+  the centre, left and right views; the same views with the side views counted at 0.3 of the
+  centre one (``AdaptConfig.teacher_view_weights``);
 * ``supervised``: the tables fitted to the frames' ground-truth depth (the upper bound).
 
 Decision rule, fixed before the first run of this script: the teacher variant that becomes the
@@ -63,6 +67,8 @@ SIZE, N_ADAPT, N_EVAL = 112, 24, 12
 #: near 0.01-0.03 where the reprojection's log-L1 starts near 0.3-0.5).
 HYBRID_TEACHER_WEIGHT = 10.0
 TEACHER_ONLY = LossWeights(**TEACHER_WEIGHTS)
+#: The fourth round's view weights: the centre view's loss plus 0.3 x each side view's.
+SIDES_03 = {"centre": 1.0, "left": 0.3, "right": 0.3}
 VARIANTS = (
     "hybrid",
     "teacher 110",
@@ -71,6 +77,7 @@ VARIANTS = (
     "hybrid + teacher, gated",
     "hybrid + teacher 30",
     "hybrid + teacher, 3 views",
+    "hybrid + teacher, 3 views, sides 0.3",
 )
 METHODS = ("no adapter", *VARIANTS, "supervised")
 
@@ -109,6 +116,16 @@ def variant_config(method: str, steps: int):
             seed=0,
             teacher_weight=HYBRID_TEACHER_WEIGHT,
             teacher_views=("centre", "left", "right"),
+        )
+    # The fourth round: the same views, the side views counted at 0.3 of the centre one.
+    if method == "hybrid + teacher, 3 views, sides 0.3":
+        return adapt_config(
+            SIZE,
+            steps,
+            seed=0,
+            teacher_weight=HYBRID_TEACHER_WEIGHT,
+            teacher_views=("centre", "left", "right"),
+            teacher_view_weights=SIDES_03,
         )
     return adapt_config(SIZE, steps, seed=0, teacher_weight=HYBRID_TEACHER_WEIGHT, **ungated)
 

@@ -144,6 +144,14 @@ class AdaptConfig:
             window the unpatched model predicts, out of ``"centre"``, ``"right"``, ``"left"``,
             ``"down"``, ``"up"`` (the Multi-PH views). With the term on, the parallax gate keeps
             every window for it and drops only the reprojection of the windows below the gate.
+        teacher_view_weights: with ``weights.teacher > 0``: each teacher view's share of the
+            term, ``{view name: weight >= 0}`` naming exactly the views of ``teacher_views``;
+            the term is then the weighted *sum* of the views' losses (not renormalised), which
+            ``weights.teacher`` scales. None (the default) is the mean over the views (a weight
+            of ``1 / len(teacher_views)`` each). On the development sequences the side views'
+            depth fixed the far field and hurt the near one, so a fit can keep them but count
+            them less (docs/decisions.md, "The teacher, fourth round"). Left out of
+            :meth:`to_dict` when None, so existing identities are unchanged.
         teacher_fov_deg: the views' field of view across their width, degrees.
         teacher_max_coverage: the teacher term is used only when none of its views covers more
             than this fraction of the lens's valid pixels (0.5: lenses wider than about 160
@@ -182,6 +190,7 @@ class AdaptConfig:
     photo_sigma: float = 1.0
     photo_pixels: int = 4096
     teacher_views: tuple[str, ...] = ("centre",)
+    teacher_view_weights: dict[str, float] | None = None
     teacher_fov_deg: float = 110.0
     teacher_max_coverage: float = 0.5
 
@@ -191,6 +200,8 @@ class AdaptConfig:
         if isinstance(self.teacher_views, str):
             self.teacher_views = (self.teacher_views,)
         self.teacher_views = tuple(self.teacher_views)
+        if isinstance(self.teacher_view_weights, Mapping):
+            self.teacher_view_weights = dict(self.teacher_view_weights)
         if self.cache_dir is not None:
             self.cache_dir = str(self.cache_dir)
         checks = (
@@ -219,6 +230,7 @@ class AdaptConfig:
                 and len(set(self.teacher_views)) == len(self.teacher_views)
                 and set(self.teacher_views) <= set(TEACHER_VIEWS),
             ),
+            ("teacher_view_weights", self._view_weights_ok()),
             (
                 "teacher_fov_deg",
                 isinstance(self.teacher_fov_deg, (int, float))
@@ -231,9 +243,18 @@ class AdaptConfig:
                 and 0 <= self.teacher_max_coverage <= 1,
             ),
         )
+        expected = {
+            "teacher_view_weights": (
+                f"expected None or {{view: weight >= 0}} naming exactly the teacher views "
+                f"{self.teacher_views!r}, at least one weight > 0"
+            )
+        }
         for name, ok in checks:
             if not ok:
-                raise InputError(f"AdaptConfig.{name} = {getattr(self, name)!r} is not allowed")
+                hint = f" ({expected[name]})" if name in expected else ""
+                raise InputError(
+                    f"AdaptConfig.{name} = {getattr(self, name)!r} is not allowed{hint}"
+                )
         for term, weight in self.weights.as_dict().items():
             # A negative weight would reward the term it weighs; NaN would poison every step.
             if not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
@@ -241,6 +262,25 @@ class AdaptConfig:
                     f"AdaptConfig.weights.{term} = {weight!r} is not allowed "
                     "(expected a finite number >= 0)"
                 )
+
+    def _view_weights_ok(self) -> bool:
+        weights = self.teacher_view_weights
+        if weights is None:
+            return True
+        if not isinstance(weights, dict) or set(weights) != set(self.teacher_views):
+            return False
+        values = list(weights.values())
+        return all(
+            isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) and w >= 0
+            for w in values
+        ) and any(w > 0 for w in values)
+
+    def view_weights(self) -> tuple[float, ...] | None:
+        """The teacher views' weights in the order of :attr:`teacher_views` (the order of the
+        teacher targets' view index), or None for the mean over the views."""
+        if self.teacher_view_weights is None:
+            return None
+        return tuple(float(self.teacher_view_weights[name]) for name in self.teacher_views)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (``AdaptConfig(**d)`` rebuilds it)."""
@@ -256,6 +296,8 @@ class AdaptConfig:
             out["teacher_views"] = list(self.teacher_views)
         else:
             del out["teacher_views"], out["teacher_fov_deg"], out["teacher_max_coverage"]
+        if not self.weights.teacher or self.teacher_view_weights is None:
+            out.pop("teacher_view_weights", None)
         return out
 
     @classmethod

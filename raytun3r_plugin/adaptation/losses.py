@@ -22,7 +22,7 @@ pose 1 (:class:`LossWeights`).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -569,26 +569,38 @@ def silog_loss(
 
 
 def grouped_silog_loss(
-    pred: torch.Tensor, target: torch.Tensor, groups: torch.Tensor
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    groups: torch.Tensor,
+    weights: Sequence[float] | None = None,
 ) -> torch.Tensor:
-    """Mean over groups of :func:`silog_loss`: one free scale per group.
+    """Mean (or weighted sum) over groups of :func:`silog_loss`: one free scale per group.
 
     The teacher term's targets come from several virtual pinhole views of one frame, each
     predicted on its own and so each with its own unknown scale; one variance per view keeps a
     view's scale from leaking into the others' residuals.
 
     Args:
-        pred, target: (M,) depth samples; groups: (M,) integer group of each sample.
+        pred, target: (M,) depth samples; groups: (M,) integer group of each sample, ``0 <= g``.
+        weights: None for the mean over the groups that have samples; else ``weights[g]`` is
+            group ``g``'s weight and the result is the weighted *sum* (not renormalised: a
+            group without samples adds nothing, and the others keep their weights).
 
     Returns:
         0-d tensor (zero, attached to ``pred``, when no group has 2 usable samples).
     """
-    losses = []
+    losses, used = [], []
     for group in torch.unique(groups):
         chosen = groups == group
         if int(chosen.sum()) >= 2:
             losses.append(silog_loss(pred[chosen], target[chosen]))
-    return torch.stack(losses).mean() if losses else pred.sum() * 0.0
+            used.append(int(group))
+    if not losses:
+        return pred.sum() * 0.0
+    if weights is None:
+        return torch.stack(losses).mean()
+    factors = torch.tensor([float(weights[g]) for g in used], dtype=pred.dtype, device=pred.device)
+    return (torch.stack(losses) * factors).sum()
 
 
 # --------------------------------------------------------------------------------------------

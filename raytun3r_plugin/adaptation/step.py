@@ -411,8 +411,9 @@ def prediction_terms(
         terms["pose"] = torch.stack(pose_terms).mean() if pose_terms else zero
     counts = {"n_matches": n_matches, "n_pose": len(pose_terms)}
     if config.weights.teacher > 0 and teacher_targets is not None:
+        view_weights = config.view_weights()
         losses = [
-            grouped_silog_loss(sample_bilinear(depth[k], uv), value, view)
+            grouped_silog_loss(sample_bilinear(depth[k], uv), value, view, view_weights)
             for k, (uv, value, view) in enumerate(teacher_targets)
             if uv.shape[0]
         ]

@@ -50,7 +50,8 @@ __all__ = [
 #: Most teacher samples kept per frame and view (a seeded subset; 112 px views have fewer).
 MAX_TEACHER_SAMPLES = 4096
 
-#: Per window index: per frame of the window, ``(uv (K, 2) input pixels, range (K,), view (K,))``.
+#: Per window index: per frame of the window, ``(uv (K, 2) input pixels, range (K,), view (K,))``
+#: with ``view`` the index of the sample's view in the fit's ``teacher_views``.
 TeacherTargets = dict[int, list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]]
 
 
@@ -122,7 +123,9 @@ def teacher_targets(
 
     Returns:
         :data:`TeacherTargets`: per window, per frame, the covered valid pixels (input-pixel
-        centres), the teacher's range there and the index of the view each one came from.
+        centres), the teacher's range there and the index in ``names`` of the view each one
+        came from (the order of ``AdaptConfig.teacher_view_weights``, :meth:`AdaptConfig.
+        view_weights`).
 
     Raises:
         AlreadyAppliedError: the model carries a raytun3r patch.
@@ -143,7 +146,9 @@ def teacher_targets(
             per_frame: list[list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]] = [
                 [] for _ in range(images.shape[0])
             ]
-            for number, view in enumerate(views):
+            for view in views:
+                # Indexed by the caller's order, which is the order of its per-view weights.
+                number = list(names).index(view.name)
                 ranges, inside = view_range(model, images, camera, view)
                 for k in range(images.shape[0]):
                     usable = inside & valid & torch.isfinite(ranges[k]) & (ranges[k] > 0)
