@@ -25,6 +25,7 @@ from raytun3r_plugin.apps.benchmark import (
     SEQUENCES_PER_CELL,
     run_benchmark,
 )
+from raytun3r_plugin.apps.cli import parse_view_weights
 from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, NETWORK_FIT, default_network
 from raytun3r_plugin.baselines.multi_ph import VIEW_NAMES
 from raytun3r_plugin.registry import quiet_upstream
@@ -88,6 +89,13 @@ def main() -> None:
         help="views of the pinhole-view teacher (default: the library's, the centre view)",
     )
     parser.add_argument(
+        "--teacher-view-weights",
+        nargs="+",
+        default=None,
+        metavar="VIEW=WEIGHT",
+        help="each teacher view's weight, one per view of --teacher-views (default: their mean)",
+    )
+    parser.add_argument(
         "--jobs",
         type=int,
         default=1,
@@ -116,6 +124,7 @@ def main() -> None:
         else NETWORK_FIT[args.network]["pose_weight"],
         teacher_weight=args.teacher_weight,
         teacher_views=tuple(args.teacher_views) if args.teacher_views else None,
+        teacher_view_weights=parse_view_weights(args.teacher_view_weights),
         jobs=args.jobs,
     )
     print(table)

@@ -93,16 +93,22 @@ def test_run_benchmark_passes_the_teacher_views_to_every_sequences_fit(monkeypat
         pass
 
     def record(model, camera, label, scene, seed, **kwargs):
-        seen.append(kwargs["teacher_views"])
+        seen.append((kwargs["teacher_views"], kwargs["teacher_view_weights"]))
         raise Stop
 
     monkeypatch.setattr(benchmark, "sequence_rows", record)
-    for views in (("centre", "left", "right"), None):
+    weights = {"centre": 1.0, "left": 0.3, "right": 0.3}
+    for views, view_weights in ((("centre", "left", "right"), weights), (None, None)):
         with pytest.raises(Stop):
             benchmark.run_benchmark(
-                None, tmp_path, cameras=(CAMERAS[1],), scenes=("outdoor",), teacher_views=views
+                None,
+                tmp_path,
+                cameras=(CAMERAS[1],),
+                scenes=("outdoor",),
+                teacher_views=views,
+                teacher_view_weights=view_weights,
             )
-    assert seen == [("centre", "left", "right"), None]
+    assert seen == [(("centre", "left", "right"), weights), (None, None)]
 
 
 def test_summarise_means_per_cell_and_counts_paired_wins():

@@ -164,12 +164,23 @@ def test_teacher_options_reach_the_saved_config_and_bad_mixes_are_refused(setup,
     assert config["weights"]["teacher"] == 1.0 and config["weights"]["reproj"] == 0.0
     assert config["teacher_views"] == ["centre", "left"] and config["teacher_fov_deg"] == 90.0
     assert config["lr"] == pytest.approx(3e-2)
+    assert "teacher_view_weights" not in config  # the mean over the views, the default
+    weighted = tmp_path / "weighted.safetensors"
+    views = ("--teacher-views", "centre", "left", "--teacher-view-weights", "centre=1", "left=0.3")
+    assert main(["adapt", *common, "--teacher", "10", *views, "--out", str(weighted)]) == 0
+    config = Adapter.load(weighted).training_info["config"]
+    assert config["teacher_view_weights"] == {"centre": 1.0, "left": 0.3}
     capsys.readouterr()
     refused = tmp_path / "refused.safetensors"
     for extra, message in (
         (["--depth", str(tmp_path), "--teacher", "1"], "depth loss alone"),
         (["--teacher-only", "--teacher", "1"], "leave out --teacher"),
         (["--teacher-fov", "90"], "need --teacher WEIGHT"),
+        (["--teacher-view-weights", "centre=1"], "need --teacher WEIGHT"),
+        (["--teacher", "1", "--teacher-view-weights", "centre=x"], "centre must be a number"),
+        (["--teacher", "1", "--teacher-view-weights", "front=1"], "expected centre=X"),
+        (["--teacher", "1", "--teacher-view-weights", "centre=1", "centre=2"], "at most once"),
+        (["--teacher", "1", "--teacher-view-weights", "left=1"], "naming exactly the teacher"),
     ):
         assert main(["adapt", *common, *extra, "--out", str(refused)]) == 2
         assert message in capsys.readouterr().err

@@ -235,3 +235,104 @@ def test_the_lens_gate_counts_each_view_on_its_own(room):
     assert 0.2 < single < AdaptConfig().teacher_max_coverage
     narrow = KannalaBrandt4(84, 70, [40.0, 40.0, 41.5, 34.5, 0.0, 0.0, 0.0, 0.0], max_fov_deg=120.0)
     assert teacher_coverage(narrow, ("centre",), 110.0) > 0.8
+
+
+def test_weighted_groups_are_a_weighted_sum_and_an_empty_group_adds_nothing():
+    generator = torch.Generator().manual_seed(1)
+    target = torch.rand(60, generator=generator) + 0.5
+    pred = target * (1 + 0.2 * torch.rand(60, generator=generator))
+    groups = torch.arange(60) % 3
+    each = [silog_loss(pred[groups == g], target[groups == g]) for g in range(3)]
+    weighted = grouped_silog_loss(pred, target, groups, (1.0, 0.3, 0.0))
+    assert torch.allclose(weighted, each[0] + 0.3 * each[1])
+    # Equal weights of 1/n are the mean, the default.
+    thirds = grouped_silog_loss(pred, target, groups, (1 / 3, 1 / 3, 1 / 3))
+    assert torch.allclose(thirds, grouped_silog_loss(pred, target, groups))
+    # Group 1 absent: the others keep their own weights (no renormalisation).
+    kept = groups != 1
+    assert torch.allclose(
+        grouped_silog_loss(pred[kept], target[kept], groups[kept], (1.0, 0.3, 2.0)),
+        each[0] + 2.0 * each[2],
+    )
+    # The weights carry the gradient: a zero weight leaves its group's samples untouched.
+    leaf = pred.clone().requires_grad_(True)
+    grouped_silog_loss(leaf, target, groups, (1.0, 0.0, 1.0)).backward()
+    assert bool((leaf.grad[groups == 1] == 0).all()) and bool(leaf.grad[groups == 0].abs().sum())
+
+
+def test_view_weights_are_validated_ordered_by_the_views_and_out_of_the_identity_by_default():
+    on = dataclasses.replace(AdaptConfig().weights, teacher=10.0)
+    views = ("centre", "left", "right")
+    plain = AdaptConfig(weights=on, teacher_views=views)
+    weighted = AdaptConfig(
+        weights=on, teacher_views=views, teacher_view_weights={"right": 0.3, "centre": 1, "left": 0.3}
+    )
+    assert plain.view_weights() is None and "teacher_view_weights" not in plain.to_dict()
+    assert weighted.view_weights() == (1.0, 0.3, 0.3)  # in the order of teacher_views
+    record = json.loads(json.dumps(weighted.to_dict()))
+    assert record["teacher_view_weights"] == {"centre": 1, "left": 0.3, "right": 0.3}
+    assert AdaptConfig(**record) == weighted and weighted.identity() != plain.identity()
+    # With the term off the weights are not part of the fit and not of its identity.
+    off = AdaptConfig(teacher_views=views, teacher_view_weights={"centre": 1, "left": 1, "right": 1})
+    assert "teacher_view_weights" not in off.to_dict()
+    assert off.identity() == AdaptConfig(teacher_views=views).identity()
+    for bad in (
+        {"centre": 1.0, "left": 0.3},  # a view without a weight
+        {"centre": 1.0, "left": 0.3, "right": 0.3, "down": 1.0},  # a weight without a view
+        {"centre": -1.0, "left": 0.3, "right": 0.3},
+        {"centre": float("nan"), "left": 0.3, "right": 0.3},
+        {"centre": 0.0, "left": 0.0, "right": 0.0},
+        {"centre": True, "left": 0.3, "right": 0.3},
+        [1.0, 0.3, 0.3],
+    ):
+        with pytest.raises(InputError, match="teacher_view_weights .*naming exactly the teacher"):
+            AdaptConfig(weights=on, teacher_views=views, teacher_view_weights=bad)
+
+
+def test_teacher_samples_are_indexed_in_the_order_the_views_are_named(room, tmp_path):
+    """The view index of a sample is its view's place in ``names`` (the order of the weights),
+    whatever the order of the Multi-PH views; samples are the same either way."""
+    camera, seq = room
+    model = build_tiny_network()
+    problem = prepare_problem(camera, seq.images, _config(tmp_path))
+    kwargs = {"seed": 0, "max_samples": 100_000}
+    one = teacher_targets(model, problem, ("centre", "left"), 110.0, **kwargs)
+    other = teacher_targets(model, problem, ("left", "centre"), 110.0, **kwargs)
+    centre = teacher_targets(model, problem, ("centre",), 110.0, **kwargs)
+    uv, value, view = one[0][0]
+    uv2, value2, view2 = other[0][0]
+    assert torch.equal(uv, uv2) and torch.equal(value, value2)
+    assert set(view.tolist()) == {0, 1} and torch.equal(view2, 1 - view)
+    # The centre view's samples are those of the centre view alone.
+    assert torch.equal(uv[view == 0], centre[0][0][0])
+
+
+def test_a_zero_view_weight_is_the_fit_without_that_view(room, tmp_path):
+    """The trainer passes the weights to the term: a side view at weight 0 gives the centre-only
+    fit's objective and tables; a positive weight changes the fit."""
+    camera, seq = room
+    # Every sample kept (no seeded subset draws), so the centre samples are the same either way.
+    base = _config(tmp_path, weights=TEACHER_ONLY, lr=3e-2, steps=3)
+    centre_only = adapt(build_tiny_network(), camera, seq.images, base, progress=False)
+    two = dataclasses.replace(base, teacher_views=("centre", "left"))
+    silent = adapt(
+        build_tiny_network(),
+        camera,
+        seq.images,
+        dataclasses.replace(two, teacher_view_weights={"centre": 1.0, "left": 0.0}),
+        progress=False,
+    )
+    heard = adapt(
+        build_tiny_network(),
+        camera,
+        seq.images,
+        dataclasses.replace(two, teacher_view_weights={"centre": 1.0, "left": 1.0}),
+        progress=False,
+    )
+    pairs = list(zip(centre_only.parameters(), silent.parameters(), strict=True))
+    assert all(torch.allclose(a, b, atol=1e-6) for a, b in pairs)
+    assert not all(
+        torch.allclose(a, b, atol=1e-6)
+        for a, b in zip(centre_only.parameters(), heard.parameters(), strict=True)
+    )
+    assert silent.training_info["config"]["teacher_view_weights"] == {"centre": 1.0, "left": 0.0}

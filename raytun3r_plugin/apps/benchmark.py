@@ -281,6 +281,7 @@ def sequence_rows(
     pose_weight: float | None = None,
     teacher_weight: float | None = None,
     teacher_views: tuple[str, ...] | None = None,
+    teacher_view_weights: dict[str, float] | None = None,
 ) -> list[dict]:
     """The rows of one held-out sequence: vanilla, Center-PH, Multi-PH, the zero adapter, an
     adapter fitted self-supervised on its first ``n_adapt`` frames and one fitted to their
@@ -291,7 +292,8 @@ def sequence_rows(
     :func:`~raytun3r_plugin.apps.demo.adapt_config`; ``None``: the default network's weight for
     its own pose source, 1 for another). ``teacher_weight``: that of the pinhole-view teacher
     term (``None``: the network's, :data:`~raytun3r_plugin.apps.demo.NETWORK_FIT`);
-    ``teacher_views``: its views (``None``: the library's).
+    ``teacher_views``: its views (``None``: the library's); ``teacher_view_weights``: their
+    weights (``AdaptConfig.teacher_view_weights``; ``None``: the mean over the views).
 
     Every row has ``params`` (trainable parameters of what was fitted; 0 without a fit),
     ``ms_per_frame`` (:func:`timed_row`) and ``x_vanilla`` (its ``ms_per_frame`` over vanilla's
@@ -335,6 +337,7 @@ def sequence_rows(
             pose_weight=pose_weight,
             teacher_weight=teacher_weight,
             teacher_views=teacher_views,
+            teacher_view_weights=teacher_view_weights,
         ),
         out_path=path,
         resume=False,
@@ -478,6 +481,7 @@ def run_benchmark(
     pose_weight: float | None = None,
     teacher_weight: float | None = None,
     teacher_views: tuple[str, ...] | None = None,
+    teacher_view_weights: dict[str, float] | None = None,
     jobs: int = 1,
 ) -> str:
     """Run every (camera, scene) on ``sequences`` held-out sequences; return the markdown table.
@@ -509,6 +513,7 @@ def run_benchmark(
         "pose_weight": pose_weight,
         "teacher_weight": teacher_weight,
         "teacher_views": teacher_views,
+        "teacher_view_weights": teacher_view_weights,
     }
     tasks = []
     for position, spec in enumerate(cameras):
@@ -569,6 +574,7 @@ def run_benchmark(
         pose_weight=pose_weight,
         teacher_weight=teacher_weight,
         teacher_views=teacher_views,
+        teacher_view_weights=teacher_view_weights,
     )
     header = (
         f"Network: {network or 'see model card'}; input {size}x{size} px; {sequences} {'held-out' if base_seed == HELD_OUT_SEED else 'development'} sequences per camera and scene "
@@ -578,7 +584,15 @@ def run_benchmark(
         + (
             f", pinhole-view teacher weight {fit.weights.teacher:g} on the "
             f"{fit.teacher_fov_deg:g}-degree {' + '.join(fit.teacher_views)} "
-            f"view{'s' if len(fit.teacher_views) > 1 else ''} where each covers at most "
+            f"view{'s' if len(fit.teacher_views) > 1 else ''}"
+            + (
+                " (weights "
+                + ", ".join(f"{v} {fit.teacher_view_weights[v]:g}" for v in fit.teacher_views)
+                + ")"
+                if fit.teacher_view_weights is not None
+                else ""
+            )
+            + " where each covers at most "
             f"{fit.teacher_max_coverage:.0%} of the lens"
             if fit.weights.teacher
             else ""

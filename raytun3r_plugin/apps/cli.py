@@ -156,6 +156,15 @@ def _adapt_settings(args: argparse.Namespace) -> dict:
     return settings
 
 
+def parse_view_weights(words: list[str] | None) -> dict[str, float] | None:
+    """``--teacher-view-weights centre=1 left=0.3 right=0.3`` as ``AdaptConfig.teacher_view_weights``."""
+    from raytun3r_plugin.adaptation.config import TEACHER_VIEWS
+
+    if words is None:
+        return None
+    return parse_named_numbers(" ".join(words), TEACHER_VIEWS, "--teacher-view-weights")
+
+
 def _adapt_config(args: argparse.Namespace, settings: dict, supervised: bool):
     """The ``AdaptConfig`` of ``raytun3r adapt``: supervised with ``--depth``, the teacher alone
     with ``--teacher-only``, else self-supervised (plus ``--teacher WEIGHT``)."""
@@ -168,6 +177,7 @@ def _adapt_config(args: argparse.Namespace, settings: dict, supervised: bool):
         for key, value in (
             ("teacher_views", args.teacher_views),
             ("teacher_fov_deg", args.teacher_fov),
+            ("teacher_view_weights", parse_view_weights(args.teacher_view_weights)),
         )
         if value is not None
     }
@@ -175,7 +185,8 @@ def _adapt_config(args: argparse.Namespace, settings: dict, supervised: bool):
     if supervised:
         if asked:
             raise InputError(
-                "--teacher, --teacher-only, --teacher-views and --teacher-fov add the pinhole-view "
+                "--teacher, --teacher-only, --teacher-views, --teacher-view-weights and "
+                "--teacher-fov add the pinhole-view "
                 "teacher to a self-supervised fit; a fit with --depth uses the depth loss alone"
             )
         return AdaptConfig.supervised(**settings)
@@ -192,7 +203,8 @@ def _adapt_config(args: argparse.Namespace, settings: dict, supervised: bool):
         )
     elif teacher:
         raise InputError(
-            "--teacher-views and --teacher-fov need --teacher WEIGHT or --teacher-only"
+            "--teacher-views, --teacher-view-weights and --teacher-fov need --teacher WEIGHT or "
+            "--teacher-only"
         )
     return config
 
@@ -354,23 +366,32 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _parse_amounts(text: str) -> dict[str, float]:
-    """``"focal=0.05,principal=0.01"`` -> ``{"focal": 0.05, "principal": 0.01}``."""
-    amounts: dict[str, float] = {}
-    for part in text.split(","):
+def parse_named_numbers(text: str, names: tuple[str, ...], option: str) -> dict[str, float]:
+    """``"a=1,b=0.3"`` (or the words of ``"a=1 b=0.3"``) -> ``{"a": 1.0, "b": 0.3}``.
+
+    Raises:
+        InputError: naming ``option`` and the part that is not ``NAME=NUMBER`` with a name of
+            ``names``, or a name given twice.
+    """
+    numbers: dict[str, float] = {}
+    expected = ",".join(f"{name}=X" for name in names)
+    for part in text.replace(" ", ",").split(","):
+        if not part:
+            continue
         name, _, value = part.partition("=")
         name = name.strip()
-        if name not in ("focal", "principal", "distortion") or not value:
-            raise InputError(
-                f"--perturb-calibration: expected focal=F,principal=P,distortion=D, got {part!r}"
-            )
+        if name not in names or not value or name in numbers:
+            raise InputError(f"{option}: expected {expected} (each at most once), got {part!r}")
         try:
-            amounts[name] = float(value)
+            numbers[name] = float(value)
         except ValueError:
-            raise InputError(
-                f"--perturb-calibration: {name} must be a number, got {value!r}"
-            ) from None
-    return amounts
+            raise InputError(f"{option}: {name} must be a number, got {value!r}") from None
+    return numbers
+
+
+def _parse_amounts(text: str) -> dict[str, float]:
+    """``"focal=0.05,principal=0.01"`` -> ``{"focal": 0.05, "principal": 0.01}``."""
+    return parse_named_numbers(text, ("focal", "principal", "distortion"), "--perturb-calibration")
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -572,6 +593,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         choices=TEACHER_VIEWS,
         help="the teacher's pinhole views (default centre)",
+    )
+    p.add_argument(
+        "--teacher-view-weights",
+        nargs="+",
+        default=None,
+        metavar="VIEW=WEIGHT",
+        help="each teacher view's share of the term, one per view of --teacher-views, e.g. "
+        "centre=1 left=0.3 right=0.3 (default: the mean over the views)",
     )
     p.add_argument(
         "--teacher-fov", type=float, default=None, help="the teacher views' FOV, deg (default 110)"
