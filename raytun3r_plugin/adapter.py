@@ -542,7 +542,7 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
     if isinstance(teacher, Mapping) and "used" in teacher:
         lines.append(
             f"{indent}pinhole-view teacher: {'used' if teacher['used'] else 'left out'} (its "
-            f"views cover {float(teacher.get('coverage', 0.0)):.0%} of the lens, at most "
+            f"largest view covers {float(teacher.get('coverage', 0.0)):.0%} of the lens, at most "
             f"{float(teacher.get('max_coverage', 0.0)):.0%} for it to be used)"
         )
     extra = [

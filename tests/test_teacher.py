@@ -216,7 +216,7 @@ def test_on_a_lens_the_views_cover_the_fit_runs_without_the_term_bit_for_bit(roo
         path = tmp_path / f"{word.replace(' ', '_')}.safetensors"
         adapter.save(path)
         summary = describe_file(path)
-        assert f"pinhole-view teacher: {word} (its views cover" in summary
+        assert f"pinhole-view teacher: {word} (its largest view covers" in summary
         assert "verdict:" in summary
 
 
@@ -265,7 +265,9 @@ def test_view_weights_are_validated_ordered_by_the_views_and_out_of_the_identity
     views = ("centre", "left", "right")
     plain = AdaptConfig(weights=on, teacher_views=views)
     weighted = AdaptConfig(
-        weights=on, teacher_views=views, teacher_view_weights={"right": 0.3, "centre": 1, "left": 0.3}
+        weights=on,
+        teacher_views=views,
+        teacher_view_weights={"right": 0.3, "centre": 1, "left": 0.3},
     )
     assert plain.view_weights() is None and "teacher_view_weights" not in plain.to_dict()
     assert weighted.view_weights() == (1.0, 0.3, 0.3)  # in the order of teacher_views
@@ -273,7 +275,9 @@ def test_view_weights_are_validated_ordered_by_the_views_and_out_of_the_identity
     assert record["teacher_view_weights"] == {"centre": 1, "left": 0.3, "right": 0.3}
     assert AdaptConfig(**record) == weighted and weighted.identity() != plain.identity()
     # With the term off the weights are not part of the fit and not of its identity.
-    off = AdaptConfig(teacher_views=views, teacher_view_weights={"centre": 1, "left": 1, "right": 1})
+    off = AdaptConfig(
+        teacher_views=views, teacher_view_weights={"centre": 1, "left": 1, "right": 1}
+    )
     assert "teacher_view_weights" not in off.to_dict()
     assert off.identity() == AdaptConfig(teacher_views=views).identity()
     for bad in (
