@@ -92,6 +92,8 @@ def variant_config(method: str, steps: int):
         return adapt_config(SIZE, steps, seed=0)
     # The first round's variants ran before the lens gate existed: without it (coverage 1).
     ungated = {"teacher_max_coverage": 1.0}
+    # The first and second rounds' variants on the centre view, whichever views ship now.
+    centre = {"teacher_views": ("centre",)}
     if method.startswith("teacher"):
         return adapt_config(
             SIZE,
@@ -101,14 +103,15 @@ def variant_config(method: str, steps: int):
             guard=False,
             weights=TEACHER_ONLY,
             teacher_fov_deg=float(method.split()[1]),
+            **centre,
             **ungated,
         )
     if method == "hybrid + teacher, gated":
-        return adapt_config(SIZE, steps, seed=0, teacher_weight=HYBRID_TEACHER_WEIGHT)
-    # The second round (docs/decisions.md): the shipped fit with a stronger teacher, or with the
+        return adapt_config(SIZE, steps, seed=0, teacher_weight=HYBRID_TEACHER_WEIGHT, **centre)
+    # The second round (docs/decisions.md): the gated fit with a stronger teacher, or with the
     # left and right views beside the centre one.
     if method == "hybrid + teacher 30":
-        return adapt_config(SIZE, steps, seed=0, teacher_weight=3 * HYBRID_TEACHER_WEIGHT)
+        return adapt_config(SIZE, steps, seed=0, teacher_weight=3 * HYBRID_TEACHER_WEIGHT, **centre)
     if method == "hybrid + teacher, 3 views":
         return adapt_config(
             SIZE,
@@ -127,7 +130,9 @@ def variant_config(method: str, steps: int):
             teacher_views=("centre", "left", "right"),
             teacher_view_weights=SIDES_03,
         )
-    return adapt_config(SIZE, steps, seed=0, teacher_weight=HYBRID_TEACHER_WEIGHT, **ungated)
+    return adapt_config(
+        SIZE, steps, seed=0, teacher_weight=HYBRID_TEACHER_WEIGHT, **centre, **ungated
+    )
 
 
 def score_sequence(

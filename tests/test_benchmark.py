@@ -84,7 +84,8 @@ def test_a_partial_run_scores_the_full_runs_sequences(monkeypatch, tmp_path):
 
 def test_run_benchmark_passes_the_teacher_views_to_every_sequences_fit(monkeypatch, tmp_path):
     """``fisheye_synthetic.py --teacher-views``: the views reach each sequence's fit settings, and
-    a run without them leaves the network's (the third teacher round, docs/decisions.md)."""
+    a run without them leaves the network's: three views, the sides at 0.3 (the fourth teacher
+    round, docs/decisions.md)."""
     from raytun3r_plugin.apps import benchmark
 
     seen = []
@@ -109,6 +110,11 @@ def test_run_benchmark_passes_the_teacher_views_to_every_sequences_fit(monkeypat
                 teacher_view_weights=view_weights,
             )
     assert seen == [(("centre", "left", "right"), weights), (None, None)]
+    # What sequence_rows builds from them (its adapt_config call), the network's when not given.
+    for views, view_weights in seen:
+        fit = benchmark.adapt_config(112, 1, teacher_views=views, teacher_view_weights=view_weights)
+        assert fit.teacher_views == ("centre", "left", "right")
+        assert fit.teacher_view_weights == weights
 
 
 def test_summarise_means_per_cell_and_counts_paired_wins():

@@ -471,6 +471,7 @@ def test_demo_runs_on_the_built_in_default(tmp_path, capsys):
     # The demo says what its indoor table leaves out, and what its fits use.
     assert "These are indoor sequences" in out and "pinhole-view teacher alone" in out
     assert "pinhole-view teacher weight 10" in out
+    assert "centre + left + right views (weights centre 1, left 0.3, right 0.3)" in out
     for k in (0, 1):
         assert (tmp_path / f"seq{k}" / "adapter.safetensors").is_file() and (
             tmp_path / f"seq{k}" / "adapter.losses.png"

@@ -464,6 +464,7 @@ def test_the_demo_and_benchmarks_run_v3_and_keep_the_pose_term_on_its_own_pose()
     docs/decisions.md) and add the lens-gated teacher; v2's (pose head at chance) use the targets
     alone."""
     from raytun3r_plugin.apps.demo import NETWORK_FIT, adapt_config, default_network
+    from raytun3r_plugin.errors import InputError
 
     model, description = default_network()
     assert model.raytun3r_name == "raytun3r-da3-tiny-v3" and description.startswith(
@@ -475,13 +476,30 @@ def test_the_demo_and_benchmarks_run_v3_and_keep_the_pose_term_on_its_own_pose()
     assert adapt_config(112, 10).weights.teacher == pytest.approx(10.0)
     assert adapt_config(112, 10).teacher_max_coverage == 0.5
     assert adapt_config(112, 10, teacher_weight=0.0).weights.teacher == 0.0
-    # The views: the network's (the centre view; the third round kept it, docs/decisions.md)
-    # unless given, and a fit on other views is another configuration.
-    assert adapt_config(112, 10).teacher_views == ("centre",)
-    three = adapt_config(112, 10, teacher_views=["centre", "left", "right"])
-    assert three.teacher_views == ("centre", "left", "right")
-    assert three.to_dict()["teacher_views"] == ["centre", "left", "right"]
-    assert three.to_dict() != adapt_config(112, 10).to_dict()
+    # The views: the network's (centre, left and right, the side views at 0.3: the fourth
+    # round's held-out rule, docs/decisions.md) unless views or weights are given.
+    shipped = adapt_config(112, 10)
+    assert shipped.teacher_views == ("centre", "left", "right")
+    assert shipped.teacher_view_weights == {"centre": 1.0, "left": 0.3, "right": 0.3}
+    assert shipped.view_weights() == (1.0, 0.3, 0.3)
+    assert shipped.to_dict()["teacher_view_weights"] == shipped.teacher_view_weights
+    # Views without weights count equally (the network's weights name its own views)...
+    even = adapt_config(112, 10, teacher_views=["centre", "left", "right"])
+    assert even.teacher_views == ("centre", "left", "right") and even.teacher_view_weights is None
+    assert even.to_dict() != shipped.to_dict() and even.identity() != shipped.identity()
+    centre = adapt_config(112, 10, teacher_views=["centre"])
+    assert centre.teacher_views == ("centre",) and centre.teacher_view_weights is None
+    # ... weights without views name the library's (centre) view, and another pose source gets
+    # the library's views, as it gets the library's teacher weight (none).
+    only = adapt_config(112, 10, teacher_view_weights={"centre": 2.0})
+    assert only.teacher_views == ("centre",) and only.view_weights() == (2.0,)
+    model_pose = adapt_config(112, 10, pose_source="model")
+    assert model_pose.teacher_views == ("centre",) and model_pose.teacher_view_weights is None
+    with pytest.raises(InputError, match="teacher_view_weights"):
+        adapt_config(112, 10, teacher_view_weights={"left": 1.0})
+    assert NETWORK_FIT["raytun3r-da3-tiny"].get("teacher_views") is None
+    v2_fit = adapt_config(112, 10, network="raytun3r-da3-tiny")
+    assert v2_fit.teacher_views == ("centre",) and v2_fit.weights.teacher == 0.0
     assert NETWORK_FIT["raytun3r-da3-tiny"]["pose_source"] == "targets"
     assert adapt_config(112, 10, network="raytun3r-da3-tiny").pose_source == "targets"
     v2, _ = default_network("raytun3r-da3-tiny")

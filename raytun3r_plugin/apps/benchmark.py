@@ -21,7 +21,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from raytun3r_plugin.apps.demo import POSE_SOURCE, adapt_config, supervised_config
+from raytun3r_plugin.apps.demo import (
+    POSE_SOURCE,
+    adapt_config,
+    supervised_config,
+    teacher_settings,
+)
 from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
 from raytun3r_plugin.errors import InputError
 
@@ -581,22 +586,7 @@ def run_benchmark(
         f"(seeds {base_seed} + 100 k + 10 camera + scene); per sequence {n_adapt} adaptation frames "
         f"(30 windows, {steps} steps, pose source '{pose_source}', pose weight "
         f"{fit.weights.pose:g}"
-        + (
-            f", pinhole-view teacher weight {fit.weights.teacher:g} on the "
-            f"{fit.teacher_fov_deg:g}-degree {' + '.join(fit.teacher_views)} "
-            f"view{'s' if len(fit.teacher_views) > 1 else ''}"
-            + (
-                " (weights "
-                + ", ".join(f"{v} {fit.teacher_view_weights[v]:g}" for v in fit.teacher_views)
-                + ")"
-                if fit.teacher_view_weights is not None
-                else ""
-            )
-            + " where each covers at most "
-            f"{fit.teacher_max_coverage:.0%} of the lens"
-            if fit.weights.teacher
-            else ""
-        )
+        + "".join(f", {text}" for text in [teacher_settings(fit)] if text)
         + f") and {n_eval} scored frames"
         + (
             f"; {jobs} worker processes of one thread each (timings are one thread's beside the other workers)"
