@@ -319,19 +319,15 @@ def test_a_zero_view_weight_is_the_fit_without_that_view(room, tmp_path):
     base = _config(tmp_path, weights=TEACHER_ONLY, lr=3e-2, steps=3)
     centre_only = adapt(build_tiny_network(), camera, seq.images, base, progress=False)
     two = dataclasses.replace(base, teacher_views=("centre", "left"))
-    silent = adapt(
-        build_tiny_network(),
-        camera,
-        seq.images,
-        dataclasses.replace(two, teacher_view_weights={"centre": 1.0, "left": 0.0}),
-        progress=False,
-    )
-    heard = adapt(
-        build_tiny_network(),
-        camera,
-        seq.images,
-        dataclasses.replace(two, teacher_view_weights={"centre": 1.0, "left": 1.0}),
-        progress=False,
+    silent, heard = (
+        adapt(
+            build_tiny_network(),
+            camera,
+            seq.images,
+            dataclasses.replace(two, teacher_view_weights={"centre": 1.0, "left": left}),
+            progress=False,
+        )
+        for left in (0.0, 1.0)
     )
     pairs = list(zip(centre_only.parameters(), silent.parameters(), strict=True))
     assert all(torch.allclose(a, b, atol=1e-6) for a, b in pairs)
