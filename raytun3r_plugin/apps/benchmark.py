@@ -581,12 +581,13 @@ def run_benchmark(
         teacher_views=teacher_views,
         teacher_view_weights=teacher_view_weights,
     )
+    teacher = teacher_settings(fit)
     header = (
         f"Network: {network or 'see model card'}; input {size}x{size} px; {sequences} {'held-out' if base_seed == HELD_OUT_SEED else 'development'} sequences per camera and scene "
         f"(seeds {base_seed} + 100 k + 10 camera + scene); per sequence {n_adapt} adaptation frames "
         f"(30 windows, {steps} steps, pose source '{pose_source}', pose weight "
         f"{fit.weights.pose:g}"
-        + "".join(f", {text}" for text in [teacher_settings(fit)] if text)
+        + (f", {teacher}" if teacher else "")
         + f") and {n_eval} scored frames"
         + (
             f"; {jobs} worker processes of one thread each (timings are one thread's beside the other workers)"

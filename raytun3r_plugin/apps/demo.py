@@ -90,23 +90,23 @@ def adapt_config(
 
     fit = NETWORK_FIT[network]
     source = changes.pop("pose_source", fit["pose_source"])
+    # The network's settings were chosen with its own pose source: another gets the library's.
+    own = source == fit["pose_source"]
     if (pose_weight is not None or teacher_weight is not None) and "weights" in changes:
         raise InputError(
             "adapt_config: give pose_weight or weights, not both (likewise teacher_weight)"
         )
     if "weights" not in changes:
         if pose_weight is None:
-            pose_weight = fit["pose_weight"] if source == fit["pose_source"] else None
+            pose_weight = fit["pose_weight"] if own else None
         if teacher_weight is None:
-            # Chosen with the network's own pose source, like its pose weight.
-            own = source == fit["pose_source"]
             teacher_weight = fit.get("teacher_weight", 0.0) if own else 0.0
         if pose_weight is not None or teacher_weight:
             pose = SELF_SUPERVISED_WEIGHTS["pose"] if pose_weight is None else float(pose_weight)
             changes["weights"] = LossWeights(
                 **{**SELF_SUPERVISED_WEIGHTS, "pose": pose, "teacher": float(teacher_weight)}
             )
-    if teacher_views is None and teacher_view_weights is None and source == fit["pose_source"]:
+    if teacher_views is None and teacher_view_weights is None and own:
         teacher_views = fit.get("teacher_views")
         teacher_view_weights = fit.get("teacher_view_weights")
     if teacher_views is not None:
@@ -282,10 +282,10 @@ def run_demo(args: argparse.Namespace) -> int:
     print(f"network: {description}")
     camera = demo_camera(size)
     print(f"camera:  {camera!r}, field of view {camera.fov_deg:.0f} deg")
+    teacher = teacher_settings(adapt_config(size, steps))
     print(
         f"fits:    {steps} steps at lr {DEMO_LR:g}, pose source '{POSE_SOURCE}', pose weight "
-        f"{POSE_WEIGHT:g}"
-        + "".join(f", {text}" for text in [teacher_settings(adapt_config(size, steps))] if text)
+        f"{POSE_WEIGHT:g}" + (f", {teacher}" if teacher else "")
     )
     print(
         f"jobs:    {jobs} process{'es' if jobs > 1 else ''}"
