@@ -18,6 +18,7 @@ import re
 from pathlib import Path
 
 from raytun3r_plugin.adaptation.config import POSE_SOURCES
+from raytun3r_plugin.adaptation.recipes import recipe_names
 from raytun3r_plugin.apps.benchmark import (
     BASELINES,
     DEVELOPMENT_SEED,
@@ -26,11 +27,31 @@ from raytun3r_plugin.apps.benchmark import (
     run_benchmark,
 )
 from raytun3r_plugin.apps.cli import parse_view_weights
-from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, NETWORK_FIT, default_network
+from raytun3r_plugin.apps.demo import BUILT_IN_NETWORKS, DEFAULT_NETWORK, default_network
 from raytun3r_plugin.baselines.multi_ph import VIEW_NAMES
 from raytun3r_plugin.registry import quiet_upstream
 
 START, END = "<!-- bench:start -->", "<!-- bench:end -->"
+
+
+def fit_changes(args: argparse.Namespace) -> dict:
+    """The recipe changes the options ask for (``AdaptConfig`` fields)."""
+    changes: dict = {}
+    weights = {
+        term: value
+        for term, value in (("pose", args.pose_weight), ("teacher", args.teacher_weight))
+        if value is not None
+    }
+    if weights:
+        changes["weights"] = weights
+    if args.pose_source:
+        changes["pose_source"] = args.pose_source
+    if args.teacher_views:
+        changes["teacher_views"] = tuple(args.teacher_views)
+    view_weights = parse_view_weights(args.teacher_view_weights)
+    if view_weights is not None:
+        changes["teacher_view_weights"] = view_weights
+    return changes
 
 
 def main() -> None:
@@ -58,42 +79,43 @@ def main() -> None:
     parser.add_argument(
         "--network",
         default=DEFAULT_NETWORK,
-        choices=sorted(NETWORK_FIT),
+        choices=BUILT_IN_NETWORKS,
         help="built-in network (v2 = raytun3r-da3-tiny measured the README's older tables)",
+    )
+    parser.add_argument(
+        "--recipe",
+        default="default",
+        choices=recipe_names(),
+        help="fit recipe of the self-supervised fits and the baselines (default: default)",
     )
     parser.add_argument(
         "--pose-source",
         default=None,
         choices=POSE_SOURCES,
-        help="pose source of the self-supervised fits (default: the network's, demo.NETWORK_FIT)",
+        help="change the recipe's pose source",
     )
     parser.add_argument(
-        "--pose-weight",
-        type=float,
-        default=None,
-        help="weight of the pose term in the self-supervised fits (default: the network's with its own "
-        "pose source, 1 with another)",
+        "--pose-weight", type=float, default=None, help="change the recipe's pose-term weight"
     )
     parser.add_argument(
         "--teacher-weight",
         type=float,
         default=None,
-        help="weight of the pinhole-view teacher term in the self-supervised fits (default: the "
-        "network's, demo.NETWORK_FIT)",
+        help="change the recipe's pinhole-view teacher weight",
     )
     parser.add_argument(
         "--teacher-views",
         nargs="+",
         default=None,
         choices=VIEW_NAMES,
-        help="views of the pinhole-view teacher (default: the library's, the centre view)",
+        help="change the recipe's teacher views",
     )
     parser.add_argument(
         "--teacher-view-weights",
         nargs="+",
         default=None,
         metavar="VIEW=WEIGHT",
-        help="each teacher view's weight, one per view of --teacher-views (default: their mean)",
+        help="each teacher view's weight, one per view of --teacher-views",
     )
     parser.add_argument(
         "--jobs",
@@ -118,13 +140,8 @@ def main() -> None:
         progress=False,
         base_seed=DEVELOPMENT_SEED if args.development else HELD_OUT_SEED,
         baselines=tuple(name for name in args.baselines.split(",") if name),
-        pose_source=args.pose_source or NETWORK_FIT[args.network]["pose_source"],
-        pose_weight=args.pose_weight
-        if args.pose_weight is not None or args.pose_source
-        else NETWORK_FIT[args.network]["pose_weight"],
-        teacher_weight=args.teacher_weight,
-        teacher_views=tuple(args.teacher_views) if args.teacher_views else None,
-        teacher_view_weights=parse_view_weights(args.teacher_view_weights),
+        recipe=args.recipe,
+        fit_changes=fit_changes(args),
         jobs=args.jobs,
     )
     print(table)

@@ -34,8 +34,7 @@ def data_dir() -> Path:
     return Path(str(resources.files("raytun3r_plugin"))) / "data"
 
 
-def build_kwargs(name: str = NAME) -> dict:
-    """The ``build_tiny_network`` arguments the shipped weights ``name`` were trained with."""
+def _build_record(name: str) -> dict:
     path = data_dir() / f"{name}.json"
     if not path.is_file():
         raise WeightsError(
@@ -43,9 +42,16 @@ def build_kwargs(name: str = NAME) -> dict:
             "network with scripts/train_default_network.py --export <path>"
         )
     try:
-        kwargs = json.loads(path.read_text())["build_kwargs"]
-    except (ValueError, KeyError, TypeError) as error:
+        record = json.loads(path.read_text())
+        record["build_kwargs"].items()
+    except (ValueError, KeyError, TypeError, AttributeError) as error:
         raise WeightsError(f"{name}: {path} is not a valid build record ({error})") from error
+    return record
+
+
+def build_kwargs(name: str = NAME) -> dict:
+    """The ``build_tiny_network`` arguments the shipped weights ``name`` were trained with."""
+    kwargs = _build_record(name)["build_kwargs"]
     return {
         key: (tuple(value) if isinstance(value, list) else value) for key, value in kwargs.items()
     }
@@ -66,10 +72,13 @@ def build(path=None, name: str = NAME):
             "local path, or train it with scripts/train_default_network.py --export <path>"
         )
     kwargs = build_kwargs(name)
+    # The size it was trained at is its own input size (registry.native_input_size).
+    trained_at = (_build_record(name).get("training") or {}).get("args", {}).get("size")
     kwargs["seed"] = None  # the initialisation is overwritten by the weights; leave the RNG alone
     model = build_tiny_network(**kwargs)
     load_weights(model, weights)
     model.raytun3r_name = name
+    model.raytun3r_input_size = int(trained_at) if trained_at else 112
     return model.eval()
 
 

@@ -291,5 +291,7 @@ SPEC = register(
         ),
         prompt_target=PROMPT_TARGET,
         check=check,
+        # vggt.utils.load_fn.load_and_preprocess_images makes the width 518.
+        input_size=518,
     )
 )

@@ -472,6 +472,15 @@ def describe_record(path: str | os.PathLike) -> dict[str, Any]:
     return record
 
 
+def _setting(value: Any) -> str:
+    """A recipe setting in a line: numbers short, lists and mappings written out."""
+    if isinstance(value, float):
+        return f"{value:.3g}"
+    if isinstance(value, (list, tuple, dict)):
+        return json.dumps(value, sort_keys=True)
+    return str(value)
+
+
 def _short(value: Any) -> str:
     if isinstance(value, float):
         return f"{value:.3g}"
@@ -500,6 +509,22 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
     if "wall_time_s" in training:
         head += f", {float(training['wall_time_s']):.1f} s"
     lines = [f"training:        {training.get('method', 'unknown method')}: {head}"]
+    recipe = training.get("recipe")
+    if isinstance(recipe, Mapping) and recipe.get("name"):
+        changes = recipe.get("changes") or {}
+        text = f"recipe '{recipe['name']}' v{recipe.get('version')}" + (
+            ", changed: "
+            + "; ".join(
+                f"{key} {_setting(old)} -> {_setting(new)}" for key, (old, new) in changes.items()
+            )
+            if isinstance(changes, Mapping) and changes
+            else ", as the recipe is"
+        )
+        for key, value in (recipe.get("backbone_changes") or {}).items():
+            text += f"; the backbone family sets {key} {_setting(value)}"
+        lines.extend(f"{indent}{part}" for part in _wrap(text, 100 - len(indent)))
+    elif training:
+        lines.append(f"{indent}recipe: not recorded (fitted before recipes existed)")
     losses = training.get("final_losses") or {}
     if losses:
         over = training.get("final_losses_over_steps")
@@ -532,6 +557,13 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
             + (f"crop {crop}" if crop else "no crop")
             + rule
         )
+    check = training.get("check")
+    if isinstance(check, Mapping) and check.get("adapted_px") is not None:
+        lines.append(
+            f"{indent}check on {check.get('frames')} held-out frames: reprojection "
+            f"{float(check['zero_adapter_px']):.3f} px without the adapter -> "
+            f"{float(check['adapted_px']):.3f} px with it"
+        )
     verdict = training.get("verdict")
     if isinstance(verdict, Mapping) and verdict.get("summary"):
         lines.append(f"{indent}verdict:")
@@ -552,6 +584,8 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
         not in (
             "verdict",
             "teacher",
+            "recipe",
+            "check",
             "method",
             "steps",
             "requested_steps",

@@ -215,6 +215,14 @@ class BackboneSpec:
             it, and it alone receives an adapter's learned tables; the others receive the
             parameter-free corrections. A spec with branches declares no ``targets`` of its own.
             Empty (the default): the root is the one patch root.
+        input_size: the long side, in pixels, at which upstream runs the family by default (DA3
+            and Pi3: 504, VGGT: 518): the input size of a fit and of inference when none is
+            given. A model instance may carry its own as ``raytun3r_input_size`` (the built-in
+            networks, trained at 112); :func:`native_input_size` reads both.
+        recipe_changes: ``{recipe name: {AdaptConfig field: value}}``: the settings this family
+            needs that differ from a fit recipe's (:mod:`raytun3r_plugin.adaptation.recipes`),
+            applied by ``AdaptConfig.from_recipe(name, model=...)``. Each entry must be justified
+            by a measurement written beside it. Empty for every family today.
         composites: specs of models made of several networks of this family (DA3's nested
             model), each with ``branches``. They are part of the family, not families of their
             own: :func:`specs` lists the family once, :func:`spec_for` tries them before the
@@ -236,6 +244,8 @@ class BackboneSpec:
     prompt_target: PromptTarget | None = None
     branches: tuple[tuple[str, str], ...] = ()
     composites: tuple[BackboneSpec, ...] = ()
+    input_size: int = 504
+    recipe_changes: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 _SPECS: dict[str, BackboneSpec] = {}
@@ -379,6 +389,15 @@ def spec_for(model: nn.Module) -> tuple[BackboneSpec, nn.Module]:
     raise UnsupportedUpstreamError(
         f"no raytun3r patch recognises a {type(model).__module__}.{type(model).__qualname__}; supported: {known}"
     )
+
+
+def native_input_size(model: nn.Module) -> int:
+    """The long side, in pixels, at which ``model`` runs by default: its own
+    ``raytun3r_input_size`` (set by the builders of networks trained at another size, such as
+    the built-in ones), else its family's :attr:`BackboneSpec.input_size`."""
+    spec, root = spec_for(model)
+    own = getattr(root, "raytun3r_input_size", None) or getattr(model, "raytun3r_input_size", None)
+    return int(own) if own else int(spec.input_size)
 
 
 def branch_roots(spec: BackboneSpec, root: nn.Module) -> list[tuple[str, BackboneSpec, nn.Module]]:

@@ -82,10 +82,12 @@ def test_a_partial_run_scores_the_full_runs_sequences(monkeypatch, tmp_path):
     ]
 
 
-def test_run_benchmark_passes_the_teacher_views_to_every_sequences_fit(monkeypatch, tmp_path):
-    """``fisheye_synthetic.py --teacher-views``: the views reach each sequence's fit settings, and
-    a run without them leaves the network's: three views, the sides at 0.3 (the fourth teacher
-    round, docs/decisions.md)."""
+def test_run_benchmark_passes_the_recipe_and_its_changes_to_every_sequences_fit(
+    monkeypatch, tmp_path
+):
+    """``fisheye_synthetic.py --recipe NAME --teacher-views ...``: the recipe and the changes
+    reach each sequence's fit settings, and a run without them fits the library's default
+    recipe: three teacher views, the sides at 0.3."""
     from raytun3r_plugin.apps import benchmark
 
     seen = []
@@ -94,27 +96,29 @@ def test_run_benchmark_passes_the_teacher_views_to_every_sequences_fit(monkeypat
         pass
 
     def record(model, camera, label, scene, seed, **kwargs):
-        seen.append((kwargs["teacher_views"], kwargs["teacher_view_weights"]))
+        seen.append((kwargs["recipe"], kwargs["fit_changes"]))
         raise Stop
 
     monkeypatch.setattr(benchmark, "sequence_rows", record)
-    weights = {"centre": 1.0, "left": 0.3, "right": 0.3}
-    for views, view_weights in ((("centre", "left", "right"), weights), (None, None)):
+    centre = {"teacher_views": ("centre",), "weights": {"pose": 1.0}}
+    for recipe, changes in (("default", None), ("targets", centre)):
         with pytest.raises(Stop):
             benchmark.run_benchmark(
                 None,
                 tmp_path,
                 cameras=(CAMERAS[1],),
                 scenes=("outdoor",),
-                teacher_views=views,
-                teacher_view_weights=view_weights,
+                recipe=recipe,
+                fit_changes=changes,
             )
-    assert seen == [(("centre", "left", "right"), weights), (None, None)]
-    # What sequence_rows builds from them (its adapt_config call), the network's when not given.
-    for views, view_weights in seen:
-        fit = benchmark.adapt_config(112, 1, teacher_views=views, teacher_view_weights=view_weights)
-        assert fit.teacher_views == ("centre", "left", "right")
-        assert fit.teacher_view_weights == weights
+    assert seen == [("default", None), ("targets", centre)]
+    # What sequence_rows builds from them (its adapt_config call).
+    shipped = benchmark.adapt_config(112, 1, recipe="default")
+    assert shipped.teacher_views == ("centre", "left", "right")
+    assert shipped.teacher_view_weights == {"centre": 1.0, "left": 0.3, "right": 0.3}
+    changed = benchmark.adapt_config(112, 1, recipe="targets", **centre)
+    assert changed.pose_source == "targets" and changed.teacher_views == ("centre",)
+    assert changed.recipe_record()["changes"] == {"steps": [300, 1], "input_size": [None, 112]}
 
 
 def test_summarise_means_per_cell_and_counts_paired_wins():

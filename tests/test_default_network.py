@@ -458,50 +458,45 @@ def test_v3_is_a_second_built_in_of_the_same_architecture():
     assert pinhole["abs_rel"] <= 0.185
 
 
-def test_the_demo_and_benchmarks_run_v3_and_keep_the_pose_term_on_its_own_pose():
-    """Issue 13: v3 is the default network; its fits reproject through the MAGSAC++ targets and
-    keep the pose term on the network's pose at weight 0.3 (the held-out rule of
-    docs/decisions.md) and add the lens-gated teacher; v2's (pose head at chance) use the targets
-    alone."""
-    from raytun3r_plugin.apps.demo import NETWORK_FIT, adapt_config, default_network
+def test_the_demo_and_benchmarks_fit_every_network_with_the_library_recipe():
+    """v3 is the default network; every built-in network's fits take the library's ``default``
+    recipe (hybrid pose source, pose weight 0.3, the lens-gated teacher at 10 on three views),
+    and nothing is keyed by a network's name; v2's earlier fit is the ``targets`` recipe."""
+    import inspect
+
+    from raytun3r_plugin.adaptation.config import AdaptConfig
+    from raytun3r_plugin.apps import demo
+    from raytun3r_plugin.apps.demo import adapt_config, default_network
     from raytun3r_plugin.errors import InputError
 
     model, description = default_network()
     assert model.raytun3r_name == "raytun3r-da3-tiny-v3" and description.startswith(
         model.raytun3r_name
     )
-    assert adapt_config(112, 10).pose_source == "hybrid"
-    assert adapt_config(112, 10).weights.pose == pytest.approx(0.3)
-    # The lens-gated pinhole-view teacher (the held-out rule of docs/decisions.md).
-    assert adapt_config(112, 10).weights.teacher == pytest.approx(10.0)
-    assert adapt_config(112, 10).teacher_max_coverage == 0.5
-    assert adapt_config(112, 10, teacher_weight=0.0).weights.teacher == 0.0
-    # The views: the network's (centre, left and right, the side views at 0.3: the fourth
-    # round's held-out rule, docs/decisions.md) unless views or weights are given.
     shipped = adapt_config(112, 10)
+    assert shipped.recipe == "default"
+    assert shipped.pose_source == "hybrid" and shipped.weights.pose == pytest.approx(0.3)
+    assert shipped.weights.teacher == pytest.approx(10.0) and shipped.teacher_max_coverage == 0.5
     assert shipped.teacher_views == ("centre", "left", "right")
     assert shipped.teacher_view_weights == {"centre": 1.0, "left": 0.3, "right": 0.3}
     assert shipped.view_weights() == (1.0, 0.3, 0.3)
     assert shipped.to_dict()["teacher_view_weights"] == shipped.teacher_view_weights
-    # Views without weights count equally (the network's weights name its own views)...
-    even = adapt_config(112, 10, teacher_views=["centre", "left", "right"])
-    assert even.teacher_views == ("centre", "left", "right") and even.teacher_view_weights is None
-    assert even.to_dict() != shipped.to_dict() and even.identity() != shipped.identity()
+    # The demo's fit is the library's own AdaptConfig() at its size and budget.
+    library = AdaptConfig(input_size=112, steps=10, checkpoint_every=0)
+    assert shipped.identity() == library.identity()
+    assert adapt_config(112, 10, teacher_weight=0.0).weights.teacher == 0.0
+    # Other views given without weights count equally (the recipe's weights name its views).
     centre = adapt_config(112, 10, teacher_views=["centre"])
     assert centre.teacher_views == ("centre",) and centre.teacher_view_weights is None
-    # ... weights without views name the library's (centre) view, and another pose source gets
-    # the library's views, as it gets the library's teacher weight (none).
-    only = adapt_config(112, 10, teacher_view_weights={"centre": 2.0})
-    assert only.teacher_views == ("centre",) and only.view_weights() == (2.0,)
-    model_pose = adapt_config(112, 10, pose_source="model")
-    assert model_pose.teacher_views == ("centre",) and model_pose.teacher_view_weights is None
+    only = adapt_config(112, 10, teacher_views=["centre"], teacher_view_weights={"centre": 2.0})
+    assert only.view_weights() == (2.0,)
     with pytest.raises(InputError, match="teacher_view_weights"):
         adapt_config(112, 10, teacher_view_weights={"left": 1.0})
-    assert NETWORK_FIT["raytun3r-da3-tiny"].get("teacher_views") is None
-    v2_fit = adapt_config(112, 10, network="raytun3r-da3-tiny")
-    assert v2_fit.teacher_views == ("centre",) and v2_fit.weights.teacher == 0.0
-    assert NETWORK_FIT["raytun3r-da3-tiny"]["pose_source"] == "targets"
-    assert adapt_config(112, 10, network="raytun3r-da3-tiny").pose_source == "targets"
+    # Nothing in a fit is keyed by a network's name.
+    assert "network" not in inspect.signature(adapt_config).parameters
+    assert not hasattr(demo, "NETWORK_FIT")
+    v2_earlier = adapt_config(112, 10, recipe="targets")
+    assert v2_earlier.pose_source == "targets" and v2_earlier.weights.teacher == 0.0
     v2, _ = default_network("raytun3r-da3-tiny")
     assert v2.raytun3r_name == "raytun3r-da3-tiny"
     differs = any(
@@ -512,26 +507,28 @@ def test_the_demo_and_benchmarks_run_v3_and_keep_the_pose_term_on_its_own_pose()
 
 
 def test_adapt_config_pose_weight_replaces_only_the_pose_term():
-    """The benchmarks pass a pose weight through ``adapt_config`` (issue 12 follow-up); the other
-    self-supervised weights stay the defaults, and a pose weight next to explicit weights is
-    refused rather than one of them being dropped."""
-    from raytun3r_plugin.adaptation.config import SELF_SUPERVISED_WEIGHTS
+    """The benchmarks pass a pose weight through ``adapt_config``; the other weights stay the
+    recipe's, and a pose weight next to explicit weights is refused rather than one of them
+    being dropped."""
+    from raytun3r_plugin.adaptation.config import DEFAULT_WEIGHTS
     from raytun3r_plugin.adaptation.losses import LossWeights
     from raytun3r_plugin.apps.demo import adapt_config
     from raytun3r_plugin.errors import InputError
 
     weights = adapt_config(112, 10, pose_source="model", pose_weight=3.0).weights.as_dict()
-    assert weights == {**SELF_SUPERVISED_WEIGHTS, "pose": 3.0}
-    # The network's weight belongs to its pose source: another source gets the library's.
-    assert adapt_config(112, 10, pose_source="model").weights.as_dict() == SELF_SUPERVISED_WEIGHTS
-    explicit = LossWeights(**{**SELF_SUPERVISED_WEIGHTS, "smooth": 5.0})
+    assert weights == {**DEFAULT_WEIGHTS, "pose": 3.0}
+    # Another pose source keeps the recipe's weights (the record lists the change).
+    other = adapt_config(112, 10, pose_source="model")
+    assert other.weights.as_dict() == DEFAULT_WEIGHTS
+    assert other.recipe_record()["changes"]["pose_source"] == ["hybrid", "model"]
+    explicit = LossWeights(**{**DEFAULT_WEIGHTS, "smooth": 5.0})
     assert adapt_config(112, 10, weights=explicit).weights == explicit
     with pytest.raises(InputError, match="pose_weight or weights"):
         adapt_config(112, 10, pose_weight=0.3, weights=LossWeights())
 
 
 def test_the_rig_benchmark_fits_without_the_teacher_that_adapt_rig_refuses(monkeypatch):
-    """benchmarks/rig.py fits with the network's settings; adapt_rig has no teacher term yet and
+    """benchmarks/rig.py fits with the rig recipe; adapt_rig has no teacher term yet and
     refuses one, so both rig fits leave it out (before, the script stopped at that refusal)."""
     spec = importlib.util.spec_from_file_location("rig_bench", ROOT / "benchmarks" / "rig.py")
     rig_bench = importlib.util.module_from_spec(spec)

@@ -10,13 +10,18 @@ import json
 import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from raytun3r_plugin.adaptation.losses import LossWeights
 from raytun3r_plugin.baselines.multi_ph import VIEW_NAMES as TEACHER_VIEWS
 from raytun3r_plugin.errors import InputError
 
+if TYPE_CHECKING:
+    from torch import nn
+
 __all__ = [
+    "DEFAULT_TEACHER_VIEW_WEIGHTS",
+    "DEFAULT_WEIGHTS",
     "PE_REGULARISERS",
     "POSE_SOURCES",
     "SCALES",
@@ -53,6 +58,15 @@ SELF_SUPERVISED_WEIGHTS = {
     "pose": 1.0,
     "depth": 0.0,
 }
+#: Loss weights of the ``default`` recipe (:mod:`~raytun3r_plugin.adaptation.recipes`), which are
+#: ``AdaptConfig``'s: the self-supervised weights with the pose term at 0.3 (docs/decisions.md,
+#: "Pose source and pose weight") and the lens-gated pinhole-view teacher at 10 ("The lens-gated
+#: teacher").
+DEFAULT_WEIGHTS = {**SELF_SUPERVISED_WEIGHTS, "pose": 0.3, "teacher": 10.0}
+#: The default recipe's teacher views and their weights: the 110-degree centre view, and the left
+#: and right views counted at 0.3 (docs/decisions.md, "The teacher, fourth round").
+DEFAULT_TEACHER_VIEWS = ("centre", "left", "right")
+DEFAULT_TEACHER_VIEW_WEIGHTS = {"centre": 1.0, "left": 0.3, "right": 0.3}
 #: Loss weights of the supervised fit (:func:`adapt` with ``depth=``): the scale-invariant depth
 #: term alone, no regulariser (the ground truth decides the correction).
 SUPERVISED_WEIGHTS = {"reproj": 0.0, "smooth": 0.0, "l2": 0.0, "tv": 0.0, "pose": 0.0, "depth": 1.0}
@@ -66,15 +80,18 @@ _RESUMABLE_CHANGES = {"steps", "checkpoint_every", "cache_dir"}
 
 @dataclass
 class AdaptConfig:
-    """Settings of :func:`adapt`. Defaults: docs/conventions.md section 7 and docs/adaptation.md.
+    """Settings of :func:`adapt`. The field defaults are the ``default`` recipe
+    (:mod:`~raytun3r_plugin.adaptation.recipes`, docs/recipes.md): ``AdaptConfig()`` is the fit
+    that works by default, and :meth:`from_recipe` gives another named recipe.
 
     Attributes:
         steps: optimisation steps, one 3-frame window each (300 = 10 passes over 30 windows).
         lr: Adam learning rate.
         clip: gradient-norm clipping threshold (None = no clipping).
-        weights: loss weights (reproj 1, smooth 10, L2 2, TV 20, pose 1).
+        weights: loss weights (:data:`DEFAULT_WEIGHTS`; the paper's are the ``paper`` recipe's).
         input_size: long side of the network input in pixels (rounded to the patch size);
-            504 as in the paper, smaller for CPU runs.
+            None (the default): the backbone's own (:func:`~raytun3r_plugin.registry.native_input_size`:
+            504 for DA3, 518 for VGGT, 112 for the built-in networks), resolved by :func:`adapt`.
         n_windows: number of 3-frame windows spread over the segment.
         window_size: frames per window.
         stride: frame step inside a window.
@@ -153,6 +170,10 @@ class AdaptConfig:
             them less (docs/decisions.md, "The teacher, fourth round"). Left out of
             :meth:`to_dict` when None, so existing identities are unchanged.
         teacher_fov_deg: the views' field of view across their width, degrees.
+        recipe: the name of the recipe these settings start from (:meth:`from_recipe` sets it;
+            ``"default"`` otherwise). The adapter file records it with its version and every
+            setting that differs from it (:meth:`recipe_record`); it takes no part in
+            :meth:`identity`.
         teacher_max_coverage: the teacher term is used only when none of its views covers more
             than this fraction of the lens's valid pixels (0.5: lenses wider than about 160
             degrees for the 110-degree centre view); on a lens a view covers almost entirely it
@@ -164,8 +185,8 @@ class AdaptConfig:
     steps: int = 300
     lr: float = 3e-3
     clip: float | None = 1.0
-    weights: LossWeights = field(default_factory=lambda: LossWeights(**SELF_SUPERVISED_WEIGHTS))
-    input_size: int = 504
+    weights: LossWeights = field(default_factory=lambda: LossWeights(**DEFAULT_WEIGHTS))
+    input_size: int | None = None
     n_windows: int = 30
     window_size: int = 3
     stride: int = 1
@@ -177,7 +198,7 @@ class AdaptConfig:
     checkpoint_every: int = 50
     cache_dir: str | None = None
     sequence_id: str | None = None
-    pose_source: str = "model"
+    pose_source: str = "hybrid"
     depth_convention: str = "range"
     components: list[str] | None = None
     scale: str = "pixel"
@@ -189,10 +210,13 @@ class AdaptConfig:
     refine_intrinsics: bool = False
     photo_sigma: float = 1.0
     photo_pixels: int = 4096
-    teacher_views: tuple[str, ...] = ("centre",)
-    teacher_view_weights: dict[str, float] | None = None
+    teacher_views: tuple[str, ...] = DEFAULT_TEACHER_VIEWS
+    teacher_view_weights: dict[str, float] | None = field(
+        default_factory=lambda: dict(DEFAULT_TEACHER_VIEW_WEIGHTS)
+    )
     teacher_fov_deg: float = 110.0
     teacher_max_coverage: float = 0.5
+    recipe: str = "default"
 
     def __post_init__(self) -> None:
         if isinstance(self.weights, Mapping):
@@ -202,13 +226,20 @@ class AdaptConfig:
         self.teacher_views = tuple(self.teacher_views)
         if isinstance(self.teacher_view_weights, Mapping):
             self.teacher_view_weights = dict(self.teacher_view_weights)
+        if (
+            self.teacher_view_weights == DEFAULT_TEACHER_VIEW_WEIGHTS
+            and self.teacher_views != DEFAULT_TEACHER_VIEWS
+        ):
+            # The default weights name the default views: other views, given without weights
+            # of their own, count equally.
+            self.teacher_view_weights = None
         if self.cache_dir is not None:
             self.cache_dir = str(self.cache_dir)
         checks = (
             ("steps", self.steps >= 0),
             ("lr", self.lr > 0),
             ("clip", self.clip is None or self.clip > 0),
-            ("input_size", self.input_size >= 1),
+            ("input_size", self.input_size is None or self.input_size >= 1),
             ("n_windows", self.n_windows >= 1),
             ("window_size", self.window_size >= 2),
             ("stride", self.stride >= 1),
@@ -222,6 +253,7 @@ class AdaptConfig:
             ("guard_every", self.guard_every >= 1),
             ("min_parallax_px", self.min_parallax_px >= 0),
             ("refine_intrinsics", isinstance(self.refine_intrinsics, bool)),
+            ("recipe", isinstance(self.recipe, str)),
             ("photo_sigma", math.isfinite(self.photo_sigma) and self.photo_sigma >= 0),
             ("photo_pixels", self.photo_pixels >= 1),
             (
@@ -301,25 +333,123 @@ class AdaptConfig:
         return out
 
     @classmethod
+    def from_recipe(
+        cls, name: str = "default", *, model: nn.Module | None = None, **changes: Any
+    ) -> AdaptConfig:
+        """The settings of the named recipe (:data:`~raytun3r_plugin.adaptation.recipes.RECIPES`),
+        with ``changes`` on top.
+
+        Args:
+            name: a recipe name (``raytun3r_plugin.adaptation.recipes.recipe_names()``).
+            model: the backbone to fit, when known: its family's declared changes to this recipe
+                (``BackboneSpec.recipe_changes``) apply between the recipe and ``changes``.
+            changes: any field. ``weights`` given as a mapping changes only the terms it names
+                (``weights={"pose": 1.0}``); a :class:`LossWeights` replaces them all.
+
+        Raises:
+            InputError: an unknown recipe or field, or a value the fields refuse.
+        """
+        from raytun3r_plugin.adaptation.recipes import get_recipe
+
+        recipe = get_recipe(name)
+        settings: dict[str, Any] = {}
+        for layer in (recipe.changes, _family_changes(model, name), changes):
+            for key, value in layer.items():
+                if key not in _FIELDS:
+                    raise InputError(
+                        f"AdaptConfig has no field {key!r} (recipe {name!r}); fields: "
+                        f"{', '.join(sorted(_FIELDS))}"
+                    )
+                if key == "weights" and isinstance(value, Mapping):
+                    base = settings.get("weights", DEFAULT_WEIGHTS)
+                    base = base.as_dict() if isinstance(base, LossWeights) else dict(base)
+                    value = {**base, **value}
+                settings[key] = value
+        return cls(**{**settings, "recipe": recipe.name})
+
+    @classmethod
     def supervised(cls, **changes: Any) -> AdaptConfig:
-        """Settings of the supervised fit (:func:`adapt` with ``depth=``): the scale-invariant
-        log depth loss alone, Adam lr 3e-2, no regularisers, no collapse guard (the ground truth
+        """The ``supervised`` recipe (:func:`adapt` with ``depth=``): the scale-invariant log
+        depth loss alone, Adam lr 3e-2, no regularisers, no collapse guard (the ground truth
         cannot collapse); ``changes`` override any field."""
-        defaults = {"lr": 3e-2, "weights": LossWeights(**SUPERVISED_WEIGHTS), "guard": False}
-        return cls(**{**defaults, **changes})
+        return cls.from_recipe("supervised", **changes)
 
     @classmethod
     def teacher_only(cls, **changes: Any) -> AdaptConfig:
-        """Settings of a fit to the pinhole-view teacher alone: :data:`TEACHER_WEIGHTS`, the
-        supervised fit's optimiser (Adam lr 3e-2, no regulariser, no collapse guard: the
-        targets hold the depth in place), the 110-degree centre view; ``changes`` override any
-        field. No match enters the objective (windows are still chosen from the matches)."""
-        defaults = {"lr": 3e-2, "weights": LossWeights(**TEACHER_WEIGHTS), "guard": False}
-        return cls(**{**defaults, **changes})
+        """The ``teacher-only`` recipe: :data:`TEACHER_WEIGHTS`, the supervised fit's optimiser
+        (Adam lr 3e-2, no regulariser, no collapse guard: the targets hold the depth in place),
+        the 110-degree centre view; ``changes`` override any field. No match enters the
+        objective (windows are still chosen from the matches)."""
+        return cls.from_recipe("teacher-only", **changes)
+
+    def recipe_record(self, model: nn.Module | None = None) -> dict[str, Any]:
+        """What an adapter file records about the recipe: ``{"name", "version", "changes"}``,
+        where ``changes`` maps every fit setting that differs from the recipe (a loss weight as
+        ``"weights.<term>"``) (with ``model``'s
+        family changes, and its own input size for an ``input_size`` of None) to
+        ``[recipe's value, this value]``; ``backbone_changes`` lists the family's declared
+        changes when there are any. Where files go and how often checkpoints are written
+        (:data:`~raytun3r_plugin.adaptation.recipes.BOOKKEEPING_FIELDS`) are not settings."""
+        from raytun3r_plugin.adaptation.recipes import BOOKKEEPING_FIELDS, get_recipe
+
+        recipe = get_recipe(self.recipe)
+        reference = AdaptConfig.from_recipe(recipe.name, model=model)
+        if reference.input_size is None and model is not None:
+            from raytun3r_plugin.registry import native_input_size
+
+            reference.input_size = native_input_size(model)
+        ours, theirs = _flat(self.to_dict()), _flat(reference.to_dict())
+        changed = {
+            key: [theirs.get(key), ours.get(key)]
+            for key in sorted(set(ours) | set(theirs))
+            if key not in BOOKKEEPING_FIELDS and ours.get(key) != theirs.get(key)
+        }
+        record: dict[str, Any] = {
+            "name": recipe.name,
+            "version": recipe.version,
+            "changes": changed,
+        }
+        family = _family_changes(model, recipe.name)
+        if family:
+            record["backbone_changes"] = {key: _jsonable(v) for key, v in family.items()}
+        return record
 
     def identity(self) -> str:
         """Hash of the settings that must not change when a checkpoint is resumed."""
-        kept = {k: v for k, v in self.to_dict().items() if k not in _RESUMABLE_CHANGES}
+        kept = {
+            k: v for k, v in self.to_dict().items() if k not in _RESUMABLE_CHANGES and k != "recipe"
+        }
         return hashlib.sha256(json.dumps(kept, sort_keys=True, default=str).encode()).hexdigest()[
             :16
         ]
+
+
+_FIELDS = frozenset(AdaptConfig.__dataclass_fields__)
+
+
+def _family_changes(model: nn.Module | None, recipe: str) -> Mapping[str, Any]:
+    """The changes ``model``'s backbone family declares for ``recipe`` (empty without a model)."""
+    if model is None:
+        return {}
+    from raytun3r_plugin.registry import spec_for
+
+    spec, _ = spec_for(model)
+    return spec.recipe_changes.get(recipe, {})
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, LossWeights):
+        return value.as_dict()
+    if isinstance(value, tuple):
+        return list(value)
+    return value
+
+
+def _flat(settings: dict[str, Any]) -> dict[str, Any]:
+    """``to_dict()`` with the loss weights as ``weights.<term>`` entries (a term that is off is 0)."""
+    out = {k: v for k, v in settings.items() if k != "weights"}
+    for term, weight in settings.get("weights", {}).items():
+        out[f"weights.{term}"] = weight
+    for term in ("photo", "teacher"):
+        out.setdefault(f"weights.{term}", 0.0)
+    return out

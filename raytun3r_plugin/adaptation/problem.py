@@ -418,6 +418,11 @@ def _prepare_one(
         )
     native_valid = None if mask is None else scene_mask(mask, camera)
     segment["sequence_id"] = config.sequence_id
+    if config.input_size is None:
+        raise InputError(
+            "AdaptConfig.input_size is None (the backbone's own): resolve it with the model first "
+            "(adapt() does; registry.native_input_size(model)), or give it"
+        )
     layout = input_layout(camera, config.input_size, patch)
     adaptation = prepare_adaptation_set(
         images,

@@ -23,6 +23,7 @@ are within one camera), the collapse guard, checkpoints and resuming, the superv
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import os
@@ -66,6 +67,7 @@ from raytun3r_plugin.errors import AlreadyAppliedError, InputError
 from raytun3r_plugin.patching import apply, handle_of
 from raytun3r_plugin.poses import invert_rigid
 from raytun3r_plugin.prediction import predict
+from raytun3r_plugin.registry import native_input_size
 
 if TYPE_CHECKING:
     from raytun3r_plugin.datasets.rig import Rig
@@ -111,7 +113,9 @@ def adapt_rig(
         model: a supported backbone, not patched; its weights are never changed.
         rig: a :class:`~raytun3r_plugin.datasets.rig.Rig` (time-aligned sequences, one image
             size); its :attr:`~raytun3r_plugin.datasets.rig.Rig.names` order is the view order.
-        config: :class:`AdaptConfig` for every camera (defaults if None); ``window_size``
+        config: :class:`AdaptConfig` for every camera (None: the ``rig`` recipe, which is the
+            ``default`` one without the teacher term; an ``input_size`` of None is the
+            backbone's own); ``window_size``
             frames of each camera per step, so ``window_size x V`` views per forward.
         adapters: start from these (copied), by camera name; default zero adapters.
         out_dir: write ``<camera>.safetensors`` per camera, ``rig.log.jsonl`` (one JSON object
@@ -133,15 +137,18 @@ def adapt_rig(
         AlreadyAppliedError: the model carries a raytun3r patch.
         InputError: a camera without a usable window, or cameras whose input layouts differ.
     """
-    config = AdaptConfig() if config is None else config
+    config = AdaptConfig.from_recipe("rig", model=model) if config is None else config
+    if config.input_size is None:
+        config = dataclasses.replace(config, input_size=native_input_size(model))
     if handle_of(model) is not None:
         raise AlreadyAppliedError(
             "adapt_rig needs an unpatched model; remove the existing raytun3r patch first"
         )
     if config.weights.teacher > 0:
         raise InputError(
-            "adapt_rig has no pinhole-view teacher term yet: fit each camera with adapt() for "
-            "it, or set weights.teacher to 0"
+            "adapt_rig has no pinhole-view teacher term yet: use the 'rig' recipe "
+            "(AdaptConfig.from_recipe('rig')), set weights.teacher to 0, or fit each camera "
+            "with adapt() for the teacher"
         )
     names = rig.names
     start = {} if adapters is None else dict(adapters)
@@ -250,6 +257,7 @@ def adapt_rig(
         info = _training_info(
             config, problems[name], history, name, index, names, frames_per_view, seconds
         )
+        info["recipe"] = config.recipe_record(model)
         if gates[name] is not None:
             info["parallax_gate"] = gates[name]
         if cross_camera:

@@ -37,6 +37,7 @@ raytun3r_plugin.adaptation.train import X`` keeps working for every name it ever
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import os
@@ -97,6 +98,7 @@ from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AlreadyAppliedError
 from raytun3r_plugin.patching import apply, handle_of
 from raytun3r_plugin.preprocess import InputLayout, input_layout
+from raytun3r_plugin.registry import native_input_size
 
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
@@ -141,13 +143,18 @@ __all__ = [
 
 
 class _Progress:
-    """tqdm when available, otherwise a line to stderr every ~5% of the run."""
+    """A tqdm bar on a terminal; off a terminal (a log file, a pipe, a notebook's captured
+    stream) one line to stderr every :attr:`every_s` seconds and at the end, so a log holds
+    lines, not one carriage-return line of thousands of characters."""
+
+    every_s = 5.0
 
     def __init__(self, total: int, initial: int, enabled: bool) -> None:
         self.enabled = enabled
         self.total = total
         self.bar = None
-        if enabled:
+        self.last = time.monotonic()
+        if enabled and _is_terminal(sys.stderr):
             try:
                 from tqdm.auto import tqdm
 
@@ -156,7 +163,6 @@ class _Progress:
                 )
             except ImportError:
                 self.bar = None
-        self.every = max(1, total // 20)
 
     def update(self, step: int, loss: float) -> None:
         if not self.enabled:
@@ -164,7 +170,10 @@ class _Progress:
         if self.bar is not None:
             self.bar.update(1)
             self.bar.set_postfix(loss=f"{loss:.4g}", refresh=False)
-        elif (step + 1) % self.every == 0 or step + 1 == self.total:
+            return
+        now = time.monotonic()
+        if now - self.last >= self.every_s or step + 1 == self.total:
+            self.last = now
             print(
                 f"adapt: step {step + 1}/{self.total} loss {loss:.4g}", file=sys.stderr, flush=True
             )
@@ -172,6 +181,13 @@ class _Progress:
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
+
+
+def _is_terminal(stream: Any) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):
+        return False
 
 
 # --------------------------------------------------------------------------------------------
@@ -205,13 +221,15 @@ def adapt(
             steps are shared, so raise ``config.steps`` with the number of windows). A camera's
             adapter file is meant for every segment the camera records, and a fit on several
             segments learns the camera, less any one scene.
-        config: :class:`AdaptConfig` (defaults if None).
+        config: :class:`AdaptConfig`; None: the ``default`` recipe (``supervised`` with
+            ``depth``) for this model (:meth:`AdaptConfig.from_recipe`). An ``input_size`` of
+            None is the backbone's own (:func:`~raytun3r_plugin.registry.native_input_size`).
         out_path: adapter file to write (``.safetensors``); the loss log and the checkpoint go
             next to it (:func:`artifact_paths`). None keeps everything in memory (no log file,
             no checkpoint).
         adapter: start from this adapter (copied) instead of a zero one.
         resume: continue from the checkpoint next to ``out_path`` when there is one.
-        progress: show a progress bar (tqdm, or a line to stderr every 5% without it).
+        progress: show progress: a tqdm bar on a terminal, else a line to stderr every 5 s.
         mask: optional (H, W) bool (or 0/non-zero) mask of the native frames, True where the
             scene is seen: pixels it excludes (a vehicle's body, a lens mount) get no matches,
             no reprojection or smoothness terms, and their patches count as border tokens, as
@@ -259,7 +277,9 @@ def adapt(
         AdapterError: the checkpoint next to ``out_path`` belongs to another run.
     """
     if config is None:
-        config = AdaptConfig() if depth is None else AdaptConfig.supervised()
+        config = AdaptConfig.from_recipe("default" if depth is None else "supervised", model=model)
+    if config.input_size is None:
+        config = dataclasses.replace(config, input_size=native_input_size(model))
     if handle_of(model) is not None:
         raise AlreadyAppliedError(
             "adapt needs an unpatched model; remove the existing raytun3r patch first"
@@ -410,6 +430,7 @@ def adapt(
     adapter.training_info = _training_info(
         config, problem, completed, history, interrupted, time.perf_counter() - began, start
     )
+    adapter.training_info["recipe"] = config.recipe_record(model)
     if intrinsics is not None:
         adapter.training_info["intrinsics"] = intrinsics
     if guard is not None:

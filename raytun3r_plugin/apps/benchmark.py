@@ -21,12 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from raytun3r_plugin.apps.demo import (
-    POSE_SOURCE,
-    adapt_config,
-    supervised_config,
-    teacher_settings,
-)
+from raytun3r_plugin.apps.demo import adapt_config, fit_description, supervised_config
 from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
 from raytun3r_plugin.errors import InputError
 
@@ -282,23 +277,17 @@ def sequence_rows(
     out: Path,
     progress: bool = False,
     baselines: tuple[str, ...] = (),
-    pose_source: str = POSE_SOURCE,
-    pose_weight: float | None = None,
-    teacher_weight: float | None = None,
-    teacher_views: tuple[str, ...] | None = None,
-    teacher_view_weights: dict[str, float] | None = None,
+    recipe: str = "default",
+    fit_changes: dict[str, Any] | None = None,
 ) -> list[dict]:
     """The rows of one held-out sequence: vanilla, Center-PH, Multi-PH, the zero adapter, an
     adapter fitted self-supervised on its first ``n_adapt`` frames and one fitted to their
     ground-truth depth (the upper bound; both written to ``out``), then the ``baselines``
     (:data:`BASELINES`: LoRA, calibration tokens) fitted like the first adapter with the
-    tables at zero and ``components=[]``; all scored on the rest. ``pose_source``, ``pose_weight``:
-    those of the self-supervised fits (:class:`~raytun3r_plugin.adaptation.train.AdaptConfig`,
-    :func:`~raytun3r_plugin.apps.demo.adapt_config`; ``None``: the default network's weight for
-    its own pose source, 1 for another). ``teacher_weight``: that of the pinhole-view teacher
-    term (``None``: the network's, :data:`~raytun3r_plugin.apps.demo.NETWORK_FIT`);
-    ``teacher_views``: its views (``None``: the library's); ``teacher_view_weights``: their
-    weights (``AdaptConfig.teacher_view_weights``; ``None``: the mean over the views).
+    tables at zero and ``components=[]``; all scored on the rest. The self-supervised fits and
+    the baselines use the fit recipe ``recipe`` with ``fit_changes`` (``AdaptConfig`` fields;
+    ``weights`` as a mapping of the terms it changes;
+    :func:`~raytun3r_plugin.apps.demo.adapt_config`), whatever the network.
 
     Every row has ``params`` (trainable parameters of what was fitted; 0 without a fit),
     ``ms_per_frame`` (:func:`timed_row`) and ``x_vanilla`` (its ``ms_per_frame`` over vanilla's
@@ -334,16 +323,7 @@ def sequence_rows(
         model,
         camera,
         seq.first_images(n_adapt),
-        adapt_config(
-            size,
-            steps,
-            seed=0,
-            pose_source=pose_source,
-            pose_weight=pose_weight,
-            teacher_weight=teacher_weight,
-            teacher_views=teacher_views,
-            teacher_view_weights=teacher_view_weights,
-        ),
+        adapt_config(size, steps, seed=0, recipe=recipe, **(fit_changes or {})),
         out_path=path,
         resume=False,
         progress=progress,
@@ -385,14 +365,7 @@ def sequence_rows(
             camera,
             seq.first_images(n_adapt),
             name,
-            adapt_config(
-                size,
-                steps,
-                seed=0,
-                components=[],
-                pose_source=pose_source,
-                pose_weight=pose_weight,
-            ),
+            adapt_config(size, steps, seed=0, components=[], recipe=recipe, **(fit_changes or {})),
             out_path=path.with_name(f"{path.stem}_{name}.safetensors"),
             progress=progress,
         ) as (module, seconds):
@@ -482,11 +455,8 @@ def run_benchmark(
     progress: bool = False,
     base_seed: int = HELD_OUT_SEED,
     baselines: tuple[str, ...] = (),
-    pose_source: str = POSE_SOURCE,
-    pose_weight: float | None = None,
-    teacher_weight: float | None = None,
-    teacher_views: tuple[str, ...] | None = None,
-    teacher_view_weights: dict[str, float] | None = None,
+    recipe: str = "default",
+    fit_changes: dict[str, Any] | None = None,
     jobs: int = 1,
 ) -> str:
     """Run every (camera, scene) on ``sequences`` held-out sequences; return the markdown table.
@@ -514,11 +484,8 @@ def run_benchmark(
         "out": out,
         "progress": progress and jobs == 1,
         "baselines": baselines,
-        "pose_source": pose_source,
-        "pose_weight": pose_weight,
-        "teacher_weight": teacher_weight,
-        "teacher_views": teacher_views,
-        "teacher_view_weights": teacher_view_weights,
+        "recipe": recipe,
+        "fit_changes": fit_changes,
     }
     tasks = []
     for position, spec in enumerate(cameras):
@@ -572,23 +539,11 @@ def run_benchmark(
     table = format_table(
         summary, COLUMNS + ["gap_closed", "lower_than_vanilla", f"lower_than_{ZERO_ADAPTER}"]
     )
-    fit = adapt_config(
-        size,
-        steps,
-        pose_source=pose_source,
-        pose_weight=pose_weight,
-        teacher_weight=teacher_weight,
-        teacher_views=teacher_views,
-        teacher_view_weights=teacher_view_weights,
-    )
-    teacher = teacher_settings(fit)
+    fit = adapt_config(size, steps, recipe=recipe, **(fit_changes or {}))
     header = (
         f"Network: {network or 'see model card'}; input {size}x{size} px; {sequences} {'held-out' if base_seed == HELD_OUT_SEED else 'development'} sequences per camera and scene "
         f"(seeds {base_seed} + 100 k + 10 camera + scene); per sequence {n_adapt} adaptation frames "
-        f"(30 windows, {steps} steps, pose source '{pose_source}', pose weight "
-        f"{fit.weights.pose:g}"
-        + (f", {teacher}" if teacher else "")
-        + f") and {n_eval} scored frames"
+        f"(30 windows, {fit_description(fit)}) and {n_eval} scored frames"
         + (
             f"; {jobs} worker processes of one thread each (timings are one thread's beside the other workers)"
             if jobs > 1

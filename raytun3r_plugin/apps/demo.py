@@ -23,7 +23,6 @@ import functools
 import json
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -34,93 +33,65 @@ DEFAULT_NETWORK = "raytun3r-da3-tiny-v3"
 DEMO_STEPS = 100
 DEMO_LR = 1e-2
 DEMO_SEQUENCES = 4
-#: The self-supervised fit settings per built-in network: ``AdaptConfig.pose_source`` and the pose
-#: term's weight. v2's pose head is at chance, so its fits take relative poses from the MAGSAC++
-#: targets alone. v3's works: its fits reproject through the targets (the scale-correct depth
-#: signal of issue 12) and keep the paper's pose term on the network's own pose at weight 0.3
-#: (``"hybrid"``), chosen on 9 development sequences and confirmed on the 30 held-out ones by a
-#: rule written before the run (docs/decisions.md, "Pose source and pose weight"). On lenses wider
-#: than about 160 degrees they add the pinhole-view teacher at weight 10
-#: (``AdaptConfig.teacher_max_coverage``; docs/decisions.md, "The lens-gated teacher") on the
-#: 110-degree centre, left and right views, the side views counted at 0.3 of the centre one:
-#: the fourth teacher round, switched on by a rule written before its held-out run
-#: (docs/decisions.md, "The teacher, fourth round").
-NETWORK_FIT: dict[str, dict[str, Any]] = {
-    "raytun3r-da3-tiny": {"pose_source": "targets", "pose_weight": 1.0},
-    "raytun3r-da3-tiny-v3": {
-        "pose_source": "hybrid",
-        "pose_weight": 0.3,
-        "teacher_weight": 10.0,
-        "teacher_views": ("centre", "left", "right"),
-        "teacher_view_weights": {"centre": 1.0, "left": 0.3, "right": 0.3},
-    },
-}
-POSE_SOURCE: str = NETWORK_FIT[DEFAULT_NETWORK]["pose_source"]
-POSE_WEIGHT = NETWORK_FIT[DEFAULT_NETWORK]["pose_weight"]
+#: The built-in networks (``patches/da3_default.py``). Every one is fitted with the same recipes:
+#: nothing in a fit is keyed by a network's name.
+BUILT_IN_NETWORKS = ("raytun3r-da3-tiny", "raytun3r-da3-tiny-v3")
 
 
 def adapt_config(
     size: int,
     steps: int,
     *,
-    network: str = DEFAULT_NETWORK,
+    recipe: str = "default",
     pose_weight: float | None = None,
     teacher_weight: float | None = None,
-    teacher_views: tuple[str, ...] | None = None,
-    teacher_view_weights: dict[str, float] | None = None,
     **changes,
 ):
-    """The adaptation settings the demo and the benchmark use with the built-in network.
+    """The recipe ``recipe`` (:mod:`raytun3r_plugin.adaptation.recipes`) at input ``size`` px
+    and ``steps`` steps, without intermediate checkpoints: the fits of the demo, the benchmark
+    and the benchmark scripts.
 
-    Defaults of :class:`AdaptConfig` (30 windows) at input ``size`` px, no intermediate checkpoints,
-    and ``network``'s fit settings (:data:`NETWORK_FIT`: pose source and pose weight).
-    ``pose_weight`` replaces the pose term's weight in the self-supervised defaults
-    (``SELF_SUPERVISED_WEIGHTS``); without it the weight is the network's when the pose source is
-    the network's and the library's (1) when ``changes`` pick another pose source, since the
-    network's weight was chosen for its own source. ``teacher_weight`` sets the pinhole-view
-    teacher term's weight (``LossWeights.teacher``; None: the network's, :data:`NETWORK_FIT`,
-    with its own pose source, else 0); ``teacher_views`` its views (``AdaptConfig.teacher_views``)
-    and ``teacher_view_weights`` their weights (``AdaptConfig.teacher_view_weights``). Without
-    either, both are the network's (with its own pose source; else the library's: the centre
-    view); with views but no weights, the views count equally, since the network's weights name
-    its own views. ``changes`` override any field.
+    ``pose_weight`` and ``teacher_weight`` change only that loss term's weight
+    (``weights={"pose": ...}``); ``changes`` change any other field. Everything not given is the
+    recipe's, whatever the network.
     """
-    from raytun3r_plugin.adaptation.train import SELF_SUPERVISED_WEIGHTS, AdaptConfig, LossWeights
+    from raytun3r_plugin.adaptation.train import AdaptConfig
     from raytun3r_plugin.errors import InputError
 
-    fit = NETWORK_FIT[network]
-    source = changes.pop("pose_source", fit["pose_source"])
-    # The network's settings were chosen with its own pose source: another gets the library's.
-    own = source == fit["pose_source"]
-    if (pose_weight is not None or teacher_weight is not None) and "weights" in changes:
+    terms = {
+        name: float(value)
+        for name, value in (("pose", pose_weight), ("teacher", teacher_weight))
+        if value is not None
+    }
+    if terms and "weights" in changes:
         raise InputError(
             "adapt_config: give pose_weight or weights, not both (likewise teacher_weight)"
         )
-    if "weights" not in changes:
-        if pose_weight is None:
-            pose_weight = fit["pose_weight"] if own else None
-        if teacher_weight is None:
-            teacher_weight = fit.get("teacher_weight", 0.0) if own else 0.0
-        if pose_weight is not None or teacher_weight:
-            pose = SELF_SUPERVISED_WEIGHTS["pose"] if pose_weight is None else float(pose_weight)
-            changes["weights"] = LossWeights(
-                **{**SELF_SUPERVISED_WEIGHTS, "pose": pose, "teacher": float(teacher_weight)}
-            )
-    if teacher_views is None and teacher_view_weights is None and own:
-        teacher_views = fit.get("teacher_views")
-        teacher_view_weights = fit.get("teacher_view_weights")
-    if teacher_views is not None:
-        changes["teacher_views"] = tuple(teacher_views)
-    if teacher_view_weights is not None:
-        changes["teacher_view_weights"] = dict(teacher_view_weights)
-    return AdaptConfig(
-        **{
-            "steps": steps,
-            "input_size": size,
-            "checkpoint_every": 0,
-            "pose_source": source,
-            **changes,
-        }
+    if terms:
+        changes["weights"] = terms
+    for key in ("teacher_views", "teacher_view_weights"):
+        if key in changes and changes[key] is None:
+            del changes[key]  # None: the recipe's
+    if "teacher_views" in changes:
+        changes["teacher_views"] = tuple(changes["teacher_views"])
+    return AdaptConfig.from_recipe(
+        recipe, **{"steps": steps, "input_size": size, "checkpoint_every": 0, **changes}
+    )
+
+
+def fit_description(config) -> str:
+    """A fit's settings in one line for the demo's and the benchmark's headers: the recipe, what
+    was changed from it, and the teacher in words."""
+    record = config.recipe_record()
+    changed = ", ".join(
+        f"{key} {new}" for key, (_, new) in record["changes"].items() if key != "input_size"
+    )
+    teacher = teacher_settings(config)
+    return (
+        f"recipe '{record['name']}' v{record['version']}"
+        + (f" (changed: {changed})" if changed else "")
+        + f", pose source '{config.pose_source}', pose weight {config.weights.pose:g}"
+        + (f", {teacher}" if teacher else "")
     )
 
 
@@ -145,23 +116,13 @@ def teacher_settings(config) -> str:
 
 def supervised_config(size: int, steps: int, **changes):
     """The supervised fit (ground-truth depth) the demo and the benchmark report as the upper
-    bound: :meth:`AdaptConfig.supervised` at input ``size`` px, same windows and poses as
+    bound: the ``supervised`` recipe at input ``size`` px, the same windows and poses as
     :func:`adapt_config`."""
-    from raytun3r_plugin.adaptation.train import AdaptConfig
-
-    return AdaptConfig.supervised(
-        **{
-            "steps": steps,
-            "input_size": size,
-            "checkpoint_every": 0,
-            "pose_source": POSE_SOURCE,
-            **changes,
-        }
-    )
+    return adapt_config(size, steps, recipe="supervised", **changes)
 
 
 def default_network(name: str = DEFAULT_NETWORK):
-    """(model, description) of the built-in network ``name`` (a key of :data:`NETWORK_FIT`);
+    """(model, description) of the built-in network ``name`` (:data:`BUILT_IN_NETWORKS`);
     honest about what it is."""
     from raytun3r_plugin.errors import WeightsError
     from raytun3r_plugin.weights import load_backbone
@@ -282,11 +243,7 @@ def run_demo(args: argparse.Namespace) -> int:
     print(f"network: {description}")
     camera = demo_camera(size)
     print(f"camera:  {camera!r}, field of view {camera.fov_deg:.0f} deg")
-    teacher = teacher_settings(adapt_config(size, steps))
-    print(
-        f"fits:    {steps} steps at lr {DEMO_LR:g}, pose source '{POSE_SOURCE}', pose weight "
-        f"{POSE_WEIGHT:g}" + (f", {teacher}" if teacher else "")
-    )
+    print(f"fits:    {fit_description(adapt_config(size, steps, lr=DEMO_LR))}")
     print(
         f"jobs:    {jobs} process{'es' if jobs > 1 else ''}"
         + (", 1 thread each" if jobs > 1 else "")
@@ -310,8 +267,8 @@ def run_demo(args: argparse.Namespace) -> int:
     rows = [row for k in range(count) for row in results[k][0]]
     seconds = {key: [results[k][1][key] for k in range(count)] for key in ("adapted", "supervised")}
 
-    # Rotation is counted too: v3's fits keep the pose term on the network's own pose
-    # (POSE_SOURCE), so the adapter can move it.
+    # Rotation is counted too: the default recipe keeps the pose term on the network's own
+    # pose, so the adapter can move it.
     table_rows = summarise(
         rows, reference=labels["zero"], metrics=("rot_deg", "d_reproj_px", "abs_rel")
     )

@@ -1,0 +1,186 @@
+"""Named fit recipes: the one home of the settings an adaptation uses.
+
+A recipe is a name, a version and the :class:`~raytun3r_plugin.adaptation.config.AdaptConfig`
+fields it sets. ``AdaptConfig()`` *is* the ``default`` recipe (its field defaults are that
+recipe's settings); every other recipe lists what it changes from them. ``adapt()`` without a
+config, ``raytun3r adapt`` without fit options, the demo, the benchmark and every benchmark
+script take their settings from here (``AdaptConfig.from_recipe(name, **changes)``), and an
+adapter file records the recipe's name and version and every setting that differs from it
+(``training_info["recipe"]``, shown by ``raytun3r inspect``).
+
+Where a backbone family needs other settings, its :class:`~raytun3r_plugin.registry.BackboneSpec`
+declares them as data (``recipe_changes``, with the measurement beside it); none does today.
+Nothing here is keyed by the name of a particular network.
+
+How each recipe was chosen, with the numbers and the rules written before each held-out run:
+``docs/decisions.md``. When to choose which: ``docs/recipes.md``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from raytun3r_plugin.errors import InputError
+
+__all__ = ["BOOKKEEPING_FIELDS", "RECIPES", "Recipe", "get_recipe", "recipe_names"]
+
+#: Fields that say where a run keeps its files or how often it saves, not what it fits: an
+#: adapter file does not list them among the settings that differ from its recipe.
+BOOKKEEPING_FIELDS = frozenset({"cache_dir", "sequence_id", "checkpoint_every", "recipe"})
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """One named set of fit settings.
+
+    Attributes:
+        name: what users type (``--recipe NAME``, ``AdaptConfig.from_recipe(NAME)``).
+        version: raised whenever the settings change, so an adapter file's record
+            ``(name, version)`` names exactly one set of settings.
+        summary: one line for ``--help``, ``raytun3r inspect`` and the docs.
+        changes: the ``AdaptConfig`` fields this recipe sets, relative to the field defaults
+            (the ``default`` recipe); ``"weights"`` as a mapping of the loss terms it changes.
+        supervised: the recipe fits to ground-truth depth (``adapt(..., depth=...)``).
+        evidence: where the measurement that chose it is written.
+    """
+
+    name: str
+    version: int
+    summary: str
+    changes: Mapping[str, Any] = field(default_factory=dict)
+    supervised: bool = False
+    evidence: str = ""
+
+
+#: The recipes, by name. ``default``'s settings are ``AdaptConfig``'s field defaults.
+RECIPES: dict[str, Recipe] = {
+    recipe.name: recipe
+    for recipe in (
+        Recipe(
+            "default",
+            1,
+            "the fit that works by default: reprojection through the MAGSAC++ targets, the "
+            "paper's pose term at 0.3, and on lenses wider than about 160 degrees the "
+            "pinhole-view teacher (weight 10, centre view and side views at 0.3)",
+            evidence="docs/decisions.md: 'Pose source and pose weight', 'The lens-gated "
+            "teacher', 'The teacher, fourth round', 'One default recipe for every network'",
+        ),
+        Recipe(
+            "paper",
+            1,
+            "the paper's objective as written: reprojection through the network's own pose, "
+            "weights 1 / 10 / 2 / 20 / 1 in absolute PE units, plain L1, Adam lr 1e-3, "
+            "no parallax gate, no teacher",
+            changes={
+                "pose_source": "model",
+                "weights": {
+                    "reproj": 1.0,
+                    "smooth": 10.0,
+                    "l2": 2.0,
+                    "tv": 20.0,
+                    "pose": 1.0,
+                    "teacher": 0.0,
+                },
+                "pe_regulariser": "absolute",
+                "robust_px": None,
+                "lr": 1e-3,
+                "min_parallax_px": 0.0,
+            },
+            evidence="the paper, 'Adapter training'; docs/adaptation.md, 'Choosing the defaults'",
+        ),
+        Recipe(
+            "matches",
+            1,
+            "matches alone: reprojection through the network's own pose with the pose term, "
+            "the regularisers relative to the backbone's PE energy, no teacher (the "
+            "library's self-supervised fit before recipes)",
+            changes={
+                "pose_source": "model",
+                "weights": {"pose": 1.0, "teacher": 0.0},
+            },
+            evidence="docs/adaptation.md, 'Choosing the defaults'",
+        ),
+        Recipe(
+            "targets",
+            1,
+            "for a pose head no better than 'no rotation': reprojection through the MAGSAC++ "
+            "targets alone, no pose term, no teacher",
+            changes={
+                "pose_source": "targets",
+                "weights": {"pose": 1.0, "teacher": 0.0},
+            },
+            evidence="docs/decisions.md, 'The default built-in network and the pose source "
+            "of its fits'",
+        ),
+        Recipe(
+            "rig",
+            1,
+            "the default recipe without the teacher term, which the joint rig fit does not "
+            "support: the rig fit's default",
+            changes={
+                "weights": {"teacher": 0.0},
+            },
+            evidence="docs/rigs.md",
+        ),
+        Recipe(
+            "supervised",
+            1,
+            "the same tables fitted to ground-truth depth: the scale-invariant log depth loss "
+            "alone, Adam lr 3e-2, no regulariser, no collapse guard",
+            changes={
+                "lr": 3e-2,
+                "weights": {
+                    "reproj": 0.0,
+                    "smooth": 0.0,
+                    "l2": 0.0,
+                    "tv": 0.0,
+                    "pose": 0.0,
+                    "depth": 1.0,
+                    "teacher": 0.0,
+                },
+                "guard": False,
+            },
+            supervised=True,
+            evidence="docs/adaptation.md, 'Supervised fit'",
+        ),
+        Recipe(
+            "teacher-only",
+            1,
+            "the pinhole-view teacher alone (no match term): Adam lr 3e-2, no regulariser, no "
+            "collapse guard, the 110-degree centre view",
+            changes={
+                "lr": 3e-2,
+                "weights": {
+                    "reproj": 0.0,
+                    "smooth": 0.0,
+                    "l2": 0.0,
+                    "tv": 0.0,
+                    "pose": 0.0,
+                    "depth": 0.0,
+                    "teacher": 1.0,
+                },
+                "guard": False,
+                "teacher_views": ("centre",),
+                "teacher_view_weights": None,
+            },
+            evidence="docs/decisions.md, 'The pinhole-view teacher'",
+        ),
+    )
+}
+
+
+def recipe_names() -> list[str]:
+    """The recipes' names, ``default`` first."""
+    return sorted(RECIPES, key=lambda name: (name != "default", name))
+
+
+def get_recipe(name: str) -> Recipe:
+    """The recipe ``name``; :class:`InputError` naming the known ones otherwise."""
+    try:
+        return RECIPES[name]
+    except (KeyError, TypeError):
+        raise InputError(
+            f"unknown fit recipe {name!r}; known recipes: {', '.join(recipe_names())}"
+        ) from None
