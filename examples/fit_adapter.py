@@ -12,7 +12,7 @@ import argparse
 import raytun3r_plugin as rt
 from raytun3r_plugin import cameras, synthetic
 from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
-from raytun3r_plugin.apps.demo import adapt_config, default_network, demo_camera
+from raytun3r_plugin.apps.demo import default_network, demo_camera
 from raytun3r_plugin.images import read_frames, read_mask
 
 
@@ -26,7 +26,13 @@ def main() -> None:
     )
     parser.add_argument("--backbone", help="backbone name (default: the built-in network)")
     parser.add_argument("--weights", help="local weight file of --backbone")
-    parser.add_argument("--size", type=int, default=112, help="network input long side (px)")
+    parser.add_argument(
+        "--size",
+        type=int,
+        default=None,
+        help="network input long side (default: the backbone's own)",
+    )
+    parser.add_argument("--recipe", default="default", help="fit recipe (`raytun3r recipes`)")
     parser.add_argument("--steps", type=int, default=150)
     parser.add_argument("--n-frames", type=int, default=24)
     args = parser.parse_args()
@@ -39,20 +45,17 @@ def main() -> None:
         # Pixels that see the rig itself move with the camera: keep them out of the fit.
         mask = read_mask(args.mask, camera.width, camera.height) if args.mask else None
     else:
-        camera = demo_camera(args.size)
+        camera = demo_camera(args.size or 112)
         frames = synthetic.render_sequence("indoor", camera, n_frames=args.n_frames, seed=7).images
-    # Your own backbone gets the library's defaults (the paper's objective); the built-in network
-    # gets the settings it was benchmarked with (apps.demo.NETWORK_FIT).
-    config = (
-        AdaptConfig(steps=args.steps, input_size=args.size, seed=0)
-        if args.backbone
-        else adapt_config(
-            args.size, args.steps, seed=0, checkpoint_every=AdaptConfig.checkpoint_every
-        )
+    # Every backbone gets the same recipe (the library's default unless --recipe says otherwise);
+    # the input size is the backbone's own unless --size is given.
+    config = AdaptConfig.from_recipe(
+        args.recipe, model=model, steps=args.steps, input_size=args.size, seed=0
     )
     adapter = adapt(model, camera, frames, config, out_path=args.out, progress=False, mask=mask)
     print(
-        f"saved {args.out}: {adapter.num_parameters()['total']:,} parameters, final losses {adapter.training_info.get('final_losses')}"
+        f"saved {args.out}: {adapter.num_parameters()['total']:,} parameters, recipe "
+        f"{adapter.training_info['recipe']}; {adapter.training_info['verdict']['summary']}"
     )
 
 

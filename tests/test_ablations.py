@@ -183,7 +183,8 @@ def test_adapt_with_radial_only_leaves_the_angular_table_at_zero(net, camera, tm
     from tests.test_losses import room_sequence
 
     frames, _, _ = room_sequence(camera, 4, step=0.35, yaw=0.06)
-    config = AdaptConfig(
+    config = AdaptConfig.from_recipe(
+        "matches",
         steps=2,
         input_size=W,
         n_windows=2,

@@ -62,8 +62,8 @@ def _quiet_da3():
 
 
 def config(cache_dir, **changes) -> AdaptConfig:
-    # The collapse guard and the parallax gate add forwards of their own; their tests switch
-    # them on.
+    # The mechanics of a fit, on the match terms alone: the teacher (default recipe), the
+    # collapse guard and the parallax gate add forwards of their own; their tests switch them on.
     base = dict(
         steps=3,
         input_size=84,
@@ -76,7 +76,7 @@ def config(cache_dir, **changes) -> AdaptConfig:
         min_parallax_px=0.0,
     )
     base.update(changes)
-    return AdaptConfig(**base)
+    return AdaptConfig.from_recipe("matches", **base)
 
 
 def tables(adapter: Adapter) -> dict[str, torch.Tensor]:
@@ -115,16 +115,18 @@ def test_input_layout_resizes_or_crops_consistently():
 
 
 def test_config_validates_and_round_trips():
+    # AdaptConfig() is the default recipe (docs/recipes.md).
     cfg = AdaptConfig()
     assert (cfg.steps, cfg.lr, cfg.clip, cfg.input_size, cfg.n_windows, cfg.pose_source) == (
         300,
         3e-3,
         1.0,
-        504,
+        None,
         30,
-        "model",
+        "hybrid",
     )
-    assert cfg.weights.as_dict() == SELF_SUPERVISED_WEIGHTS
+    assert cfg.weights.as_dict() == {**SELF_SUPERVISED_WEIGHTS, "pose": 0.3, "teacher": 10.0}
+    assert cfg.recipe == "default" and cfg.teacher_views == ("centre", "left", "right")
     assert (cfg.scale, cfg.robust_px, cfg.pe_regulariser, cfg.guard) == (
         "pixel",
         1.0,

@@ -63,7 +63,7 @@ def small(cache_dir, **changes) -> AdaptConfig:
         seed=0,
         pose_source="targets",
     )
-    return AdaptConfig(**{**base, **changes})
+    return AdaptConfig.from_recipe("matches", **{**base, **changes})
 
 
 # --------------------------------------------------------------------------------------------

@@ -114,7 +114,8 @@ def test_adapt_fits_the_tokens(net, tmp_path):
 
     camera = fisheye(84, 70, 190.0)
     images, _, _ = room_sequence(camera, 5, step=0.35, yaw=0.06)
-    config = AdaptConfig(
+    config = AdaptConfig.from_recipe(
+        "matches",
         steps=3,
         input_size=84,
         n_windows=3,
@@ -423,7 +424,8 @@ def test_adapt_fits_vggt_and_pi3_tokens(family, tmp_path):
     model = make(family)
     camera = fisheye(84, 70, 190.0)
     images, _, _ = room_sequence(camera, 5, step=0.35, yaw=0.06)
-    config = AdaptConfig(
+    config = AdaptConfig.from_recipe(
+        "matches",
         steps=2,
         input_size=84,
         n_windows=3,

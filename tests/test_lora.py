@@ -162,7 +162,8 @@ def test_adapt_fits_the_lora_factors_with_the_same_objective(net, tmp_path):
     camera = fisheye(84, 70, 190.0)
     images, _, _ = room_sequence(camera, 5, step=0.35, yaw=0.06)
     before = {k: v.clone() for k, v in net.state_dict().items()}
-    config = AdaptConfig(
+    config = AdaptConfig.from_recipe(
+        "matches",
         steps=3,
         input_size=84,
         n_windows=3,
@@ -225,7 +226,8 @@ def test_tune_mode_has_the_collapse_guard(net, tmp_path, monkeypatch):
     monkeypatch.setattr(train, "GUARD_MIN_CORRELATION", 1.01)  # no fit can pass: it must trip
     camera = fisheye(84, 70, 190.0)
     images, _, _ = room_sequence(camera, 5, step=0.35, yaw=0.06)
-    config = AdaptConfig(
+    config = AdaptConfig.from_recipe(
+        "matches",
         steps=6,
         guard_every=3,
         input_size=84,

@@ -128,15 +128,15 @@ def test_the_gradient_reaches_the_depth(street):
 
 
 def test_photo_is_off_by_default_and_leaves_the_configuration_identity_alone():
-    default = AdaptConfig()
-    assert default.weights.photo == 0
+    default = AdaptConfig.from_recipe("matches")
+    assert AdaptConfig().weights.photo == 0 and default.weights.photo == 0
     assert "photo" not in default.to_dict()["weights"]
     assert "photo_sigma" not in default.to_dict() and "photo_pixels" not in default.to_dict()
     on = dataclasses.replace(default, weights=dataclasses.replace(default.weights, photo=10.0))
     saved = on.to_dict()
     assert saved["weights"]["photo"] == 10.0
     assert saved["photo_sigma"] == 1.0 and saved["photo_pixels"] == 4096
-    assert AdaptConfig(**saved).weights.photo == 10.0
+    assert AdaptConfig(**saved).weights.photo == 10.0 and AdaptConfig(**saved) == on
     assert LossWeights().as_dict() == {
         k: v for k, v in dataclasses.asdict(LossWeights()).items() if k not in ("photo", "teacher")
     }
@@ -154,7 +154,8 @@ def _tiny_fit(tmp_path, **changes):
     """(camera, frames, config) of a two-step fit of the tiny DA3 network on a 5-frame room."""
     camera = KannalaBrandt4(84, 70, [22.0, 22.0, 41.5, 34.5, 0.0, 0.0, 0.0, 0.0], max_fov_deg=190.0)
     frames = synthetic.render_sequence("indoor", camera, n_frames=5, seed=7).images
-    config = AdaptConfig(
+    config = AdaptConfig.from_recipe(
+        "matches",
         steps=2,
         input_size=84,
         n_windows=2,

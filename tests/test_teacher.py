@@ -50,9 +50,10 @@ def _config(tmp_path, **changes) -> AdaptConfig:
         "matcher_options": {"border_px": 2},
         "seed": 0,
         "guard": False,
+        "teacher_views": ("centre",),
         **changes,
     }
-    return AdaptConfig(**settings)
+    return AdaptConfig.from_recipe("matches", **settings)
 
 
 def test_grouped_silog_leaves_one_scale_per_group():
@@ -121,9 +122,11 @@ def test_teacher_views_are_named_and_the_teacher_is_the_unpatched_model(room, tm
 
 
 def test_teacher_options_are_validated_and_out_of_the_identity_when_off():
-    off = AdaptConfig()
+    off = AdaptConfig.from_recipe("matches")
     assert "teacher_views" not in off.to_dict() and "teacher" not in off.to_dict()["weights"]
-    on = AdaptConfig(weights=dataclasses.replace(off.weights, teacher=2.0), teacher_fov_deg=90.0)
+    on = AdaptConfig.from_recipe(
+        "matches", weights={"teacher": 2.0}, teacher_views=("centre",), teacher_fov_deg=90.0
+    )
     record = on.to_dict()
     assert record["teacher_views"] == ["centre"] and record["teacher_fov_deg"] == 90.0
     assert AdaptConfig(**json.loads(json.dumps(record))) == on
@@ -263,7 +266,7 @@ def test_weighted_groups_are_a_weighted_sum_and_an_empty_group_adds_nothing():
 def test_view_weights_are_validated_ordered_by_the_views_and_out_of_the_identity_by_default():
     on = dataclasses.replace(AdaptConfig().weights, teacher=10.0)
     views = ("centre", "left", "right")
-    plain = AdaptConfig(weights=on, teacher_views=views)
+    plain = AdaptConfig(weights=on, teacher_views=views, teacher_view_weights=None)
     weighted = AdaptConfig(
         weights=on,
         teacher_views=views,
@@ -275,11 +278,14 @@ def test_view_weights_are_validated_ordered_by_the_views_and_out_of_the_identity
     assert record["teacher_view_weights"] == {"centre": 1, "left": 0.3, "right": 0.3}
     assert AdaptConfig(**record) == weighted and weighted.identity() != plain.identity()
     # With the term off the weights are not part of the fit and not of its identity.
-    off = AdaptConfig(
-        teacher_views=views, teacher_view_weights={"centre": 1, "left": 1, "right": 1}
+    off = AdaptConfig.from_recipe(
+        "matches", teacher_views=views, teacher_view_weights={"centre": 1, "left": 1, "right": 1}
     )
     assert "teacher_view_weights" not in off.to_dict()
-    assert off.identity() == AdaptConfig(teacher_views=views).identity()
+    assert off.identity() == AdaptConfig.from_recipe("matches", teacher_views=views).identity()
+    # The default recipe's weights name its own views; other views given alone count equally.
+    assert AdaptConfig().view_weights() == (1.0, 0.3, 0.3)
+    assert AdaptConfig(teacher_views=("centre", "left")).view_weights() is None
     for bad in (
         {"centre": 1.0, "left": 0.3},  # a view without a weight
         {"centre": 1.0, "left": 0.3, "right": 0.3, "down": 1.0},  # a weight without a view
