@@ -21,8 +21,10 @@ from raytun3r_plugin.adaptation.config import POSE_SOURCES
 from raytun3r_plugin.adaptation.recipes import recipe_names
 from raytun3r_plugin.apps.benchmark import (
     BASELINES,
+    CAMERAS,
     DEVELOPMENT_SEED,
     HELD_OUT_SEED,
+    NEW_LENSES,
     SEQUENCES_PER_CELL,
     run_benchmark,
 )
@@ -77,6 +79,12 @@ def main() -> None:
         help="development seeds (80000+) instead of the held-out ones; never with --readme",
     )
     parser.add_argument(
+        "--new-lenses",
+        action="store_true",
+        help="the lens models no setting was chosen on (UCM 200, EUCM 210) instead of the "
+        "benchmark's three; held-out seeds only, reported apart",
+    )
+    parser.add_argument(
         "--network",
         default=DEFAULT_NETWORK,
         choices=BUILT_IN_NETWORKS,
@@ -125,6 +133,10 @@ def main() -> None:
         "are then one thread's beside the other workers",
     )
     args = parser.parse_args()
+    if args.new_lenses and (args.development or args.readme):
+        parser.error(
+            "--new-lenses is a held-out run, reported apart: no --development, no --readme"
+        )
     if args.development and args.readme:
         parser.error(
             "--development tables are for choosing settings; the README shows held-out seeds"
@@ -143,6 +155,7 @@ def main() -> None:
         recipe=args.recipe,
         fit_changes=fit_changes(args),
         jobs=args.jobs,
+        cameras=NEW_LENSES if args.new_lenses else CAMERAS,
     )
     print(table)
     if args.readme:

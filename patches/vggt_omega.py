@@ -352,7 +352,7 @@ SPEC = register(
         rope_classes=ROPE_CLASSES,
         rope_base_attribute=ROPE_BASE_ATTRIBUTE,
         check=check,
-        input_size=518,  # VGGT's preprocessing, which VGGT-Omega keeps
+        input_size=512,  # the released checkpoint is vggt_omega_1b_512 (16-px patches)
         # The DINOv3 ViT, the frame and the inter-frame blocks; not the camera head's trunk.
         transformer_blocks=(
             "aggregator.patch_embed.blocks",

@@ -216,7 +216,7 @@ class BackboneSpec:
             parameter-free corrections. A spec with branches declares no ``targets`` of its own.
             Empty (the default): the root is the one patch root.
         input_size: the long side, in pixels, at which upstream runs the family by default (DA3
-            and Pi3: 504, VGGT: 518): the input size of a fit and of inference when none is
+            and Pi3: 504, VGGT: 518, VGGT-Omega: 512): the input size of a fit and of inference when none is
             given. A model instance may carry its own as ``raytun3r_input_size`` (the built-in
             networks, trained at 112); :func:`native_input_size` reads both.
         recipe_changes: ``{recipe name: {AdaptConfig field: value}}``: the settings this family

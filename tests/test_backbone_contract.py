@@ -232,6 +232,24 @@ def test_recognised_and_every_declared_owner_resolves(case, net):
     assert _rope_instances(net)
 
 
+def test_input_size_and_fit_recipes_are_declared_as_data(case, net):
+    """Every family says at what size a fit and inference run by default (its upstream's own
+    preprocessing), and its recipe changes, if any, name real recipes and fields."""
+    from raytun3r_plugin.adaptation.config import AdaptConfig
+    from raytun3r_plugin.adaptation.recipes import recipe_names
+
+    spec, root = spec_for(net)
+    size = registry.native_input_size(net)
+    info = spec.describe(root)
+    assert size == spec.input_size and size % info.patch_size == 0
+    assert size == {"vggt": 518, "vggt_omega": 512}.get(case.family, 504)
+    assert set(spec.recipe_changes) <= set(recipe_names())
+    for name in recipe_names():
+        config = AdaptConfig.from_recipe(name, model=net)
+        assert config.recipe == name
+        assert config.recipe_record(net)["changes"] == {}
+
+
 # ---------------------------------------------------------------------------------------------
 # Invariant 1 (pinhole identity), corrections, gradients
 # ---------------------------------------------------------------------------------------------

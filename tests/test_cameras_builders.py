@@ -97,6 +97,8 @@ def test_the_boundary_ray_lands_on_the_requested_radius():
         (fisheye((96, 80), 195.0, "ds"), 40.0),
         (fisheye(100, 190.0, k=(0.01, -0.004, 0.0005, 0.0), radius_px=47.5), 47.5),
         (fisheye(64, 120.0, k=(0.0, 0.0, 0.0, 0.0)), 32.0),
+        (fisheye(112, 185.0, "ucm"), 56.0),
+        (fisheye((96, 80), 195.0, "eucm", alpha=0.62, beta=1.2), 40.0),
     ):
         half = math.radians(camera.max_fov_deg / 2)
         ray = torch.tensor([[math.sin(half), 0.0, math.cos(half)]], dtype=torch.float64)
@@ -106,9 +108,25 @@ def test_the_boundary_ray_lands_on_the_requested_radius():
         assert float(camera.cy) == (camera.height - 1) / 2
 
 
+def test_the_new_lenses_are_the_unified_models_at_their_fields_of_view():
+    from raytun3r_plugin.apps.benchmark import NEW_LENSES, make_camera
+    from raytun3r_plugin.cameras import EUCM, UCM
+
+    ucm, eucm = (make_camera(spec, 112) for spec in NEW_LENSES)
+    assert isinstance(ucm, UCM) and isinstance(eucm, EUCM) and type(eucm) is not UCM
+    assert (ucm.max_fov_deg, eucm.max_fov_deg) == (200.0, 210.0)
+    assert float(eucm.params[eucm.param_names.index("beta")]) == pytest.approx(1.2)
+    assert float(ucm.params[ucm.param_names.index("alpha")]) == pytest.approx(0.6)
+    # The image circle fills the width, as for the benchmark's own lenses.
+    for camera in (ucm, eucm):
+        assert float(camera.valid_mask().float().mean()) == pytest.approx(math.pi / 4, abs=0.02)
+
+
 def test_fisheye_refuses_bad_arguments():
     with pytest.raises(CameraError, match="model"):
         fisheye(64, 190.0, "pinhole")
+    with pytest.raises(CameraError, match="alpha"):
+        fisheye(64, 190.0, "ucm", alpha=1.5)
     with pytest.raises(CameraError, match="fov_deg"):
         fisheye(64, 0.0)
     with pytest.raises(CameraError, match="four"):

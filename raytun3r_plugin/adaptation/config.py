@@ -91,7 +91,8 @@ class AdaptConfig:
         weights: loss weights (:data:`DEFAULT_WEIGHTS`; the paper's are the ``paper`` recipe's).
         input_size: long side of the network input in pixels (rounded to the patch size);
             None (the default): the backbone's own (:func:`~raytun3r_plugin.registry.native_input_size`:
-            504 for DA3, 518 for VGGT, 112 for the built-in networks), resolved by :func:`adapt`.
+            504 for DA3 and Pi3, 518 for VGGT, 512 for VGGT-Omega, 112 for the built-in networks),
+            resolved by :func:`adapt`.
         n_windows: number of 3-frame windows spread over the segment.
         window_size: frames per window.
         stride: frame step inside a window.
@@ -394,11 +395,15 @@ class AdaptConfig:
 
         recipe = get_recipe(self.recipe)
         reference = AdaptConfig.from_recipe(recipe.name, model=model)
-        if reference.input_size is None and model is not None:
+        ours, theirs = _flat(self.to_dict()), _flat(reference.to_dict())
+        if model is not None:
+            # None is the backbone's own size, whichever side leaves it unresolved.
             from raytun3r_plugin.registry import native_input_size
 
-            reference.input_size = native_input_size(model)
-        ours, theirs = _flat(self.to_dict()), _flat(reference.to_dict())
+            own = native_input_size(model)
+            for settings in (ours, theirs):
+                if settings.get("input_size") is None:
+                    settings["input_size"] = own
         changed = {
             key: [theirs.get(key), ours.get(key)]
             for key in sorted(set(ours) | set(theirs))

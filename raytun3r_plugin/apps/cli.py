@@ -14,6 +14,15 @@ def _load_model(backbone: str, weights: str | None):
     return load_backbone(backbone, weights)
 
 
+def _default_long_side(adapter, model) -> int:
+    """The input long side without ``--size``: the one the adapter was fitted at, else the
+    backbone's own (:func:`~raytun3r_plugin.registry.native_input_size`)."""
+    from raytun3r_plugin.registry import native_input_size
+
+    recorded = ((adapter.training_info or {}).get("input") or {}) if adapter is not None else {}
+    return int(recorded.get("long_side") or native_input_size(model))
+
+
 def cmd_inspect(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adapter import describe_file, describe_record
 
@@ -101,13 +110,15 @@ def cmd_infer(args: argparse.Namespace) -> int:
     else:
         raise InputError("infer needs --camera, or an --adapter that carries its camera")
     frames, names = read_frames(args.frames, stride=args.stride, limit=args.max_frames)
+    model = _load_model(args.backbone, args.weights)
     # The layout adapt used (its rule and long side come from the adapter when --size is not
-    # given); frames of another size than the camera rescale the camera, a pure resize.
+    # given; without an adapter, the backbone's own size); frames of another size than the
+    # camera rescale the camera, a pure resize.
     layout = layout_for_inference(
         camera,
         (frames.shape[2], frames.shape[1]),
         adapter,
-        long_side=args.size,
+        long_side=args.size or _default_long_side(adapter, model),
         strict=not args.no_strict,
     )
     mask = (
@@ -115,7 +126,6 @@ def cmd_infer(args: argparse.Namespace) -> int:
         if args.mask
         else None
     )
-    model = _load_model(args.backbone, args.weights)
     images = layout.frames(frames)[None]
     # Patched with the (cropped) native camera, as adapt patched the model: the adapter's camera
     # check compares like with like, and the patch rescales it to the input as during the fit.
@@ -367,13 +377,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         score,
     )
     from raytun3r_plugin.datasets import load_sequence
-    from raytun3r_plugin.preprocess import DEFAULT_LONG_SIDE
 
     model = _load_model(args.backbone, args.weights)
     adapter = Adapter.load(args.adapter) if args.adapter else None
     # Scored at the long side the adapter was fitted at unless --size says otherwise.
-    recorded = ((adapter.training_info or {}).get("input") or {}) if adapter is not None else {}
-    long_side = args.size or int(recorded.get("long_side") or DEFAULT_LONG_SIDE)
+    long_side = args.size or _default_long_side(adapter, model)
     seq = fit_sequence(
         load_sequence(args.dataset, kind=args.kind), long_side, max_frames=args.max_frames
     )
@@ -639,7 +647,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_model_arguments(p)
     _add_frame_arguments(
-        p, f"network input long side in pixels (default: the adapter's, else 504); {rule}"
+        p,
+        "network input long side in pixels (default: the adapter's, else the backbone's own); "
+        f"{rule}",
     )
     p.add_argument(
         "--camera", help="calibration file (Kalibr, basalt, COLMAP, KITTI-360, raytun3r JSON)"
@@ -786,7 +796,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--size",
         type=int,
         default=None,
-        help=f"network input long side in pixels (default: the adapter's, else 504); {rule}",
+        help="network input long side in pixels (default: the adapter's, else the backbone's "
+        f"own); {rule}",
     )
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument(

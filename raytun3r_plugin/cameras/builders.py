@@ -15,13 +15,13 @@ from collections.abc import Sequence
 from raytun3r_plugin._strict import quote
 from raytun3r_plugin.cameras.base import MAX_IMAGE_SIDE, Camera
 from raytun3r_plugin.cameras.kb import KannalaBrandt4
-from raytun3r_plugin.cameras.unified import DoubleSphere
+from raytun3r_plugin.cameras.unified import EUCM, UCM, DoubleSphere
 from raytun3r_plugin.errors import CameraError
 
 __all__ = ["FISHEYE_MODELS", "fisheye", "perturbed"]
 
 #: Lens models :func:`fisheye` builds.
-FISHEYE_MODELS = ("kb4", "ds")
+FISHEYE_MODELS = ("kb4", "ds", "ucm", "eucm")
 
 
 def _kb4_theta_d(theta: float, k: Sequence[float]) -> float:
@@ -40,6 +40,12 @@ def _ds_boundary_radius(half: float, xi: float, alpha: float) -> float:
     return x / (alpha * d2 + (1 - alpha) * k)
 
 
+def _unified_boundary_radius(half: float, alpha: float, beta: float = 1.0) -> float:
+    """Radius of the ray at angle ``half`` in the normalised (E)UCM image plane (beta 1: UCM)."""
+    x, z = math.sin(half), math.cos(half)
+    return x / (alpha * math.sqrt(beta * x * x + z * z) + (1 - alpha) * z)
+
+
 def fisheye(
     size: int | tuple[int, int],
     fov_deg: float,
@@ -48,6 +54,7 @@ def fisheye(
     k: Sequence[float] = (0.02, 0.0, 0.0, 0.0),
     xi: float = -0.15,
     alpha: float = 0.6,
+    beta: float = 1.0,
     radius_px: float | None = None,
 ) -> Camera:
     """A centred fisheye whose ``fov_deg`` image circle has radius ``radius_px``.
@@ -60,11 +67,14 @@ def fisheye(
     Args:
         size: ``S`` for an S x S image, or ``(width, height)`` in pixels.
         fov_deg: full field of view of the image circle, degrees (may exceed 180).
-        model: ``"kb4"`` (:class:`KannalaBrandt4`, ``theta_d = theta (1 + k1 theta^2 + ...)``)
-            or ``"ds"`` (:class:`DoubleSphere` with ``xi`` and ``alpha``).
+        model: ``"kb4"`` (:class:`KannalaBrandt4`, ``theta_d = theta (1 + k1 theta^2 + ...)``),
+            ``"ds"`` (:class:`DoubleSphere` with ``xi`` and ``alpha``), ``"ucm"`` (:class:`UCM`
+            with ``alpha``) or ``"eucm"`` (:class:`EUCM` with ``alpha`` and ``beta``).
         k: the four KB4 coefficients ``(k1, k2, k3, k4)``; the default ``k1 = 0.02`` is the lens
             of the demo and the benchmark; ``(0, 0, 0, 0)`` is the ideal equidistant lens.
-        xi, alpha: the double-sphere parameters (the benchmark's DS 195 by default).
+        xi, alpha: the double-sphere parameters (the benchmark's DS 195 by default); ``alpha``
+            is also the (E)UCM's.
+        beta: the EUCM's ``beta``.
         radius_px: image-circle radius in pixels; default half the shorter side (the circle
             touches the shorter side's edges).
 
@@ -111,6 +121,16 @@ def fisheye(
             width,
             height,
             {"fx": focal, "fy": focal, "cx": cx, "cy": cy, "xi": xi, "alpha": alpha},
+            max_fov_deg=fov_deg,
+        )
+    if model in ("ucm", "eucm"):
+        unified = UCM if model == "ucm" else EUCM
+        extra = {"alpha": alpha} if model == "ucm" else {"alpha": alpha, "beta": beta}
+        focal = radius / _unified_boundary_radius(half, alpha, 1.0 if model == "ucm" else beta)
+        return unified(
+            width,
+            height,
+            {"fx": focal, "fy": focal, "cx": cx, "cy": cy, **extra},
             max_fov_deg=fov_deg,
         )
     raise CameraError(f"fisheye: model must be one of {FISHEYE_MODELS}, got {model!r}")

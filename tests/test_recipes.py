@@ -1,0 +1,278 @@
+"""Fit recipes: one home for the settings a fit uses, recorded in every adapter file
+(docs/recipes.md)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+import torch
+
+from raytun3r_plugin import registry, synthetic
+from raytun3r_plugin.adaptation.check import check_frame_count, held_out_reprojection
+from raytun3r_plugin.adaptation.config import DEFAULT_WEIGHTS, AdaptConfig
+from raytun3r_plugin.adaptation.losses import LossWeights
+from raytun3r_plugin.adaptation.recipes import RECIPES, get_recipe, recipe_names
+from raytun3r_plugin.adaptation.train import adapt
+from raytun3r_plugin.adapter import Adapter, describe_file
+from raytun3r_plugin.errors import InputError, Raytun3rError
+from raytun3r_plugin.registry import native_input_size
+
+pytest.importorskip("depth_anything_3")
+
+
+@pytest.fixture(scope="module")
+def network():
+    from raytun3r_plugin.weights import load_backbone
+
+    return load_backbone("raytun3r-da3-tiny-v3")
+
+
+@pytest.fixture(scope="module")
+def segment():
+    """18 frames of a synthetic indoor room through a 190-degree KB4 lens at 112 px."""
+    from raytun3r_plugin.apps.demo import demo_camera
+
+    camera = demo_camera(112)
+    return camera, synthetic.render_sequence("indoor", camera, n_frames=18, seed=31).images
+
+
+@pytest.fixture
+def short_default(monkeypatch):
+    """The default recipe with a test-sized budget (3 steps, 3 windows), as the registry's own:
+    everything that reads the recipe by name sees it."""
+    short = dataclasses.replace(RECIPES["default"], changes={"steps": 3, "n_windows": 3})
+    monkeypatch.setitem(RECIPES, "default", short)
+    return short
+
+
+def test_the_default_recipe_is_adapt_configs_defaults_and_every_recipe_builds():
+    assert recipe_names()[0] == "default"
+    assert {"default", "paper", "supervised"} <= set(recipe_names())
+    assert AdaptConfig.from_recipe("default") == AdaptConfig()
+    shipped = AdaptConfig()
+    assert shipped.pose_source == "hybrid" and shipped.weights.as_dict() == DEFAULT_WEIGHTS
+    assert shipped.weights.pose == pytest.approx(0.3) and shipped.weights.teacher == 10.0
+    assert shipped.view_weights() == (1.0, 0.3, 0.3) and shipped.input_size is None
+    for name in recipe_names():
+        recipe = get_recipe(name)
+        config = AdaptConfig.from_recipe(name)
+        assert config.recipe == name and isinstance(recipe.version, int) and recipe.summary
+        assert recipe.evidence, f"{name}: every recipe says where it was chosen"
+        # What a recipe records is itself: no change from itself, and its file form rebuilds it.
+        assert config.recipe_record() == {"name": name, "version": recipe.version, "changes": {}}
+        assert AdaptConfig(**json.loads(json.dumps(config.to_dict()))) == config
+    paper = AdaptConfig.from_recipe("paper")
+    assert paper.weights.as_dict() == {k: v for k, v in LossWeights(depth=0.0).as_dict().items()}
+    assert (paper.pose_source, paper.pe_regulariser, paper.robust_px, paper.lr) == (
+        "model",
+        "absolute",
+        None,
+        1e-3,
+    )
+    assert AdaptConfig.supervised() == AdaptConfig.from_recipe("supervised")
+    assert get_recipe("supervised").supervised and not get_recipe("default").supervised
+
+
+def test_unknown_recipes_and_fields_are_refused_by_name():
+    with pytest.raises(InputError, match="unknown fit recipe 'fast'.*default, "):
+        AdaptConfig.from_recipe("fast")
+    with pytest.raises(InputError, match="no field 'step'"):
+        AdaptConfig.from_recipe("default", step=3)
+    with pytest.raises(Raytun3rError, match="weights.pose"):
+        AdaptConfig.from_recipe("default", weights={"pose": -1.0})
+
+
+def test_changes_are_recorded_against_the_recipe_and_weights_merge():
+    config = AdaptConfig.from_recipe(
+        "default", weights={"pose": 1.0}, steps=50, cache_dir="/tmp/x", checkpoint_every=0
+    )
+    assert config.weights.as_dict() == {**DEFAULT_WEIGHTS, "pose": 1.0}
+    record = config.recipe_record()
+    # Where files go and how often a run saves are not settings of the fit.
+    assert record == {
+        "name": "default",
+        "version": RECIPES["default"].version,
+        "changes": {"steps": [300, 50], "weights.pose": [0.3, 1.0]},
+    }
+    replaced = AdaptConfig.from_recipe("default", weights=LossWeights())
+    assert replaced.weights == LossWeights()
+    # A config built by hand records its changes from the default recipe.
+    by_hand = AdaptConfig(pose_source="targets", input_size=280)
+    assert by_hand.recipe_record()["changes"] == {
+        "pose_source": ["hybrid", "targets"],
+        "input_size": [None, 280],
+    }
+
+
+def test_the_input_size_is_the_backbones_own(network):
+    assert native_input_size(network) == 112
+    from raytun3r_plugin.patches.da3 import build_network
+
+    assert native_input_size(build_network("da3-small")) == 504
+    # A size given to the backbone's own is no change from the recipe.
+    at_own = AdaptConfig(input_size=112)
+    assert at_own.recipe_record(network)["changes"] == {}
+    assert AdaptConfig(input_size=84).recipe_record(network)["changes"] == {"input_size": [112, 84]}
+
+
+def test_a_backbone_familys_declared_changes_apply_and_are_recorded(network, monkeypatch):
+    spec, _ = registry.spec_for(network)
+    changed = dataclasses.replace(spec, recipe_changes={"default": {"lr": 0.01}})
+    monkeypatch.setitem(registry._SPECS, spec.family, changed)
+    assert registry.spec_for(network)[0] is changed
+    config = AdaptConfig.from_recipe("default", model=network)
+    assert config.lr == 0.01 and AdaptConfig.from_recipe("default").lr == 3e-3
+    record = config.recipe_record(network)
+    assert record["changes"] == {} and record["backbone_changes"] == {"lr": 0.01}
+    # A user's change still wins over the family's, and is recorded against it.
+    mine = AdaptConfig.from_recipe("default", model=network, lr=0.02)
+    assert mine.recipe_record(network)["changes"] == {"lr": [0.01, 0.02]}
+    assert AdaptConfig.from_recipe("paper", model=network).lr == 1e-3
+
+
+def test_adapt_without_a_config_fits_the_default_recipe_at_the_backbones_size(
+    network, segment, short_default, capsys
+):
+    camera, frames = segment
+    before = {k: v.clone() for k, v in network.state_dict().items()}
+    adapter = adapt(network, camera, frames[:9], progress=False)
+    info = adapter.training_info
+    assert info["recipe"] == {"name": "default", "version": short_default.version, "changes": {}}
+    assert info["config"]["input_size"] == 112 and info["input"]["long_side"] == 112
+    assert info["config"]["pose_source"] == "hybrid" and info["teacher"]["used"] is True
+    assert info["steps"] == 3
+    assert all(torch.equal(before[k], v) for k, v in network.state_dict().items())
+
+
+def test_the_recipe_survives_the_file_and_inspect_shows_it(network, segment, tmp_path):
+    camera, frames = segment
+    config = AdaptConfig(steps=2, n_windows=2, lr=1e-2, checkpoint_every=0)
+    out = tmp_path / "cam.safetensors"
+    adapter = adapt(network, camera, frames[:6], config, out_path=out, progress=False)
+    loaded = Adapter.load(out)
+    assert loaded.training_info["recipe"] == adapter.training_info["recipe"]
+    assert loaded.training_info["recipe"]["changes"] == {
+        "lr": [0.003, 0.01],
+        "n_windows": [30, 2],
+        "steps": [300, 2],
+    }
+    text = describe_file(out)
+    assert "recipe 'default' v1, changed: lr 0.003 -> 0.01; n_windows 30 -> 2; steps 300 -> 2" in (
+        " ".join(text.split())
+    )
+
+
+def test_progress_off_a_terminal_is_lines_not_one_long_line(network, segment, capsys, monkeypatch):
+    from raytun3r_plugin.adaptation import train
+
+    camera, frames = segment
+    config = AdaptConfig.from_recipe("matches", steps=4, n_windows=2, checkpoint_every=0)
+    monkeypatch.setattr(train._Progress, "every_s", 0.0)
+    adapt(network, camera, frames[:6], config, progress=True)
+    lines = capsys.readouterr().err.splitlines()
+    steps = [line for line in lines if line.startswith("adapt: step")]
+    assert len(steps) == 4 and all(len(line) < 120 for line in lines)
+    assert not any("\r" in line for line in lines)
+    monkeypatch.setattr(train._Progress, "every_s", 3600.0)
+    adapt(network, camera, frames[:6], config, progress=True)
+    steps = [line for line in capsys.readouterr().err.splitlines() if "adapt: step" in line]
+    assert steps == ["adapt: step 4/4 " + steps[0].split(" 4/4 ")[1]]
+
+
+def test_check_frame_counts():
+    assert check_frame_count(14) == 0 and check_frame_count(15) == 3
+    assert check_frame_count(40) == 8
+    assert check_frame_count(20, "0") == 0 and check_frame_count(20, 5) == 5
+    for frames, asked, message in (
+        (20, "x", "'auto' or an integer"),
+        (20, 2, "at least 3"),
+        (5, 3, "leaves 2 of 5 frames"),
+    ):
+        with pytest.raises(InputError, match=message):
+            check_frame_count(frames, asked)
+
+
+def test_the_held_out_check_scores_both_adapters_on_the_same_matches(network, segment):
+    camera, frames = segment
+    config = AdaptConfig(input_size=112)
+    zero = Adapter.for_model(network, camera)
+    result = held_out_reprojection(network, camera, frames[12:], zero, config)
+    assert result["frames"] == 6 and result["windows"] >= 1
+    assert result["zero_adapter_px"] == result["adapted_px"] and result["change"] == 0.0
+    assert 0 < result["zero_adapter_px"] < 10
+    moved = Adapter.for_model(network, camera)
+    with torch.no_grad():
+        for table in moved.parameters():
+            table.normal_(0, 0.5)
+    worse = held_out_reprojection(network, camera, frames[12:], moved, config)
+    assert worse["zero_adapter_px"] == result["zero_adapter_px"]
+    assert worse["adapted_px"] != worse["zero_adapter_px"]
+    still = held_out_reprojection(network, camera, frames[12:13].repeat(3, 0), zero, config)
+    assert still["adapted_px"] is None and "reason" in still
+
+
+def test_the_command_line_fits_the_default_recipe_and_reports_the_check(
+    segment, short_default, tmp_path, capsys
+):
+    import cv2
+
+    from raytun3r_plugin import cameras
+    from raytun3r_plugin.apps.cli import main
+
+    camera, frames = segment
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k, image in enumerate(frames):
+        cv2.imwrite(str(folder / f"{k:04d}.png"), (image[..., ::-1] * 255).round().astype("uint8"))
+    cameras.save(camera, tmp_path / "camera.json")
+    out = tmp_path / "cam.safetensors"
+    base = ["adapt", "--backbone", "raytun3r-da3-tiny-v3", "--frames", str(folder)]
+    base += ["--camera", str(tmp_path / "camera.json")]
+    assert main([*base, "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "fitting with the recipe 'default' (v1); input 112 px" in captured.err
+    assert "the last 3 frames held out" in captured.err
+    assert "recipe 'default' v1" in captured.out
+    assert "check on the last 3 frames (not fitted): reprojection error" in captured.out
+    info = Adapter.load(out).training_info
+    assert info["recipe"]["changes"] == {} and info["check"]["frames"] == 3
+    assert info["segment"]["n_frames"] == 15  # the held-out frames were not fitted
+    assert "check on 3 held-out frames" in describe_file(out)
+    # A recipe by name, and what it changes.
+    out = tmp_path / "targets.safetensors"
+    assert main([*base, "--recipe", "targets", "--steps", "2", "--out", str(out)]) == 0
+    assert Adapter.load(out).training_info["recipe"] == {
+        "name": "targets",
+        "version": 1,
+        "changes": {"steps": [300, 2]},
+    }
+    for extra, message in (
+        (["--recipe", "supervised"], "give --depth"),
+        (["--recipe", "nope"], "invalid choice"),
+        (["--recipe", "paper", "--teacher-views", "centre"], "add --teacher WEIGHT"),
+    ):
+        code = None
+        try:
+            code = main([*base, *extra, "--out", str(tmp_path / "x.safetensors")])
+        except SystemExit as stop:  # argparse's own refusal
+            code = stop.code
+        assert code == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_adapt_help_leads_with_the_recipe_and_groups_the_internals(capsys):
+    from raytun3r_plugin.apps.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["adapt", "--help"])
+    text = capsys.readouterr().out
+    options = text[text.index("options:") :]
+    assert options.index("--recipe") < options.index("--backbone") < options.index("--out")
+    advanced = text.index("advanced:")
+    assert all(text.index(f"  {flag}") > advanced for flag in ("--pose-weight", "--teacher "))
+    assert main(["recipes"]) == 0
+    listing = capsys.readouterr().out
+    assert all(f"{name} (v" in listing for name in recipe_names())
