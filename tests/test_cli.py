@@ -149,7 +149,12 @@ def test_teacher_options_reach_the_saved_config_and_bad_mixes_are_refused(setup,
     assert main(["adapt", *common, "--teacher", "5", "--out", str(taught)]) == 0
     config = Adapter.load(taught).training_info["config"]
     assert config["weights"]["teacher"] == 5.0 and config["weights"]["reproj"] == 1.0
-    assert config["teacher_views"] == ["centre"] and config["teacher_fov_deg"] == 110.0
+    # The default recipe's views and weights, its teacher weight changed.
+    assert config["teacher_views"] == ["centre", "left", "right"]
+    assert config["teacher_view_weights"] == {"centre": 1.0, "left": 0.3, "right": 0.3}
+    assert config["teacher_fov_deg"] == 110.0
+    record = Adapter.load(taught).training_info["recipe"]
+    assert record["name"] == "default" and record["changes"]["weights.teacher"] == [10.0, 5.0]
     alone = tmp_path / "alone.safetensors"
     code = main(
         [
@@ -175,8 +180,9 @@ def test_teacher_options_reach_the_saved_config_and_bad_mixes_are_refused(setup,
     for extra, message in (
         (["--depth", str(tmp_path), "--teacher", "1"], "depth loss alone"),
         (["--teacher-only", "--teacher", "1"], "leave out --teacher"),
-        (["--teacher-fov", "90"], "need --teacher WEIGHT"),
-        (["--teacher-view-weights", "centre=1"], "need --teacher WEIGHT"),
+        (["--recipe", "matches", "--teacher-fov", "90"], "add --teacher WEIGHT"),
+        (["--recipe", "matches", "--teacher-view-weights", "centre=1"], "add --teacher WEIGHT"),
+        (["--recipe", "paper", "--teacher-only"], "leave out --recipe paper"),
         (["--teacher", "1", "--teacher-view-weights", "centre=x"], "centre must be a number"),
         (["--teacher", "1", "--teacher-view-weights", "front=1"], "expected centre=X"),
         (["--teacher", "1", "--teacher-view-weights", "centre=1", "centre=2"], "at most once"),

@@ -125,8 +125,7 @@ def test_adapt_rig_fits_each_camera_in_one_forward(stereo, tmp_path):
     type(model).forward = spy
     try:
         config = AdaptConfig.from_recipe(
-            "matches",
-            steps=3, input_size=56, n_windows=2, checkpoint_every=0, min_parallax_px=0.0
+            "matches", steps=3, input_size=56, n_windows=2, checkpoint_every=0, min_parallax_px=0.0
         )
         fitted = adapt_rig(model, stereo, config, out_dir=tmp_path, progress=False)
     finally:
@@ -195,8 +194,7 @@ def test_adapt_rig_gate_without_signal_leaves_every_camera_as_it_started(stereo)
 
     model = build_tiny_network(seed=0).eval()
     config = AdaptConfig.from_recipe(
-        "matches",
-        steps=3, input_size=56, n_windows=2, checkpoint_every=0, min_parallax_px=1e9
+        "matches", steps=3, input_size=56, n_windows=2, checkpoint_every=0, min_parallax_px=1e9
     )
     fitted = adapt_rig(model, stereo, config, progress=False)
     for adapter in fitted.values():
@@ -318,7 +316,9 @@ def test_adapt_rig_cross_camera_terms_give_signal_where_motion_gives_none(monkey
         flow_px=10.0,
     )
     model = build_tiny_network(seed=0).eval()
-    config = AdaptConfig.from_recipe("matches", steps=3, input_size=56, n_windows=2, checkpoint_every=0, min_motion_px=0.5)
+    config = AdaptConfig.from_recipe(
+        "matches", steps=3, input_size=56, n_windows=2, checkpoint_every=0, min_motion_px=0.5
+    )
     plain = adapt_rig(model, rig, config, progress=False)
     assert all(a.training_info["verdict"]["status"] == "no signal" for a in plain.values())
     fitted = adapt_rig(model, rig, config, progress=False, cross_camera=True)

@@ -37,7 +37,11 @@ def _config(tmp_path, supervised: bool = True, **changes) -> AdaptConfig:
         "seed": 0,
         **changes,
     }
-    return AdaptConfig.supervised(**settings) if supervised else AdaptConfig.from_recipe("matches", **settings)
+    return (
+        AdaptConfig.supervised(**settings)
+        if supervised
+        else AdaptConfig.from_recipe("matches", **settings)
+    )
 
 
 def test_split_segments_tells_one_segment_from_several(segments):

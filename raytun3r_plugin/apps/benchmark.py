@@ -21,8 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from raytun3r_plugin.apps.demo import adapt_config, fit_description, supervised_config
 from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
+from raytun3r_plugin.apps.fits import adapt_config, fit_description, supervised_config
 from raytun3r_plugin.errors import InputError
 
 HELD_OUT_SEED = 90_000  # training of the default network uses seeds far below this
@@ -126,7 +126,8 @@ def make_camera(spec: BenchCamera, size: int):
     ``xi = -0.15``, ``alpha = 0.6``)."""
     from raytun3r_plugin.cameras import fisheye
 
-    return fisheye(size, spec.fov_deg, spec.model, **dict(spec.options))
+    options: dict[str, Any] = dict(spec.options)
+    return fisheye(size, spec.fov_deg, spec.model, **options)
 
 
 def sequence_seed(camera_index: int, scene_index: int, k: int, base: int = HELD_OUT_SEED) -> int:
@@ -297,7 +298,7 @@ def sequence_rows(
     tables at zero and ``components=[]``; all scored on the rest. The self-supervised fits and
     the baselines use the fit recipe ``recipe`` with ``fit_changes`` (``AdaptConfig`` fields;
     ``weights`` as a mapping of the terms it changes;
-    :func:`~raytun3r_plugin.apps.demo.adapt_config`), whatever the network.
+    :func:`~raytun3r_plugin.apps.fits.adapt_config`), whatever the network.
 
     Every row has ``params`` (trainable parameters of what was fitted; 0 without a fit),
     ``ms_per_frame`` (:func:`timed_row`) and ``x_vanilla`` (its ``ms_per_frame`` over vanilla's

@@ -223,16 +223,16 @@ def _adapt_config(args: argparse.Namespace, settings: dict, supervised: bool):
             "--teacher-only fits the teacher term alone: leave out --teacher and --pose-weight"
         )
     name = _recipe_name(args, supervised)
-    changes = {**settings, **teacher}
-    if args.teacher is not None:
-        changes["weights"] = {**changes.get("weights", {}), "teacher": float(args.teacher)}
-    config = AdaptConfig.from_recipe(name, **changes)
-    if teacher and not config.weights.teacher:
+    weight = AdaptConfig.from_recipe(name).weights.teacher if args.teacher is None else args.teacher
+    if teacher and not weight:
         raise InputError(
             f"--teacher-views, --teacher-view-weights and --teacher-fov change the teacher term, "
             f"which the recipe {name!r} leaves out: add --teacher WEIGHT"
         )
-    return config
+    changes = {**settings, **teacher}
+    if args.teacher is not None:
+        changes["weights"] = {**changes.get("weights", {}), "teacher": float(args.teacher)}
+    return AdaptConfig.from_recipe(name, **changes)
 
 
 def _held_out_frames(args: argparse.Namespace, segments: list, depths: list):

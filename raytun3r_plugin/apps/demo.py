@@ -26,6 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
+from raytun3r_plugin.apps.fits import (  # noqa: F401  (the scripts' import path for them)
+    adapt_config,
+    fit_description,
+    supervised_config,
+    teacher_settings,
+)
+
 #: The built-in network the demo and the benchmarks use: v3, whose pose head beats the
 #: no-rotation answer on held-out pairs (issue 13; model card, "Versions"). ``raytun3r-da3-tiny``
 #: (v2) stays loadable under its name, and the README says which tables it measured.
@@ -36,89 +43,6 @@ DEMO_SEQUENCES = 4
 #: The built-in networks (``patches/da3_default.py``). Every one is fitted with the same recipes:
 #: nothing in a fit is keyed by a network's name.
 BUILT_IN_NETWORKS = ("raytun3r-da3-tiny", "raytun3r-da3-tiny-v3")
-
-
-def adapt_config(
-    size: int,
-    steps: int,
-    *,
-    recipe: str = "default",
-    pose_weight: float | None = None,
-    teacher_weight: float | None = None,
-    **changes,
-):
-    """The recipe ``recipe`` (:mod:`raytun3r_plugin.adaptation.recipes`) at input ``size`` px
-    and ``steps`` steps, without intermediate checkpoints: the fits of the demo, the benchmark
-    and the benchmark scripts.
-
-    ``pose_weight`` and ``teacher_weight`` change only that loss term's weight
-    (``weights={"pose": ...}``); ``changes`` change any other field. Everything not given is the
-    recipe's, whatever the network.
-    """
-    from raytun3r_plugin.adaptation.train import AdaptConfig
-    from raytun3r_plugin.errors import InputError
-
-    terms = {
-        name: float(value)
-        for name, value in (("pose", pose_weight), ("teacher", teacher_weight))
-        if value is not None
-    }
-    if terms and "weights" in changes:
-        raise InputError(
-            "adapt_config: give pose_weight or weights, not both (likewise teacher_weight)"
-        )
-    if terms:
-        changes["weights"] = terms
-    for key in ("teacher_views", "teacher_view_weights"):
-        if key in changes and changes[key] is None:
-            del changes[key]  # None: the recipe's
-    if "teacher_views" in changes:
-        changes["teacher_views"] = tuple(changes["teacher_views"])
-    return AdaptConfig.from_recipe(
-        recipe, **{"steps": steps, "input_size": size, "checkpoint_every": 0, **changes}
-    )
-
-
-def fit_description(config) -> str:
-    """A fit's settings in one line for the demo's and the benchmark's headers: the recipe, what
-    was changed from it, and the teacher in words."""
-    record = config.recipe_record()
-    changed = ", ".join(
-        f"{key} {new}" for key, (_, new) in record["changes"].items() if key != "input_size"
-    )
-    teacher = teacher_settings(config)
-    return (
-        f"recipe '{record['name']}' v{record['version']}"
-        + (f" (changed: {changed})" if changed else "")
-        + f", pose source '{config.pose_source}', pose weight {config.weights.pose:g}"
-        + (f", {teacher}" if teacher else "")
-    )
-
-
-def teacher_settings(config) -> str:
-    """The pinhole-view teacher settings of ``config`` (an ``AdaptConfig``) in words, for the
-    demo's and the benchmark's headers; ``""`` when its teacher term has no weight."""
-    if not config.weights.teacher:
-        return ""
-    views = config.teacher_views
-    weights = config.teacher_view_weights
-    return (
-        f"pinhole-view teacher weight {config.weights.teacher:g} on the "
-        f"{config.teacher_fov_deg:g}-degree {' + '.join(views)} view{'s' if len(views) > 1 else ''}"
-        + (
-            " (weights " + ", ".join(f"{v} {weights[v]:g}" for v in views) + ")"
-            if weights is not None
-            else ""
-        )
-        + f" where each covers at most {config.teacher_max_coverage:.0%} of the lens"
-    )
-
-
-def supervised_config(size: int, steps: int, **changes):
-    """The supervised fit (ground-truth depth) the demo and the benchmark report as the upper
-    bound: the ``supervised`` recipe at input ``size`` px, the same windows and poses as
-    :func:`adapt_config`."""
-    return adapt_config(size, steps, recipe="supervised", **changes)
 
 
 def default_network(name: str = DEFAULT_NETWORK):

@@ -1,0 +1,88 @@
+"""The fit settings the demo, the benchmark and the benchmark scripts use: a recipe
+(:mod:`raytun3r_plugin.adaptation.recipes`) at a size and a budget, and its description for their
+headers. One home, so the demo and the benchmark cannot drift apart."""
+
+from __future__ import annotations
+
+
+def adapt_config(
+    size: int,
+    steps: int,
+    *,
+    recipe: str = "default",
+    pose_weight: float | None = None,
+    teacher_weight: float | None = None,
+    **changes,
+):
+    """The recipe ``recipe`` (:mod:`raytun3r_plugin.adaptation.recipes`) at input ``size`` px
+    and ``steps`` steps, without intermediate checkpoints: the fits of the demo, the benchmark
+    and the benchmark scripts.
+
+    ``pose_weight`` and ``teacher_weight`` change only that loss term's weight
+    (``weights={"pose": ...}``); ``changes`` change any other field. Everything not given is the
+    recipe's, whatever the network.
+    """
+    from raytun3r_plugin.adaptation.train import AdaptConfig
+    from raytun3r_plugin.errors import InputError
+
+    terms = {
+        name: float(value)
+        for name, value in (("pose", pose_weight), ("teacher", teacher_weight))
+        if value is not None
+    }
+    if terms and "weights" in changes:
+        raise InputError(
+            "adapt_config: give pose_weight or weights, not both (likewise teacher_weight)"
+        )
+    if terms:
+        changes["weights"] = terms
+    for key in ("teacher_views", "teacher_view_weights"):
+        if key in changes and changes[key] is None:
+            del changes[key]  # None: the recipe's
+    if "teacher_views" in changes:
+        changes["teacher_views"] = tuple(changes["teacher_views"])
+    return AdaptConfig.from_recipe(
+        recipe, **{"steps": steps, "input_size": size, "checkpoint_every": 0, **changes}
+    )
+
+
+def fit_description(config) -> str:
+    """A fit's settings in one line for the demo's and the benchmark's headers: the recipe, what
+    was changed from it, and the teacher in words."""
+    record = config.recipe_record()
+    changed = ", ".join(
+        f"{key} {new}" for key, (_, new) in record["changes"].items() if key != "input_size"
+    )
+    teacher = teacher_settings(config)
+    return (
+        f"recipe '{record['name']}' v{record['version']}"
+        + (f" (changed: {changed})" if changed else "")
+        + f", pose source '{config.pose_source}', pose weight {config.weights.pose:g}"
+        + (f", {teacher}" if teacher else "")
+    )
+
+
+def teacher_settings(config) -> str:
+    """The pinhole-view teacher settings of ``config`` (an ``AdaptConfig``) in words, for the
+    demo's and the benchmark's headers; ``""`` when its teacher term has no weight."""
+    if not config.weights.teacher:
+        return ""
+    views = config.teacher_views
+    weights = config.teacher_view_weights
+    return (
+        f"pinhole-view teacher weight {config.weights.teacher:g} on the "
+        f"{config.teacher_fov_deg:g}-degree {' + '.join(views)} view{'s' if len(views) > 1 else ''}"
+        + (
+            " (weights " + ", ".join(f"{v} {weights[v]:g}" for v in views) + ")"
+            if weights is not None
+            else ""
+        )
+        + f" where each covers at most {config.teacher_max_coverage:.0%} of the lens"
+    )
+
+
+def supervised_config(size: int, steps: int, **changes):
+    """The supervised fit (ground-truth depth) the demo and the benchmark report as the upper
+    bound: the ``supervised`` recipe at input ``size`` px, the same windows and poses as
+    :func:`adapt_config`."""
+    return adapt_config(size, steps, recipe="supervised", **changes)
