@@ -3,12 +3,12 @@
 sequences of three lenses (KB4 120, KB4 185, double sphere 195 deg), indoor and outdoor; every
 row with its trainable parameters and time per frame relative to vanilla.
 
-    python benchmarks/fisheye_synthetic.py [--out runs/bench] [--readme README.md]
+    python benchmarks/fisheye_synthetic.py [--out runs/bench] [--results docs/results.md]
     python benchmarks/fisheye_synthetic.py --sequences 1 --baselines lora,caltok
     python benchmarks/fisheye_synthetic.py --development --out runs/dev   # seeds 80000+, for choosing settings
 
-With --readme the table replaces the block between the README's bench markers, so the README
-shows what this script produced, not typed numbers.
+With --results the table replaces the block between the file's bench markers, so the results
+page shows what this script produced, not typed numbers.
 """
 
 from __future__ import annotations
@@ -67,7 +67,9 @@ def main() -> None:
         default=SEQUENCES_PER_CELL,
         help="held-out sequences per camera and scene",
     )
-    parser.add_argument("--readme", default=None)
+    parser.add_argument(
+        "--results", default=None, help="write the table into this file's bench markers"
+    )
     parser.add_argument(
         "--baselines",
         default="",
@@ -76,7 +78,7 @@ def main() -> None:
     parser.add_argument(
         "--development",
         action="store_true",
-        help="development seeds (80000+) instead of the held-out ones; never with --readme",
+        help="development seeds (80000+) instead of the held-out ones; never with --results",
     )
     parser.add_argument(
         "--new-lenses",
@@ -88,7 +90,7 @@ def main() -> None:
         "--network",
         default=DEFAULT_NETWORK,
         choices=BUILT_IN_NETWORKS,
-        help="built-in network (v2 = raytun3r-da3-tiny measured the README's older tables)",
+        help="built-in network (v2 = raytun3r-da3-tiny measured the older tables of docs/results.md)",
     )
     parser.add_argument(
         "--recipe",
@@ -133,13 +135,13 @@ def main() -> None:
         "are then one thread's beside the other workers",
     )
     args = parser.parse_args()
-    if args.new_lenses and (args.development or args.readme):
+    if args.new_lenses and (args.development or args.results):
         parser.error(
-            "--new-lenses is a held-out run, reported apart: no --development, no --readme"
+            "--new-lenses is a held-out run, reported apart: no --development, no --results"
         )
-    if args.development and args.readme:
+    if args.development and args.results:
         parser.error(
-            "--development tables are for choosing settings; the README shows held-out seeds"
+            "--development tables are for choosing settings; the results page shows held-out seeds"
         )
     model, description = default_network(args.network)
     table = run_benchmark(
@@ -158,16 +160,16 @@ def main() -> None:
         cameras=NEW_LENSES if args.new_lenses else CAMERAS,
     )
     print(table)
-    if args.readme:
-        readme = Path(args.readme)
-        text = readme.read_text()
+    if args.results:
+        results = Path(args.results)
+        text = results.read_text()
         block = f"{START}\n{table}\n{END}"
         text = (
             re.sub(re.escape(START) + ".*?" + re.escape(END), lambda _: block, text, flags=re.S)
             if START in text
             else text + "\n" + block + "\n"
         )
-        readme.write_text(text)
+        results.write_text(text)
 
 
 if __name__ == "__main__":

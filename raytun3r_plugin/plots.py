@@ -114,15 +114,20 @@ def heatmap(
     *,
     valid: np.ndarray | None = None,
     min_size: int = 320,
+    limits: tuple[float, float] | None = None,
 ) -> np.ndarray:
     """A scalar field (H, W) coloured with the turbo map (0 = the smallest value, black outside
-    ``valid``), enlarged to at least ``min_size`` px, with a colour bar labelled in ``unit``."""
+    ``valid``), enlarged to at least ``min_size`` px, with a colour bar labelled in ``unit``.
+    ``limits``: the values at the two ends of the colour bar (default: the field's own minimum
+    and maximum), so several pictures can share one scale."""
     import cv2
 
     values = np.asarray(values, dtype=np.float64)
     valid = np.isfinite(values) if valid is None else np.asarray(valid, bool) & np.isfinite(values)
     low = float(values[valid].min()) if valid.any() else 0.0
     high = float(values[valid].max()) if valid.any() else 1.0
+    if limits is not None:
+        low, high = float(limits[0]), float(limits[1])
     high = high if high > low else low + 1e-12
     scaled = np.clip((np.where(valid, values, low) - low) / (high - low), 0, 1)
     image = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO)

@@ -58,7 +58,7 @@ ZERO_ADAPTER = "raytun3r, no adapter"
 SUPERVISED = "raytun3r, supervised"
 #: Held-out sequences per (camera, scene): with one, the sign of a small difference is the draw of
 #: that sequence (on 30 development sequences the no-adapter patch lost to vanilla in d_reproj on
-#: 2 and in AbsRel on 2; README, component table).
+#: 2 and in AbsRel on 2; docs/results.md, component table).
 SEQUENCES_PER_CELL = 5
 #: ``run_benchmark(baselines=...)`` keys -> the method name of their rows. Each adds a fit per
 #: sequence, so they are off by default; they never enter ``gap_closed`` or the targets.

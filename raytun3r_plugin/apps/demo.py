@@ -35,7 +35,7 @@ from raytun3r_plugin.apps.fits import (  # noqa: F401  (the scripts' import path
 
 #: The built-in network the demo and the benchmarks use: v3, whose pose head beats the
 #: no-rotation answer on held-out pairs (issue 13; model card, "Versions"). ``raytun3r-da3-tiny``
-#: (v2) stays loadable under its name, and the README says which tables it measured.
+#: (v2) stays loadable under its name, and docs/results.md says which tables it measured.
 DEFAULT_NETWORK = "raytun3r-da3-tiny-v3"
 DEMO_STEPS = 100
 DEMO_LR = 1e-2
@@ -231,7 +231,7 @@ def run_demo(args: argparse.Namespace) -> int:
         "These are indoor sequences. On outdoor driving ones the matches carry no depth signal and the"
     )
     print(
-        "pinhole-view teacher alone moves the tables, except at 120 degrees (README, synthetic fisheye benchmark)."
+        "pinhole-view teacher alone moves the tables, except at 120 degrees (docs/results.md, synthetic fisheye benchmark)."
     )
     (out / "metrics.json").write_text(
         json.dumps(

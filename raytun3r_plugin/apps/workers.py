@@ -2,7 +2,7 @@
 
 The built-in network is small (112 px, a few hundred tokens per frame): its operators are too
 short for a second intra-op thread to pay much, while a second process scoring another sequence
-uses the core fully (README, "The demo", has the timings). Only the applications use this; the
+uses the core fully (docs/results.md, "The demo", has the timings). Only the applications use this; the
 library's ``adapt`` never starts processes behind its caller's back.
 
 * Workers start with ``spawn``, not ``fork``: a forked child of a process whose OpenMP pool has
