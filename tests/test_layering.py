@@ -15,6 +15,10 @@ from pathlib import Path
 ROOT = Path(__file__).parent.parent
 PACKAGE = "raytun3r_plugin"
 APPS = f"{PACKAGE}.apps"
+#: The method (online adaptation) never imports a baseline: what they share (the virtual pinhole
+#: views) lives in the core, ``raytun3r_plugin.pinhole_views``.
+METHOD = f"{PACKAGE}.adaptation"
+BASELINES = f"{PACKAGE}.baselines"
 
 #: What a backbone patch may import from the package (docs/adding_a_backbone.md): the hook and
 #: registry machinery, the prediction type, weight loading, errors and RoPE, plus ``poses`` (leaf
@@ -92,6 +96,11 @@ def layering_violations(root: Path) -> list[str]:
                     f"{where}: core module {module} imports the application module {name}"
                 )
                 reported.add(line)
+            elif _is_within(module, METHOD) and _is_within(name, BASELINES):
+                problems.append(
+                    f"{where}: the method's module {module} imports the baseline {name}"
+                )
+                reported.add(line)
             elif is_patch and _is_within(name, PACKAGE) and name != PACKAGE:
                 first = name.split(".")[1]
                 if first not in PATCH_ALLOWED:
@@ -120,6 +129,10 @@ def test_the_scan_sees_every_import_form(tmp_path):
     (core / "bad_name.py").write_text("from raytun3r_plugin import apps\n")
     (core / "bad_relative.py").write_text("from .apps import cli\n")
     (core / "good.py").write_text("from raytun3r_plugin import geometry\nfrom . import hooks\n")
+    (core / "adaptation").mkdir()
+    (core / "adaptation" / "bad_method.py").write_text(
+        "from raytun3r_plugin import pinhole_views\nfrom raytun3r_plugin.baselines import lora\n"
+    )
     (tmp_path / "patches").mkdir()
     (tmp_path / "patches" / "bad_patch.py").write_text(
         "from raytun3r_plugin import hooks\nfrom ..adaptation import train\n"
@@ -127,9 +140,30 @@ def test_the_scan_sees_every_import_form(tmp_path):
 
     problems = layering_violations(tmp_path)
     assert [p.split(": ")[0] for p in problems] == [
+        "raytun3r_plugin/adaptation/bad_method.py:2",
         "raytun3r_plugin/bad_absolute.py:2",
         "raytun3r_plugin/bad_from.py:2",
         "raytun3r_plugin/bad_name.py:1",
         "raytun3r_plugin/bad_relative.py:1",
         "patches/bad_patch.py:2",
     ], problems
+
+
+def test_the_applications_import_each_other_without_a_circle():
+    """``apps`` modules may import one another, but never in a circle (the demo imports the
+    benchmark's tables; the fit settings both use live in ``apps/fits.py``)."""
+    graph: dict[str, set[str]] = {}
+    for path in sorted((ROOT / PACKAGE / "apps").glob("*.py")):
+        module, is_package = _module_name(path, ROOT)
+        names = imported_modules(path.read_text(encoding="utf-8"), module, is_package)
+        graph[module] = {name for _, name in names if _is_within(name, APPS) and name != APPS}
+    graph = {m: {n for n in deps if n in graph and n != m} for m, deps in graph.items()}
+
+    def reaches(start: str, goal: str, seen: set[str]) -> bool:
+        for nxt in graph[start] - seen:
+            if nxt == goal or reaches(nxt, goal, seen | {nxt}):
+                return True
+        return False
+
+    circles = sorted(m for m in graph if reaches(m, m, set()))
+    assert not circles, f"import circle through {circles}"

@@ -13,8 +13,8 @@ from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from raytun3r_plugin.adaptation.losses import LossWeights
-from raytun3r_plugin.baselines.multi_ph import VIEW_NAMES as TEACHER_VIEWS
 from raytun3r_plugin.errors import InputError
+from raytun3r_plugin.pinhole_views import VIEW_NAMES as TEACHER_VIEWS
 
 if TYPE_CHECKING:
     from torch import nn

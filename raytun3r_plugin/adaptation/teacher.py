@@ -25,14 +25,14 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import nn
 
-from raytun3r_plugin.baselines.multi_ph import (
+from raytun3r_plugin.errors import AlreadyAppliedError, InputError
+from raytun3r_plugin.pinhole_views import (
     VIEW_NAMES,
     multi_pinhole_views,
     resample_to_view,
     view_coverage,
     view_depth_to_fisheye,
 )
-from raytun3r_plugin.errors import AlreadyAppliedError, InputError
 from raytun3r_plugin.prediction import predict
 
 if TYPE_CHECKING:

@@ -19,15 +19,15 @@ import numpy as np
 import torch
 
 from raytun3r_plugin import metrics
-from raytun3r_plugin.baselines.multi_ph import (
+from raytun3r_plugin.baselines.multi_ph import predict_multi_ph
+from raytun3r_plugin.errors import InputError
+from raytun3r_plugin.patching import apply
+from raytun3r_plugin.pinhole_views import (
     multi_pinhole_views,
-    predict_multi_ph,
     resample_to_view,
     view_depth_to_fisheye,
     virtual_pinhole,
 )
-from raytun3r_plugin.errors import InputError
-from raytun3r_plugin.patching import apply
 from raytun3r_plugin.poses import relative_pose
 from raytun3r_plugin.prediction import predict
 
