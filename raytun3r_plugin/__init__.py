@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from raytun3r_plugin._layout import check_installed_layout  # noqa: E402
+from raytun3r_plugin._version import __version__
 from raytun3r_plugin.errors import (
     AdapterError,
     AlreadyAppliedError,
@@ -16,10 +18,6 @@ from raytun3r_plugin.errors import (
     UnsupportedUpstreamError,
     WeightsError,
 )
-
-__version__ = "0.1.0"
-
-from raytun3r_plugin._layout import check_installed_layout  # noqa: E402
 
 # Before anything can import the patch modules: a mixed install must fail here, not in a test.
 check_installed_layout()

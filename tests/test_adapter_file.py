@@ -10,7 +10,8 @@ import torch
 from safetensors.torch import load_file, save_file
 
 import raytun3r_plugin as rt
-from raytun3r_plugin.adapter import COMPONENTS, describe_file
+from raytun3r_plugin.adapter import COMPONENTS
+from raytun3r_plugin.apps.adapter_report import describe_file
 from raytun3r_plugin.errors import AdapterError, Raytun3rError
 from tests.helpers import fisheye, randomise_
 

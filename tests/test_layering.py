@@ -19,6 +19,9 @@ APPS = f"{PACKAGE}.apps"
 #: views) lives in the core, ``raytun3r_plugin.pinhole_views``.
 METHOD = f"{PACKAGE}.adaptation"
 BASELINES = f"{PACKAGE}.baselines"
+#: The adapter file format sits below the method and the applications: it may import only these
+#: (the camera it carries, the registry for the backbone's description, the safe readers).
+ADAPTER_ALLOWED = {"errors", "_io", "_strict", "_version", "registry", "cameras", "adapter"}
 
 #: What a backbone patch may import from the package (docs/adding_a_backbone.md): the hook and
 #: registry machinery, the prediction type, weight loading, errors and RoPE, plus ``poses`` (leaf
@@ -77,6 +80,19 @@ def _is_within(name: str, package: str) -> bool:
     return name == package or name.startswith(package + ".")
 
 
+def _names_submodules(path: Path, root: Path, line: int) -> bool:
+    """Whether every name of the ``from raytun3r_plugin import ...`` statement on ``line`` is a
+    submodule (``from raytun3r_plugin import cameras``), not a name the root defines."""
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom) and node.lineno == line and node.module == PACKAGE:
+            return all(
+                (root / PACKAGE / alias.name).is_dir()
+                or (root / PACKAGE / f"{alias.name}.py").is_file()
+                for alias in node.names
+            )
+    return True
+
+
 def layering_violations(root: Path) -> list[str]:
     """``file:line: message`` for each import that breaks the layers, over the package and ``patches/``."""
     problems: list[str] = []
@@ -95,6 +111,19 @@ def layering_violations(root: Path) -> list[str]:
                 problems.append(
                     f"{where}: core module {module} imports the application module {name}"
                 )
+                reported.add(line)
+            elif name == PACKAGE and not _names_submodules(path, root, line):
+                # The package root imports everything: a core module that needs a name from it
+                # (e.g. ``__version__``) runs an arrow back up; import it from its own module.
+                problems.append(f"{where}: core module {module} imports the package root")
+                reported.add(line)
+            elif (
+                module == f"{PACKAGE}.adapter"
+                and _is_within(name, PACKAGE)
+                and name != PACKAGE
+                and name.split(".")[1] not in ADAPTER_ALLOWED
+            ):
+                problems.append(f"{where}: the adapter file format imports {name}, above it")
                 reported.add(line)
             elif _is_within(module, METHOD) and _is_within(name, BASELINES):
                 problems.append(
@@ -129,6 +158,12 @@ def test_the_scan_sees_every_import_form(tmp_path):
     (core / "bad_name.py").write_text("from raytun3r_plugin import apps\n")
     (core / "bad_relative.py").write_text("from .apps import cli\n")
     (core / "good.py").write_text("from raytun3r_plugin import geometry\nfrom . import hooks\n")
+    (core / "adapter.py").write_text(
+        "from raytun3r_plugin import errors\nfrom raytun3r_plugin.adaptation import losses\n"
+    )
+    for leaf in ("errors", "geometry", "hooks", "pinhole_views"):
+        (core / f"{leaf}.py").write_text("")
+    (core / "root_name.py").write_text("from raytun3r_plugin import __version__\n")
     (core / "adaptation").mkdir()
     (core / "adaptation" / "bad_method.py").write_text(
         "from raytun3r_plugin import pinhole_views\nfrom raytun3r_plugin.baselines import lora\n"
@@ -141,10 +176,12 @@ def test_the_scan_sees_every_import_form(tmp_path):
     problems = layering_violations(tmp_path)
     assert [p.split(": ")[0] for p in problems] == [
         "raytun3r_plugin/adaptation/bad_method.py:2",
+        "raytun3r_plugin/adapter.py:2",
         "raytun3r_plugin/bad_absolute.py:2",
         "raytun3r_plugin/bad_from.py:2",
         "raytun3r_plugin/bad_name.py:1",
         "raytun3r_plugin/bad_relative.py:1",
+        "raytun3r_plugin/root_name.py:1",
         "patches/bad_patch.py:2",
     ], problems
 

@@ -15,7 +15,8 @@ from raytun3r_plugin.adaptation.config import DEFAULT_WEIGHTS, AdaptConfig
 from raytun3r_plugin.adaptation.losses import LossWeights
 from raytun3r_plugin.adaptation.recipes import RECIPES, get_recipe, recipe_names
 from raytun3r_plugin.adaptation.train import adapt
-from raytun3r_plugin.adapter import Adapter, describe_file
+from raytun3r_plugin.adapter import Adapter
+from raytun3r_plugin.apps.adapter_report import describe_file
 from raytun3r_plugin.errors import InputError, Raytun3rError
 from raytun3r_plugin.registry import native_input_size
 

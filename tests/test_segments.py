@@ -11,7 +11,8 @@ from raytun3r_plugin.patches.da3 import build_tiny_network
 from raytun3r_plugin import synthetic
 from raytun3r_plugin.adaptation.problem import split_segments
 from raytun3r_plugin.adaptation.train import AdaptConfig, adapt, objective_value, prepare_problem
-from raytun3r_plugin.adapter import Adapter, describe_file
+from raytun3r_plugin.adapter import Adapter
+from raytun3r_plugin.apps.adapter_report import describe_file
 from raytun3r_plugin.cameras import KannalaBrandt4
 from raytun3r_plugin.errors import InputError, Raytun3rError
 

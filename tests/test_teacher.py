@@ -26,7 +26,8 @@ from raytun3r_plugin.adaptation.train import (
     objective_value,
     prepare_problem,
 )
-from raytun3r_plugin.adapter import Adapter, describe_file
+from raytun3r_plugin.adapter import Adapter
+from raytun3r_plugin.apps.adapter_report import describe_file
 from raytun3r_plugin.apps.evaluation import center_pinhole, run_method
 from raytun3r_plugin.cameras import KannalaBrandt4
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError

@@ -24,7 +24,7 @@ def _default_long_side(adapter, model) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from raytun3r_plugin.adapter import describe_file, describe_record
+    from raytun3r_plugin.apps.adapter_report import describe_file, describe_record
 
     if args.json:
         import json
@@ -33,7 +33,8 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     else:
         print(describe_file(args.adapter))
     if args.picture:
-        from raytun3r_plugin.adapter import Adapter, write_pe_picture
+        from raytun3r_plugin.adapter import Adapter
+        from raytun3r_plugin.apps.adapter_report import write_pe_picture
 
         write_pe_picture(Adapter.load(args.adapter), args.picture)
         print(f"PE correction picture: {args.picture}")
