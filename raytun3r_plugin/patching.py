@@ -729,11 +729,23 @@ def apply(
     wanted = _components_for(components, next((a for a in adapters if a is not None), None))
     views = tuple(zip(cameras, adapters, masks, strict=True))
 
+    # Success is decided after the lock is released: until ``return``, any exception (an
+    # interrupt inside the release included) takes a handle this call made off again, so apply
+    # never raises with the model patched, nor returns with the lock held.
+    existing = handle = None
     try:
         _LOCK.acquire()
-        return _apply_locked(model, root, spec, branches, views, wanted, knee_deg, max_stretch)
-    finally:
+        existing = model.__dict__.get(HANDLE_ATTRIBUTE)
+        handle = _apply_locked(model, root, spec, branches, views, wanted, knee_deg, max_stretch)
         _release()
+        return handle
+    except BaseException:
+        try:
+            if handle is not None and handle is not existing:
+                handle.remove()
+        finally:
+            _release()
+        raise
 
 
 def _views_of(camera, adapter, mask) -> tuple[list, list, list]:

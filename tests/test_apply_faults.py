@@ -210,3 +210,52 @@ def test_an_interrupt_just_after_taking_the_lock_does_not_leave_it_held(setup, m
     assert not failures, failures
     assert rt.handle_of(net) is None
     assert max_relative_difference(reference, outputs(net, images)) == 0.0
+
+
+class _InterruptedRelease(_InterruptedLock):
+    """The global lock, but its first release is interrupted, before or after it takes effect:
+    the end of ``apply`` (issue: an interrupt inside its final lock release)."""
+
+    def __init__(self, lock, after: bool):
+        super().__init__(lock)
+        self._after = after
+
+    def acquire(self, *args, **kwargs):
+        return self._lock.acquire(*args, **kwargs)
+
+    def release(self):
+        if not self._after:
+            self._interrupt()
+        self._lock.release()
+        if self._after:
+            self._interrupt()
+
+
+@pytest.mark.parametrize("after", [False, True], ids=["before", "after"])
+def test_an_interrupt_inside_the_final_release_leaves_the_model_and_the_lock_clean(
+    setup, monkeypatch, after
+):
+    net, images, adapter, reference, patched, _steps = setup
+    snap = snapshot(net)
+    lock = _InterruptedRelease(patching._LOCK, after)
+    monkeypatch.setattr(patching, "_LOCK", lock)
+    with pytest.raises(KeyboardInterrupt, match="injected"):
+        rt.apply(net, _camera(), adapter)
+    assert lock._interrupted
+    assert rt.handle_of(net) is None
+    assert not lock._is_owned(), "the interrupted thread still holds the global lock"
+    assert_same_snapshot(net, snap)
+    assert max_relative_difference(reference, outputs(net, images)) == 0.0
+    # The lock is free for another thread, and the model patches normally again.
+    done = threading.Event()
+
+    def other_thread():
+        with rt.apply(net, _camera(), adapter):
+            pass
+        done.set()
+
+    threading.Thread(target=other_thread, daemon=True).start()
+    assert done.wait(5.0), "a second apply in another thread hangs on the global lock"
+    with rt.apply(net, _camera(), adapter):
+        assert max_relative_difference(patched, outputs(net, images)) == 0.0
+    assert rt.handle_of(net) is None
