@@ -10,10 +10,10 @@ the destination as it was.
 The temporary file is named ``.NAME.raytun3r-tmp-<pid>-<random>`` (:func:`temporary_name`),
 created exclusively with mode 0600 (callers that publish a file for others, such as package
 data, ``chmod`` the yielded path). A process killed mid-write (``kill -9``) leaves that file
-behind; the next write of the same destination removes such leftovers (:func:`remove_stale`):
+behind; the next write of any file in that folder removes such leftovers (:func:`remove_stale`):
 those whose writer process is dead, and any older than :data:`STALE_SECONDS`. So a kill at any
 moment leaves the old file, the new file or no file, and at most one temporary file until the
-next write. Writers serialise in memory and write the bytes themselves (safetensors'
+next write there. Writers serialise in memory and write the bytes themselves (safetensors'
 ``save_file`` would make a second temporary file of its own).
 """
 
@@ -66,15 +66,19 @@ def _pid_alive(pid: int) -> bool:
 
 
 def remove_stale(destination: str | os.PathLike) -> list[Path]:
-    """Remove leftover temporary files of writes of ``destination``; returns those removed.
+    """Remove leftover temporary files of writes in ``destination``'s folder; returns those
+    removed.
 
-    Only files of this module's name pattern for this very destination are considered, and
-    only those whose writer process is dead or that were not touched for
-    :data:`STALE_SECONDS`: a live writer's temporary file is left alone.
+    Only files of this module's name pattern are considered (of any destination in the folder,
+    so a kill while saving one file is cleaned up by the next save of any other), and only
+    those whose writer process is dead or that were not touched for :data:`STALE_SECONDS`: a
+    live writer's temporary file is left alone.
     """
     destination = Path(destination)
     folder = destination.parent if str(destination.parent) else Path(".")
-    pattern = re.compile(re.escape(f".{destination.name}{TEMPORARY_MARK}") + r"(\d+)-[0-9a-f]+")
+    # Any destination's in that folder: a temporary file whose writer was killed while saving
+    # another file of the folder is as stale as one of this destination.
+    pattern = re.compile(r"\..+" + re.escape(TEMPORARY_MARK) + r"(\d+)-[0-9a-f]+")
     removed = []
     try:
         entries = list(os.scandir(folder))

@@ -67,13 +67,15 @@ def test_a_write_uses_one_recognisable_temporary_and_removes_only_stale_ones(tmp
     dead = tmp_path / f".file.txt.raytun3r-tmp-{_dead_pid()}-abc123"
     live = tmp_path / f".file.txt.raytun3r-tmp-{os.getppid()}-abc123"  # a live writer, young
     old = tmp_path / f".file.txt.raytun3r-tmp-{os.getpid()}-def456"  # live pid, long untouched
-    other = tmp_path / f".other.txt.raytun3r-tmp-{_dead_pid()}-abc123"  # another target's
+    other = tmp_path / f".other.txt.raytun3r-tmp-{_dead_pid()}-abc123"  # another target's, dead
+    other_live = tmp_path / f".other.txt.raytun3r-tmp-{os.getppid()}-abc123"
     mine = tmp_path / ".file.txt.notes"  # not a temporary at all
-    for path in (dead, live, old, other, mine):
+    for path in (dead, live, old, other, other_live, mine):
         path.write_text("stale")
     past = time.time() - STALE_SECONDS - 5
     os.utime(old, (past, past))
-    assert sorted(remove_stale(target)) == sorted([dead, old])
-    assert all(p.exists() for p in (live, other, mine))
+    # The folder's stale temporaries, whichever file their writer was saving; live ones stay.
+    assert sorted(remove_stale(target)) == sorted([dead, old, other])
+    assert all(p.exists() for p in (live, other_live, mine))
     atomic_write_text(target, "new")  # a write runs the same cleanup
     assert live.exists() and target.read_text() == "new"

@@ -85,6 +85,11 @@ def test_kill_during_save_leaves_old_new_or_nothing_and_one_temporary_at_most(tm
         seen_temporary += len(temporaries)
         if path.exists():
             assert _fill_of(path) in (1.0, 2.0)
+        if temporaries:
+            # A save of another file in the folder sweeps the killed writer's temporary too.
+            _adapter(4.0).save(tmp_path / "other.safetensors")
+            assert _leftovers(tmp_path)[0] == [], "a stray temporary survived a save beside it"
+            (tmp_path / "other.safetensors").unlink()
 
     # The next save removes the killed writers' temporary file.
     _adapter(3.0).save(path)
