@@ -47,7 +47,7 @@ Optional training-only auxiliaries and recipes (issue 13; all off by default):
 ``--pe-std`` starts the absolute PE table as a low-frequency 2D sin-cos map instead of DA3's
 zeros (or the builder's tiny random init): a network trained from scratch otherwise learns to
 ignore absolute position, and then the PE adapter has nothing to act on
-(``benchmarks/leverage.py`` measures this).
+(``experiments/leverage.py`` measures this).
 
 Phases: (1) render a training set into ``<out>/train_data.npz`` (re-used when it exists and
 matches the arguments), (2) train. Every batch is a pure function of (seed, step), so a run is

@@ -262,7 +262,7 @@ def depth_parallax_px(
     the reprojection term carries no depth information; outdoors at 112 px, where only far
     points keep matches, the pixel-optimal scale was 1.4-2.4 % of the depth-consistent one and
     the windows' median parallax 0.01-0.20 px, against 0.4-6.5 px indoors
-    (``benchmarks/guided_matching.py``, docs/adaptation.md section 6). A finite difference of
+    (``experiments/guided_matching.py``, docs/adaptation.md section 6). A finite difference of
     ``step`` in log depth; points that do not project give 0.
 
     Args:

@@ -13,8 +13,8 @@ on frames 0-23 and scored on frames 24-35 at 112 px:
   covers of the unpatched network's depth on that view (mapped back to the fisheye, the teacher's
   targets), of the zero adapter and of the supervised fit, each median-aligned on those pixels.
 
-    python benchmarks/teacher_regions.py                      # the three probed sequences, ~4 min
-    python benchmarks/teacher_regions.py --sequences "KB4 185,outdoor,0"
+    python experiments/teacher_regions.py                      # the three probed sequences, ~4 min
+    python experiments/teacher_regions.py --sequences "KB4 185,outdoor,0"
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ fitted with a few settings, with the size of the fitted tables (rms of the PE ta
 units, and of the RoPE table, in tokens). Settings: the defaults; the paper's objective as this
 project had it before issue 12; a 3x learning rate; the defaults without the PE regularisers.
 
-    python benchmarks/adapter_settings.py [--camera 1] [--scene indoor] [--seed 80010]
+    python experiments/adapter_settings.py [--camera 1] [--scene indoor] [--seed 80010]
 """
 
 from __future__ import annotations

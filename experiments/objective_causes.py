@@ -15,7 +15,7 @@ On the three development sequences of issue 12 (KB4 185 indoor 80010, DS 195 ind
    10, DIS without its appearance check) and the new default objective, each evaluated for the
    zero adapter, a quarter of the supervised correction and the supervised correction.
 
-    python benchmarks/objective_causes.py
+    python experiments/objective_causes.py
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ error over the fit's (the paper's target: at least 2), and on how many sequences
 below vanilla and below Center-PH. Nothing is re-run.
 
     python benchmarks/fisheye_synthetic.py --out runs/bench
-    python benchmarks/rotation_effect.py runs/bench/results.json
+    python experiments/rotation_effect.py runs/bench/results.json
 """
 
 from __future__ import annotations

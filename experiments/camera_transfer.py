@@ -22,8 +22,8 @@ adapter" in its outdoor cells (and the README recommends fitting a camera where 
 parallax) only if on these development sequences the indoor-fitted adapter lowers AbsRel against
 no adapter on at least 12 of 15 outdoor sequences and is never more than 5 % worse on any.
 
-    python benchmarks/camera_transfer.py                  # 5 seeds x 3 cameras, ~25 min, 1 thread
-    python benchmarks/camera_transfer.py --sequences 1 --steps 30
+    python experiments/camera_transfer.py                  # 5 seeds x 3 cameras, ~25 min, 1 thread
+    python experiments/camera_transfer.py --sequences 1 --steps 30
 """
 
 from __future__ import annotations

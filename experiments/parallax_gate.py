@@ -7,13 +7,13 @@ configuration at 112 px), the per-window median depth parallax of the matches wi
 adapter (``step.window_parallax``: input pixels of reprojection per unit log depth), and how
 many windows a threshold drops.
 
-    python benchmarks/parallax_gate.py               # 5 sequences per cell, about 3 minutes
-    python benchmarks/parallax_gate.py --held-out    # the same on the benchmark's seeds
-    python benchmarks/parallax_gate.py --native 448 --scenes outdoor    # about 10 minutes
+    python experiments/parallax_gate.py               # 5 sequences per cell, about 3 minutes
+    python experiments/parallax_gate.py --held-out    # the same on the benchmark's seeds
+    python experiments/parallax_gate.py --native 448 --scenes outdoor    # about 10 minutes
         # frames rendered at 448 px (the same camera path: the per-frame motion target scaled
         # with the size) and matched there, the network still at 112 px: does a sharper native
         # image give the matches a depth signal outdoors?
-    python benchmarks/parallax_gate.py --stride 8 --scenes outdoor
+    python experiments/parallax_gate.py --stride 8 --scenes outdoor
         # windows of frames 8 apart (the fit's `stride`): does a longer baseline give the far
         # matches that remain outdoors enough parallax?
 """

@@ -5,7 +5,7 @@ and ``adapter_supervised.safetensors``) and prints, per radius bin, the median o
 sigma_1 / sigma_1(centre) for the pretrained PE, each fit, and the camera's analytic reference
 (docs/analysis.md). 1.0 everywhere = a flat, pinhole-like PE.
 
-    raytun3r demo --out demo_out && python benchmarks/pe_jacobian.py demo_out [--size 224] [--bins 5]
+    raytun3r demo --out demo_out && python experiments/pe_jacobian.py demo_out [--size 224] [--bins 5]
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ per-sequence rows and, per variant, the mean rotation error and AbsRel with the 
 sequences on which the fit is below the zero adapter. docs/decisions.md states the rule that
 this table decides.
 
-    python benchmarks/pose_source.py [--sequences 3] [--variants targets,hybrid:1,model]
+    python experiments/pose_source.py [--sequences 3] [--variants targets,hybrid:1,model]
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ the mean relative change of the predicted depth, |d - d_ref| / d_ref, when:
 * the RoPE table displaces every token by one token outwards;
 * the parameter-free corrections are switched on (zero adapter) against the unpatched network.
 
-    python benchmarks/leverage.py [--weights W.safetensors ...] [--camera 1]
+    python experiments/leverage.py [--weights W.safetensors ...] [--camera 1]
 
 Each ``--weights`` file is a ``raytun3r-da3-tiny`` checkpoint; the default is the packaged one.
 """

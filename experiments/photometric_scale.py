@@ -16,7 +16,7 @@ three outdoor cells and of KB4 185 indoors):
 
 Frames blurred by 1 px, every valid pixel with depth, the frames' own lens mask.
 
-    python benchmarks/photometric_scale.py      # about 1 minute
+    python experiments/photometric_scale.py      # about 1 minute
 """
 
 from __future__ import annotations

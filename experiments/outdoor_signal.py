@@ -31,9 +31,9 @@ was added later under the same rule, fixed before its 15-sequence run (its weigh
 two of these sequences, KB4 185 k=0 and KB4 120 k=0), and so was the photometric-scale
 variant (no setting was tuned for it; it was tried on KB4 185 k=0 and KB4 120 k=0 first).
 
-    python benchmarks/outdoor_signal.py              # 5 seeds x 3 cameras, ~90 min, 2 jobs
-    python benchmarks/outdoor_signal.py --methods photometric   # one variant, ~30 min
-    python benchmarks/outdoor_signal.py --sequences 1 --steps 30 --jobs 1
+    python experiments/outdoor_signal.py              # 5 seeds x 3 cameras, ~90 min, 2 jobs
+    python experiments/outdoor_signal.py --methods photometric   # one variant, ~30 min
+    python experiments/outdoor_signal.py --sequences 1 --steps 30 --jobs 1
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ The same columns for the left camera's consecutive frames (``temporal``) give th
 Ground-truth depth and poses are used on purpose: this measures what the matches can carry, not
 what a fit with predicted depth makes of it.
 
-    python benchmarks/stereo_parallax.py              # 3 rigs x 3 baselines, about 2 minutes
+    python experiments/stereo_parallax.py              # 3 rigs x 3 baselines, about 2 minutes
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ benchmark's 90000+), with the built-in network at 112 px:
 3. **fits**: held-out AbsRel and d_reproj of the zero adapter, the default self-supervised fit
    and the same fit with the guided matches, frames 0-23 fitted and 24-35 scored.
 
-    python benchmarks/guided_matching.py            # 3 outdoor sequences + 1 indoor, ~10 min
+    python experiments/guided_matching.py            # 3 outdoor sequences + 1 indoor, ~10 min
 """
 
 from __future__ import annotations
@@ -30,7 +30,9 @@ import cv2
 import numpy as np
 import torch
 
+# Helpers of two sibling scripts (experiments/objective_causes.py, benchmarks/matching_quality.py).
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
 from matching_quality import BINS, gt_end_points  # noqa: E402
 from objective_causes import zero_adapter_depth  # noqa: E402

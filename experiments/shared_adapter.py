@@ -20,11 +20,11 @@ adapter is below no adapter on both AbsRel and d_reproj on at least 80 % of the 
 ``--held-out`` run: the recommendation stands for a cell only if the rule is met there on the
 held-out seeds too.
 
-    python benchmarks/shared_adapter.py                  # 5 seeds x 6 cells, ~20 min, 2 jobs
-    python benchmarks/shared_adapter.py --held-out --scenes outdoor --cameras "KB4 185,DS 195"
+    python experiments/shared_adapter.py                  # 5 seeds x 6 cells, ~20 min, 2 jobs
+    python experiments/shared_adapter.py --held-out --scenes outdoor --cameras "KB4 185,DS 195"
         # the benchmark's held-out seeds (90000+) of the cells where the development rule was
         # met or nearly met: does the recommendation hold there?
-    python benchmarks/shared_adapter.py --sequences 2 --steps 30 --jobs 1
+    python experiments/shared_adapter.py --sequences 2 --steps 30 --jobs 1
 
 ``--pooled``: one supervised fit on several segments at once (``adapt`` with a list of segments,
 the same 300 steps spread over their windows), the way a camera's adapter would be made from
@@ -40,8 +40,8 @@ only if in that cell the pooled adapter is below no adapter on both AbsRel and d
 least 80 % of the scored sequences (4 of 5) and never more than 5 % worse on AbsRel, on the
 development seeds and then on the held-out seeds.
 
-    python benchmarks/shared_adapter.py --pooled               # 6 cells, ~15 min, 2 jobs
-    python benchmarks/shared_adapter.py --pooled --held-out    # ~10 min, 2 jobs
+    python experiments/shared_adapter.py --pooled               # 6 cells, ~15 min, 2 jobs
+    python experiments/shared_adapter.py --pooled --held-out    # ~10 min, 2 jobs
 """
 
 from __future__ import annotations

@@ -36,8 +36,8 @@ than no adapter on AbsRel on any of the 30 sequences, lower than no adapter on d
 least 24 of 30, take at most 60 s per fit, and close more of the gap than ``hybrid``. If none
 qualifies, ``hybrid`` stays and the teacher stays an option.
 
-    python benchmarks/teacher.py                       # 30 sequences, ~50 min, 2 jobs
-    python benchmarks/teacher.py --sequences 1 --steps 30 --jobs 1
+    python experiments/teacher.py                       # 30 sequences, ~50 min, 2 jobs
+    python experiments/teacher.py --sequences 1 --steps 30 --jobs 1
 """
 
 from __future__ import annotations
