@@ -414,7 +414,8 @@ class Adapter(nn.Module):
         Args:
             geometry: a :class:`raytun3r_plugin.geometry.SizeGeometry` (camera at the input
                 size), whose interpolation matrices spread the tables over the token grid.
-            device, dtype: of the result (default: the tables' device, float32).
+            device: of the result (default: the tables' device).
+            dtype: of the result (default: float32).
             angular: include the angular term; False gives ``t_r(rho)`` alone (the
                 ``"pe_radial_only"`` ablation: the angular table is then outside the graph and
                 gets no gradient). None: as this adapter's own components say.

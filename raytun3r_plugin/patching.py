@@ -706,7 +706,8 @@ def apply(
         strict: refuse an adapter fitted on other weights (PE fingerprint) or another camera.
         mask: optional (H, W) bool mask of valid pixels, combined with the camera's valid region;
             with a camera list, one mask (or None) per camera.
-        knee_deg, max_stretch: parameters of the fisheye-to-pinhole map and patch resampling.
+        knee_deg: the knee angle of the fisheye-to-pinhole map, degrees.
+        max_stretch: the largest stretch of the patch resampling.
 
     Everything is validated before the model is touched; a failure while installing rolls back.
     Applying the same camera and adapter again returns the existing handle.

@@ -72,8 +72,9 @@ def fisheye(
             with ``alpha``) or ``"eucm"`` (:class:`EUCM` with ``alpha`` and ``beta``).
         k: the four KB4 coefficients ``(k1, k2, k3, k4)``; the default ``k1 = 0.02`` is the lens
             of the demo and the benchmark; ``(0, 0, 0, 0)`` is the ideal equidistant lens.
-        xi, alpha: the double-sphere parameters (the benchmark's DS 195 by default); ``alpha``
-            is also the (E)UCM's.
+        xi: the double-sphere ``xi`` (the benchmark's DS 195 by default).
+        alpha: the double-sphere ``alpha`` (the benchmark's DS 195 by default), also the
+            (E)UCM's.
         beta: the EUCM's ``beta``.
         radius_px: image-circle radius in pixels; default half the shorter side (the circle
             touches the shorter side's edges).
