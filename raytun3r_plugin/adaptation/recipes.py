@@ -54,6 +54,12 @@ class Recipe:
     evidence: str = ""
 
 
+def _only(term: str) -> dict[str, float]:
+    """Loss weights with ``term`` at 1 and every other term of the objective off."""
+    terms = ("reproj", "smooth", "l2", "tv", "pose", "depth", "teacher")
+    return {name: 1.0 if name == term else 0.0 for name in terms}
+
+
 #: The recipes, by name. ``default``'s settings are ``AdaptConfig``'s field defaults.
 RECIPES: dict[str, Recipe] = {
     recipe.name: recipe
@@ -131,15 +137,7 @@ RECIPES: dict[str, Recipe] = {
             "alone, Adam lr 3e-2, no regulariser, no collapse guard",
             changes={
                 "lr": 3e-2,
-                "weights": {
-                    "reproj": 0.0,
-                    "smooth": 0.0,
-                    "l2": 0.0,
-                    "tv": 0.0,
-                    "pose": 0.0,
-                    "depth": 1.0,
-                    "teacher": 0.0,
-                },
+                "weights": _only("depth"),
                 "guard": False,
             },
             supervised=True,
@@ -152,15 +150,7 @@ RECIPES: dict[str, Recipe] = {
             "collapse guard, the 110-degree centre view",
             changes={
                 "lr": 3e-2,
-                "weights": {
-                    "reproj": 0.0,
-                    "smooth": 0.0,
-                    "l2": 0.0,
-                    "tv": 0.0,
-                    "pose": 0.0,
-                    "depth": 0.0,
-                    "teacher": 1.0,
-                },
+                "weights": _only("teacher"),
                 "guard": False,
                 "teacher_views": ("centre",),
                 "teacher_view_weights": None,
