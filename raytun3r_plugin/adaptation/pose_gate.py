@@ -1,0 +1,69 @@
+"""Does the network's own relative pose agree with the matches? The measurement behind the
+pose gate (``AdaptConfig.pose_gate``).
+
+The pose term pulls the network's relative pose towards the MAGSAC++ estimates from the matches.
+On a network whose pose output is no better than "no rotation" (the built-in v2) that pull is
+noise for the tables to fit, so a fit measures first, on its own adaptation set and with its
+starting tables, how far the network's relative rotations are from the targets and how far "no
+rotation" is; the recipe keeps the pose term only where the network is clearly closer
+(docs/decisions.md, "The pose gate").
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+from raytun3r_plugin import poses
+from raytun3r_plugin.adaptation.step import _evaluated
+from raytun3r_plugin.prediction import predict
+
+if TYPE_CHECKING:
+    from torch import nn
+
+    from raytun3r_plugin.adaptation.config import AdaptConfig
+    from raytun3r_plugin.adaptation.problem import AdaptationProblem
+    from raytun3r_plugin.adapter import Adapter
+
+__all__ = ["pose_agreement"]
+
+
+def pose_agreement(
+    model: nn.Module, adapter: Adapter, problem: AdaptationProblem, config: AdaptConfig
+) -> dict[str, Any]:
+    """Median rotation error of the network's relative poses and of "no rotation" against the
+    pairs' MAGSAC++ targets, over every pair with a target in ``problem``'s windows.
+
+    Each window is one forward of ``model`` patched with ``adapter`` (frozen, in eval mode,
+    restored afterwards), as the fit runs it.
+
+    Returns:
+        ``{"pairs": n, "network_deg": median error of the network, "no_rotation_deg": median
+        rotation angle of the targets, "ratio": network / no rotation}``; the errors are NaN
+        without a pair.
+    """
+    network, identity = [], []
+    with _evaluated(model, adapter, problem, config):
+        for index, (_window, pairs) in enumerate(problem.windows):
+            targets = [pair for pair in pairs if pair.rotation is not None]
+            if not targets:
+                continue
+            cam_from_world = predict(model, problem.batch(index)[None]).cam_from_world[0]
+            cam_from_world = cam_from_world.detach().double().cpu()
+            for pair in targets:
+                relative = poses.relative_pose(cam_from_world, pair.a, pair.b)
+                rotation = pair.rotation.detach().double().cpu()
+                network.append(float(poses.rotation_angle(rotation, relative[:3, :3])))
+                identity.append(float(poses.rotation_angle(rotation, torch.eye(3).double())))
+    if not network:
+        return {"pairs": 0, "network_deg": math.nan, "no_rotation_deg": math.nan, "ratio": math.nan}
+    net = math.degrees(float(torch.tensor(network).median()))
+    none = math.degrees(float(torch.tensor(identity).median()))
+    return {
+        "pairs": len(network),
+        "network_deg": round(net, 4),
+        "no_rotation_deg": round(none, 4),
+        "ratio": round(net / none, 4) if none > 0 else math.inf,
+    }
