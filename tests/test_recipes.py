@@ -277,3 +277,44 @@ def test_adapt_help_leads_with_the_recipe_and_groups_the_internals(capsys):
     assert main(["recipes"]) == 0
     listing = capsys.readouterr().out
     assert all(f"{name} (v" in listing for name in recipe_names())
+
+
+def test_the_pose_oracle_fits_the_tables_to_the_true_relative_poses(network, segment):
+    from raytun3r_plugin.adaptation.problem import prepare_problem, with_pose_targets
+    from raytun3r_plugin.poses import relative_pose, rotation_angle
+
+    camera, frames = segment
+    seq = synthetic.render_sequence("indoor", camera, n_frames=8, seed=31)
+    config = AdaptConfig.from_recipe(
+        "pose-oracle", steps=12, n_windows=3, input_size=112, checkpoint_every=0
+    )
+    problem = with_pose_targets(prepare_problem(camera, seq.images, config), seq.cam_from_world)
+    assert problem.supervision == {"kind": "poses", "frames": 8}
+    for window, pairs in problem.windows:
+        for pair in pairs:
+            truth = relative_pose(
+                torch.as_tensor(seq.cam_from_world, dtype=torch.float64),
+                window.frames[pair.a],
+                window.frames[pair.b],
+            )
+            assert float(rotation_angle(pair.rotation, truth[:3, :3])) < 1e-9
+    adapter = adapt(network, camera, seq.images, config, poses=seq.cam_from_world, progress=False)
+    info = adapter.training_info
+    assert info["supervision"]["kind"] == "poses" and info["recipe"]["name"] == "pose-oracle"
+    assert info["config"]["weights"] == {
+        "reproj": 0.0,
+        "smooth": 0.0,
+        "l2": 0.0,
+        "tv": 0.0,
+        "pose": 1.0,
+        "depth": 0.0,
+    }
+    assert not adapter.is_zero()
+    for bad, message in (
+        (seq.cam_from_world[:2], "at least"),
+        (seq.cam_from_world[..., :3], r"\(N, 4, 4\)"),
+    ):
+        with pytest.raises(InputError, match=message):
+            adapt(network, camera, seq.images, config, poses=bad, progress=False)
+    with pytest.raises(InputError, match="depth .* or poses"):
+        adapt(network, camera, seq.images, poses=seq.cam_from_world, depth=seq.depth)

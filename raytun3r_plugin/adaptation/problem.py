@@ -463,3 +463,39 @@ def _prepare_one(
             depth, used, layout, native_valid, tuple(images.shape[:3]), config.seed
         )
     return problem
+
+
+def with_pose_targets(problem: AdaptationProblem, cam_from_world: Any) -> AdaptationProblem:
+    """``problem`` with every pair's pose target replaced by the ground-truth relative pose
+    (the pose-oracle fit: the pose term through the network's own pose head, against the truth).
+
+    Args:
+        problem: a prepared problem of ONE segment (its windows' frame indices index the poses).
+        cam_from_world: (N, 4, 4) ground-truth world-to-camera poses of the segment's frames.
+
+    Returns:
+        the same problem (changed in place): ``pair.rotation`` (3, 3) and ``pair.direction`` (3,)
+        of every pair, float64; a pair whose frames did not move keeps no target (None).
+
+    Raises:
+        InputError: poses of the wrong shape or count, or not finite.
+    """
+    from raytun3r_plugin.poses import relative_pose
+
+    poses = torch.as_tensor(np.asarray(cam_from_world), dtype=torch.float64)
+    used = max((frame for window, _ in problem.windows for frame in window.frames), default=-1)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or poses.shape[0] <= used:
+        raise InputError(
+            f"poses must be (N, 4, 4) cam_from_world for the segment's frames (at least "
+            f"{used + 1}), got shape {tuple(poses.shape)}"
+        )
+    if not bool(torch.isfinite(poses).all()):
+        raise InputError("poses hold values that are not finite")
+    for window, pairs in problem.windows:
+        for pair in pairs:
+            relative = relative_pose(poses, window.frames[pair.a], window.frames[pair.b])
+            length = float(relative[:3, 3].norm())
+            pair.rotation = relative[:3, :3].clone() if length > 0 else None
+            pair.direction = relative[:3, 3] / length if length > 0 else None
+    problem.supervision = {"kind": "poses", "frames": int(poses.shape[0])}
+    return problem

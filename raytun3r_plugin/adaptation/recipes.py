@@ -43,6 +43,7 @@ class Recipe:
         changes: the ``AdaptConfig`` fields this recipe sets, relative to the field defaults
             (the ``default`` recipe); ``"weights"`` as a mapping of the loss terms it changes.
         supervised: the recipe fits to ground-truth depth (``adapt(..., depth=...)``).
+        needs_poses: the recipe fits to ground-truth poses (``adapt(..., poses=...)``).
         evidence: where the measurement that chose it is written.
     """
 
@@ -51,6 +52,7 @@ class Recipe:
     summary: str
     changes: Mapping[str, Any] = field(default_factory=dict)
     supervised: bool = False
+    needs_poses: bool = False
     evidence: str = ""
 
 
@@ -142,6 +144,22 @@ RECIPES: dict[str, Recipe] = {
             },
             supervised=True,
             evidence="docs/adaptation.md, 'Supervised fit'",
+        ),
+        Recipe(
+            "pose-oracle",
+            1,
+            "the tables fitted to ground-truth relative poses (adapt(..., poses=...)): the pose "
+            "term on the network's own pose alone, Adam lr 1e-2, no parallax gate, no guard; "
+            "what the tables can do for pose",
+            changes={
+                "pose_source": "model",
+                "lr": 1e-2,
+                "weights": _only("pose"),
+                "min_parallax_px": 0.0,
+                "guard": False,
+            },
+            needs_poses=True,
+            evidence="docs/decisions.md, 'Rotation: the pose oracle and the components'",
         ),
         Recipe(
             "teacher-only",

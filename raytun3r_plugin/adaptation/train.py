@@ -83,6 +83,8 @@ from raytun3r_plugin.adaptation.problem import (
     AdaptationProblem,
     prepare_problem,
     scene_mask,
+    split_segments,
+    with_pose_targets,
 )
 from raytun3r_plugin.adaptation.step import (
     _frozen,
@@ -95,7 +97,7 @@ from raytun3r_plugin.adaptation.step import (
 )
 from raytun3r_plugin.adaptation.teacher import teacher_coverage, teacher_targets
 from raytun3r_plugin.adapter import Adapter
-from raytun3r_plugin.errors import AlreadyAppliedError
+from raytun3r_plugin.errors import AlreadyAppliedError, InputError
 from raytun3r_plugin.patching import apply, handle_of
 from raytun3r_plugin.preprocess import InputLayout, input_layout
 from raytun3r_plugin.registry import native_input_size
@@ -207,6 +209,7 @@ def adapt(
     progress: bool = True,
     mask: Any = None,
     depth: Any = None,
+    poses: Any = None,
     tune: nn.Module | None = None,
 ) -> Adapter:
     """Fit an adapter for ``model`` on a fisheye segment, without ground truth (or with it).
@@ -246,6 +249,13 @@ def adapt(
             records the kind and the coverage (fraction of lens pixels with a value). With
             several segments, a list of one depth per segment.
 
+        poses: optional (N, 4, 4) ground-truth ``cam_from_world`` of the frames (one segment):
+            every pair's pose target becomes the true relative pose, so the pose term measures
+            the network's own pose against the truth. With the ``pose-oracle`` recipe (the pose
+            term alone) this is the **pose oracle**: what the tables can do for pose, as the
+            supervised fit is for depth. ``training_info["supervision"]`` is ``{"kind":
+            "poses"}``; with ``config=None`` the recipe is ``pose-oracle``.
+
     Without ``depth``, ``config.weights.teacher > 0`` adds the pinhole-view teacher: before the
     patch is applied, the model's own depth on virtual pinhole views of every window
     (:func:`~raytun3r_plugin.adaptation.teacher.teacher_targets`) becomes a per-view
@@ -276,8 +286,11 @@ def adapt(
             the lens, or no moving window in the segment.
         AdapterError: the checkpoint next to ``out_path`` belongs to another run.
     """
+    if depth is not None and poses is not None:
+        raise InputError("adapt: give depth (the supervised fit) or poses (the pose oracle)")
     if config is None:
-        config = AdaptConfig.from_recipe("default" if depth is None else "supervised", model=model)
+        recipe = "supervised" if depth is not None else "pose-oracle" if poses is not None else None
+        config = AdaptConfig.from_recipe(recipe or "default", model=model)
     if config.input_size is None:
         config = dataclasses.replace(config, input_size=native_input_size(model))
     if handle_of(model) is not None:
@@ -290,6 +303,10 @@ def adapt(
         else copy.deepcopy(adapter)
     )
     problem = prepare_problem(camera, frames, config, adapter.patch_size, mask=mask, depth=depth)
+    if poses is not None:
+        if split_segments(frames) is not None:
+            raise InputError("adapt: poses are for one segment; fit several segments without them")
+        with_pose_targets(problem, poses)
     intrinsics = None
     if config.refine_intrinsics:
         from raytun3r_plugin.adaptation.intrinsics import refine_intrinsics

@@ -193,6 +193,11 @@ def _recipe_name(args: argparse.Namespace, supervised: bool) -> str:
             f"--depth fits to ground-truth depth: use --recipe supervised (or leave --recipe "
             f"out), not {name!r}"
         )
+    if recipe.needs_poses:
+        raise InputError(
+            f"the recipe {name!r} fits to ground-truth poses, which `raytun3r adapt` does not "
+            "read: use adapt(model, camera, frames, poses=...) in Python"
+        )
     if recipe.supervised and not supervised:
         raise InputError(f"the recipe {name!r} fits to ground-truth depth: give --depth")
     return name
