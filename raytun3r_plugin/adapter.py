@@ -341,7 +341,7 @@ class Adapter(nn.Module):
         training = strict_json(metadata["training"], "metadata 'training'", AdapterError, where)
         if not isinstance(training, dict):
             raise fail(f"metadata 'training' must be a JSON object, got {quote(training)}")
-        expected = {
+        expected: dict[str, tuple[int, ...]] = {
             "pe.radial": (sizes["n_r"], sizes["embed_dim"]),
             "pe.angular": (sizes["n_theta"], sizes["embed_dim"]),
         }
@@ -361,11 +361,11 @@ class Adapter(nn.Module):
                 )
             if not bool(torch.isfinite(tensor).all()):
                 raise fail(f"tensor {name!r} has non-finite values")
-            limit = TABLE_LIMITS[name]
+            table_limit = TABLE_LIMITS[name]
             largest = float(tensor.abs().max()) if tensor.numel() else 0.0
-            if largest > limit:
+            if largest > table_limit:
                 raise fail(
-                    f"tensor {name!r} has a value of magnitude {largest:.3g}, over the limit {limit:g}"
+                    f"tensor {name!r} has a value of magnitude {largest:.3g}, over the limit {table_limit:g}"
                 )
         camera = None
         if metadata["camera"]:

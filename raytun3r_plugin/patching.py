@@ -239,6 +239,7 @@ class PatchState:
         adapter's recorded ones: ``apply(..., components=...)`` overrides what the file says.
         """
         angular = not self.components.get("pe_radial_only", False)
+        assert self.adapter is not None  # the hooks ask only a state that carries an adapter
         return self.adapter.pe_correction(geometry, device, dtype, angular=angular)
 
     def rope_displacement(self, geometry: SizeGeometry, device, dtype) -> torch.Tensor:
@@ -670,7 +671,7 @@ def _checked_mask(mask: Any, camera: Camera) -> torch.Tensor:
             f"mask is {width}x{height} px but the camera is {camera.width}x{camera.height}: the aspect ratios differ"
         )
     valid = camera.valid_mask().cpu()
-    if not bool((resize_mask(mask, valid.shape) & valid).any()):
+    if not bool((resize_mask(mask, (int(valid.shape[0]), int(valid.shape[1]))) & valid).any()):
         raise CameraError("mask leaves no pixel inside the camera's valid region")
     return mask
 
