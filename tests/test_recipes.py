@@ -242,8 +242,11 @@ def test_the_command_line_fits_the_default_recipe_and_reports_the_check(
     assert info["segment"]["n_frames"] == 15  # the held-out frames were not fitted
     assert "check on 3 held-out frames" in describe_file(out)
     # A recipe by name, and what it changes.
-    out = tmp_path / "targets.safetensors"
-    assert main([*base, "--recipe", "targets", "--steps", "2", "--out", str(out)]) == 0
+    # Another recipe to the same file meets the first run's checkpoint: refused with the way out.
+    assert main([*base, "--recipe", "targets", "--steps", "2", "--out", str(out)]) == 2
+    assert "--restart" in capsys.readouterr().err
+    assert main([*base, "--recipe", "targets", "--steps", "2", "--restart", "--out", str(out)]) == 0
+    capsys.readouterr()
     assert Adapter.load(out).training_info["recipe"] == {
         "name": "targets",
         "version": 1,

@@ -137,7 +137,7 @@ def _restore_checkpoint(
         if metadata.get(key) != expected:
             raise AdapterError(
                 f"{path}: checkpoint was written for another run ({key} {metadata.get(key)!r}, this run {expected!r}); "
-                "pass resume=False to start over"
+                "pass resume=False (raytun3r adapt: --restart) to start over"
             )
     with torch.no_grad():
         for name, parameter in adapter.named_parameters():

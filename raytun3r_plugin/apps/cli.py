@@ -313,6 +313,7 @@ def cmd_adapt(args: argparse.Namespace) -> int:
         out_path=args.out,
         mask=mask,
         depth=depth,
+        resume=not args.restart,
     )
     lines = [adapter.training_info["verdict"]["summary"]]
     if check is not None:
@@ -711,6 +712,12 @@ def build_parser() -> argparse.ArgumentParser:
         "(auto: a fifth of the segment when it has 15 frames or more; 0: fit on every frame)",
     )
     p.add_argument("--out", required=True, help="output adapter .safetensors")
+    p.add_argument(
+        "--restart",
+        action="store_true",
+        help="start over even if a checkpoint of another run is next to --out (default: an "
+        "interrupted run with the same settings resumes)",
+    )
     advanced = _add_fit_arguments(p)
     advanced.add_argument(
         "--depth-png-scale",
