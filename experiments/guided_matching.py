@@ -40,7 +40,7 @@ from objective_causes import zero_adapter_depth  # noqa: E402
 from raytun3r_plugin import synthetic  # noqa: E402
 from raytun3r_plugin.adaptation import problem as problem_module  # noqa: E402
 from raytun3r_plugin.adaptation import train  # noqa: E402
-from raytun3r_plugin.adaptation.losses import (  # noqa: E402
+from raytun3r_plugin.adaptation.losses import (
     backproject,
     pixel_optimal_scale,
     sample_bilinear,

@@ -29,11 +29,13 @@ from raytun3r_plugin import synthetic
 from raytun3r_plugin.adaptation.losses import (
     LossWeights,
     backproject,
-    fit_translation_scale,
     pe_energy,
     pixel_optimal_scale,
     reprojection_loss,
     sample_bilinear,
+)
+from raytun3r_plugin.adaptation.pose_terms import (
+    fit_translation_scale,
 )
 from raytun3r_plugin.adaptation.train import adapt, objective_value, prepare_problem
 from raytun3r_plugin.adapter import Adapter

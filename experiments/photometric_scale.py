@@ -6,11 +6,11 @@ pairs (0, j), j = 1, 2, 3, of the benchmark's 112 px renders (development seeds 
 three outdoor cells and of KB4 185 indoors):
 
 * **length found / true**: the translation length that
-  :func:`~raytun3r_plugin.adaptation.losses.photometric_optimal_scale` returns along the true
+  :func:`~raytun3r_plugin.adaptation.photometric.photometric_optimal_scale` returns along the true
   direction, divided by the true length, with the grey-level difference averaged over the pixels
   that stay in view (what the library does) and, beside it, with pixels that leave the view
   charged ``OUTSIDE_COST`` (the first version);
-* **cost true / halfway / flat**: :func:`~raytun3r_plugin.adaptation.losses.photometric_loss` at
+* **cost true / halfway / flat**: :func:`~raytun3r_plugin.adaptation.photometric.photometric_loss` at
   the true depth, at the depth pulled halfway (in log) to its median, and at a constant depth;
 * **in view**: the fraction of frame 0's pixels that the true warp keeps in frame j's view.
 
@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from raytun3r_plugin import synthetic
-from raytun3r_plugin.adaptation.losses import (
+from raytun3r_plugin.adaptation.photometric import (
     OUTSIDE_COST,
     blurred_gray,
     photometric_loss,

@@ -21,11 +21,13 @@ from raytun3r_plugin.patches.da3 import build_tiny_network
 
 from raytun3r_plugin.adaptation import train
 from raytun3r_plugin.adaptation.losses import (
-    fit_translation_scale,
     pe_energy,
     pixel_optimal_scale,
     robust_px_error,
     silog_loss,
+)
+from raytun3r_plugin.adaptation.pose_terms import (
+    fit_translation_scale,
 )
 from raytun3r_plugin.adaptation.train import (
     AdaptConfig,

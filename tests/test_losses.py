@@ -15,17 +15,19 @@ import torch
 
 from raytun3r_plugin.adaptation.losses import (
     LossWeights,
-    fit_translation_scale,
     pe_correction_grid,
     pe_l2,
     pe_tv,
-    pose_loss,
     relative_pose,
     reprojection_loss,
-    rotation_angle,
     smoothness_loss,
     to_input_pixels,
     total_loss,
+)
+from raytun3r_plugin.adaptation.pose_terms import (
+    fit_translation_scale,
+    pose_loss,
+    rotation_angle,
     translation_angle,
 )
 from raytun3r_plugin.adapter import Adapter

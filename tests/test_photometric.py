@@ -18,8 +18,10 @@ from raytun3r_plugin.patches.da3 import build_tiny_network
 
 from raytun3r_plugin import synthetic
 from raytun3r_plugin.adaptation.losses import (
-    OUTSIDE_COST,
     LossWeights,
+)
+from raytun3r_plugin.adaptation.photometric import (
+    OUTSIDE_COST,
     blurred_gray,
     photometric_loss,
     photometric_optimal_scale,

@@ -126,7 +126,7 @@ class AdaptConfig:
             predicted depth: ``"pixel"`` (default, :func:`~raytun3r_plugin.adaptation.losses.pixel_optimal_scale`:
             the scale that minimises the robust pixel residual, held fixed for the gradient) or
             ``"least_squares"`` (the 3-D least-squares scale, dominated by far points) or
-            ``"photometric"`` (:func:`~raytun3r_plugin.adaptation.losses.photometric_optimal_scale`:
+            ``"photometric"`` (:func:`~raytun3r_plugin.adaptation.photometric.photometric_optimal_scale`:
             the length that best aligns the frames densely, near road included, on
             ``photo_pixels`` pixels blurred by ``photo_sigma``; detached).
         robust_px: scale ``c`` of the log-L1 reprojection penalty ``c log(1 + e / c)`` in input
@@ -151,7 +151,7 @@ class AdaptConfig:
             and fit (and save) the adapter with the refined camera. Off by default; when off it
             is left out of :meth:`to_dict` so existing identities and checkpoints are unchanged.
         photo_sigma: with ``weights.photo > 0`` (the dense photometric term,
-            :func:`~raytun3r_plugin.adaptation.losses.photometric_loss`): the Gaussian blur of
+            :func:`~raytun3r_plugin.adaptation.photometric.photometric_loss`): the Gaussian blur of
             both frames, in input pixels. With the term on, the parallax gate records its window
             medians but drops no window: the photometric term carries the depth signal that
             far-only matches lack.

@@ -24,24 +24,28 @@ from raytun3r_plugin.adaptation.config import (
 )
 from raytun3r_plugin.adaptation.losses import (
     backproject,
-    blurred_gray,
     depth_parallax_px,
-    fit_translation_scale,
     grouped_silog_loss,
     pe_correction_grid,
     pe_energy,
     pe_l2,
     pe_tv,
-    photometric_loss,
-    photometric_optimal_scale,
     pixel_optimal_scale,
-    pose_loss,
     relative_pose,
     reprojection_loss,
     sample_bilinear,
     silog_loss,
     smoothness_loss,
     total_loss,
+)
+from raytun3r_plugin.adaptation.photometric import (
+    blurred_gray,
+    photometric_loss,
+    photometric_optimal_scale,
+)
+from raytun3r_plugin.adaptation.pose_terms import (
+    fit_translation_scale,
+    pose_loss,
 )
 from raytun3r_plugin.adaptation.problem import AdaptationProblem, _Pair
 from raytun3r_plugin.adapter import Adapter
