@@ -15,10 +15,8 @@ of a patched model give a patched copy with its own handle that runs its own wei
 from __future__ import annotations
 
 import contextlib
-import contextvars
 import copy
 import inspect
-import math
 import threading
 import weakref
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -28,22 +26,27 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import nn
 
-from raytun3r_plugin.adapter import Adapter, normalise_components, pe_fingerprint
+from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import (
-    AdapterError,
     AlreadyAppliedError,
-    CameraError,
-    InputError,
     NotAppliedError,
     PatchedCopyError,
 )
 from raytun3r_plugin.geometry import (
     DEFAULT_KNEE_DEG,
     DEFAULT_MAX_STRETCH,
-    GeometryCache,
-    SizeGeometry,
-    map_is_identity,
-    resize_mask,
+)
+from raytun3r_plugin.patch_checks import (  # what apply validates before it writes
+    _check_adapter,
+    _check_branch_width,
+    _check_per_view,
+    _components_for,
+    _same_views,
+    _views_of,
+)
+from raytun3r_plugin.patch_state import (  # the state the wrappers read; re-exported
+    _DISABLED,
+    PatchState,
 )
 from raytun3r_plugin.registry import (
     HOOK_COMPONENTS,
@@ -66,11 +69,6 @@ HANDLE_ATTRIBUTE = "_raytun3r_handle"
 #: ``_accelerate_added_attributes``); ``remove`` deletes exactly these.
 ADDED_ATTRIBUTES = (HANDLE_ATTRIBUTE,)
 
-# Handles disabled in the current thread / context (see RaytunHandle.disabled).
-_DISABLED: contextvars.ContextVar[frozenset[int]] = contextvars.ContextVar(
-    "raytun3r_disabled", default=frozenset()
-)
-
 # apply / remove of any model, one at a time (the check-then-install of apply must not interleave).
 # Never taken with ``with``: an interrupt between a ``with``'s acquire and the start of its block
 # leaves the lock held for good. Callers acquire it as the first statement inside a ``try`` whose
@@ -85,240 +83,6 @@ def _release() -> None:
     """Release every level of :data:`_LOCK` this thread holds (none: nothing)."""
     while _LOCK._is_owned():  # type: ignore[attr-defined]
         _LOCK.release()
-
-
-_PART_COPY_HINT = (
-    "copy the whole model that was given to apply(), or call handle.remove() before copying "
-    "(a copy of only a part of a patched model would carry wrappers that no handle can remove)"
-)
-
-
-class View:
-    """One camera of a multi-camera (rig) forward: what the hooks read for the views it owns.
-
-    ``apply(model, [camera_a, camera_b], [adapter_a, adapter_b])`` makes one per position of
-    the list; view ``s`` of every forward (the ``S`` axis of the (B, S, 3, H, W) input) is
-    position ``s % V`` (docs/rigs.md). Positions with the same camera share one geometry cache.
-    """
-
-    __slots__ = ("adapter", "camera", "geometry_cache", "mask")
-
-    def __init__(self, camera: Camera, adapter: Adapter | None, mask, geometry_cache):
-        self.camera = camera
-        self.adapter = adapter
-        self.mask = mask
-        self.geometry_cache = geometry_cache
-
-    def __repr__(self) -> str:
-        return f"View({self.camera!r}, adapter={'yes' if self.adapter is not None else 'none'})"
-
-
-class PatchState:
-    """What the installed wrappers read at run time (one per patch root of a patched model).
-
-    A model of several networks (``BackboneSpec.branches``) has one state per branch, all with
-    the same camera and components; only the main branch's state carries the adapter.
-
-    A rig (``views`` of different cameras or adapters) keeps one :class:`View` per position;
-    ``camera``, ``adapter``, ``mask`` and :meth:`geometry` are then the first view's, and the
-    hooks ask :meth:`view_rows` and the ``*_views`` methods for the per-view values.
-    """
-
-    def __init__(
-        self,
-        camera: Camera,
-        adapter: Adapter | None,
-        components: dict[str, bool],
-        info: BackboneInfo,
-        mask: torch.Tensor | None,
-        knee_deg: float,
-        max_stretch: float,
-        model: nn.Module | None = None,
-        spec: BackboneSpec | None = None,
-        views: tuple[tuple[Camera, Adapter | None, torch.Tensor | None], ...] = (),
-    ):
-        self.camera = camera
-        self.adapter = adapter
-        self.components = components
-        self.info = info
-        self.mask = mask
-        self.knee_deg = knee_deg
-        self.max_stretch = max_stretch
-        # The backbone's declared facts (e.g. its RoPE frequency attribute) for the hook builders.
-        self.spec = spec
-        self.geometry_cache = GeometryCache(camera, info.patch_size, mask, knee_deg, max_stretch)
-        self.views = self._views(views or ((camera, adapter, mask),))
-        # Fixed for the patch's life, and read by every hook on every call: decided once here.
-        self.rig = self._differ(self.views)
-        # Weak: the state is reachable from the model's own wrappers.
-        self._model = weakref.ref(model) if model is not None else None
-
-    def _views(self, given) -> tuple[View, ...]:
-        caches: list[tuple[Camera, Any, GeometryCache]] = [
-            (self.camera, self.mask, self.geometry_cache)
-        ]
-        views = []
-        for camera, adapter, mask in given:
-            cache = next(
-                (c for cam, m, c in caches if _same_camera(cam, camera) and _same_mask(m, mask)),
-                None,
-            )
-            if cache is None:
-                cache = GeometryCache(
-                    camera, self.info.patch_size, mask, self.knee_deg, self.max_stretch
-                )
-                caches.append((camera, mask, cache))
-            views.append(View(camera, adapter, mask, cache))
-        return tuple(views)
-
-    @staticmethod
-    def _differ(views: tuple[View, ...]) -> bool:
-        """True when the views differ (camera, mask or adapter): the hooks then work per view."""
-        first = views[0]
-        return any(
-            view.geometry_cache is not first.geometry_cache or view.adapter is not first.adapter
-            for view in views[1:]
-        )
-
-    def __deepcopy__(self, memo: dict) -> PatchState:
-        """The state of a deep copy of the patched model: its own adapter, fresh caches and locks.
-
-        Refused (:class:`PatchedCopyError`) when the model given to ``apply`` is not itself being
-        copied, i.e. for a copy of only a part of it.
-        """
-        model = self._model() if self._model is not None else None
-        if model is None or id(model) not in memo:
-            raise PatchedCopyError(f"cannot deepcopy a part of a patched model: {_PART_COPY_HINT}")
-        twin = PatchState.__new__(PatchState)
-        memo[id(self)] = twin
-        twin.camera = self.camera  # cameras are immutable
-        twin.adapter = copy.deepcopy(self.adapter, memo)
-        twin.components = dict(self.components)
-        twin.info = copy.deepcopy(self.info, memo)  # pos_embed becomes the copy's own parameter
-        twin.mask = copy.deepcopy(self.mask, memo)
-        twin.knee_deg, twin.max_stretch = self.knee_deg, self.max_stretch
-        twin.spec = self.spec  # immutable registry data
-        # Fresh: the cache's locks cannot be copied, and its tensors may sit on the source's device.
-        twin.geometry_cache = GeometryCache(
-            twin.camera, twin.info.patch_size, twin.mask, twin.knee_deg, twin.max_stretch
-        )
-        # The memo keeps an adapter shared by several views shared in the copy.
-        twin.views = twin._views(
-            tuple(
-                (view.camera, copy.deepcopy(view.adapter, memo), copy.deepcopy(view.mask, memo))
-                for view in self.views
-            )
-        )
-        twin.rig = twin._differ(twin.views)
-        twin._model = weakref.ref(memo[id(model)])
-        return twin
-
-    @property
-    def active(self) -> bool:
-        return id(self) not in _DISABLED.get()
-
-    def uses(self, component: str) -> bool:
-        """True when ``component`` is on and the handle is not disabled in this context."""
-        if not self.components.get(component, False) or not self.active:
-            return False
-        if component == "pe":
-            return any(view.adapter is not None for view in self.views)
-        if component == "rope":
-            return any(
-                view.adapter is not None and view.adapter.rope is not None for view in self.views
-            )
-        return True
-
-    def geometry(self, height: int, width: int) -> SizeGeometry:
-        return self.geometry_cache.at(int(height), int(width))
-
-    def pe_correction(self, geometry: SizeGeometry, device, dtype) -> torch.Tensor:
-        """(hw, C) PE update t_r(rho) + rho d_theta(theta) for the current grid (:meth:`Adapter.pe_correction`).
-
-        The handle's components decide the angular term (``"pe_radial_only"`` drops it), not the
-        adapter's recorded ones: ``apply(..., components=...)`` overrides what the file says.
-        """
-        angular = not self.components.get("pe_radial_only", False)
-        assert self.adapter is not None  # the hooks ask only a state that carries an adapter
-        return self.adapter.pe_correction(geometry, device, dtype, angular=angular)
-
-    def rope_displacement(self, geometry: SizeGeometry, device, dtype) -> torch.Tensor:
-        """(hw, 2) RoPE position displacement in (y, x) token units along the outward direction."""
-        return _rope_displacement(self.adapter, geometry, device, dtype)
-
-    # ---- per-view values of a rig (docs/rigs.md) ----------------------------------------
-
-    def view_rows(self, rows: int, where: str, device=None) -> torch.Tensor:
-        """(rows,) view index of each image of a call whose images are (B S) in upstream order.
-
-        Raises :class:`InputError` when ``rows`` is not a multiple of the rig's view count: the
-        call then cannot be laid out as whole rigs (a head that splits the views into chunks
-        whose size the view count does not divide, or a forward of the wrong view count).
-        """
-        count = len(self.views)
-        if rows % count:
-            raise InputError(
-                f"{where}: a call over {rows} images is not a whole number of rigs of {count} views "
-                f"(a rig forward takes S = {count} x T views per sample, in the order of apply's "
-                f"camera list; a head that runs the views in chunks of 8 needs a view count that "
-                f"divides 8 once S > 8)"
-            )
-        return torch.arange(rows, device=device) % count
-
-    def check_views(self, frames: int, where: str) -> None:
-        """Refuse a forward whose per-sample view count ``frames`` is not a multiple of the rig's."""
-        count = len(self.views)
-        if frames % count:
-            raise InputError(
-                f"{where}: {frames} views per sample, but the model is patched for a rig of "
-                f"{count} cameras: pass S = {count} x T views, view s taken by camera s % {count}"
-            )
-
-    def geometry_views(self, height: int, width: int) -> list[SizeGeometry]:
-        """The :class:`SizeGeometry` of each view at the input size (shared between equal cameras)."""
-        return [view.geometry_cache.at(int(height), int(width)) for view in self.views]
-
-    def pe_correction_views(self, height: int, width: int, device, dtype) -> torch.Tensor:
-        """(V, hw, C) PE update of each view (zero for a view without an adapter)."""
-        angular = not self.components.get("pe_radial_only", False)
-        corrections = []
-        for view, geometry in zip(self.views, self.geometry_views(height, width), strict=True):
-            if view.adapter is None:
-                hw = (geometry.height // geometry.patch) * (geometry.width // geometry.patch)
-                corrections.append(torch.zeros(hw, self.info.embed_dim, device=device, dtype=dtype))
-            else:
-                corrections.append(
-                    view.adapter.pe_correction(geometry, device, dtype, angular=angular)
-                )
-        return torch.stack(corrections)
-
-    def rope_displacement_views(self, height: int, width: int, device, dtype) -> torch.Tensor:
-        """(V, hw, 2) RoPE displacement of each view (zero without an adapter's RoPE table)."""
-        return torch.stack(
-            [
-                _rope_displacement(view.adapter, geometry, device, dtype)
-                for view, geometry in zip(
-                    self.views, self.geometry_views(height, width), strict=True
-                )
-            ]
-        )
-
-
-def _rope_displacement(
-    adapter: Adapter | None, geometry: SizeGeometry, device, dtype
-) -> torch.Tensor:
-    """(hw, 2) displacement by ``adapter``'s RoPE table; zero without an adapter or table."""
-    if adapter is None or adapter.rope is None:
-        hw = (geometry.height // geometry.patch) * (geometry.width // geometry.patch)
-        return torch.zeros(hw, 2, device=device, dtype=dtype)
-    weights, direction = geometry.rope_basis(adapter.n_r_rope, device, dtype)
-    return (weights @ adapter.rope["radial"].to(device, dtype))[:, None] * direction
-
-
-def _same_mask(a: torch.Tensor | None, b: torch.Tensor | None) -> bool:
-    if a is None or b is None:
-        return a is b
-    return a.shape == b.shape and bool(torch.equal(a, b))
 
 
 class _NotSet:
@@ -600,82 +364,6 @@ def _undo(installed: list[_Installed]) -> None:
         installed.pop()
 
 
-def _same_camera(a, b) -> bool:
-    if a is None or b is None:
-        return a is b
-    if (a.width, a.height) != (b.width, b.height):
-        a = a.resized(b.width, b.height)
-    if a.model != b.model:
-        return False
-    # The lens's field-of-view cap changes which rays are valid, so it is part of the camera.
-    if (a.max_fov_deg is None) != (b.max_fov_deg is None) or (
-        a.max_fov_deg is not None and not math.isclose(a.max_fov_deg, b.max_fov_deg, rel_tol=1e-6)
-    ):
-        return False
-    return bool(
-        torch.allclose(a.params.detach().double(), b.params.detach().double(), rtol=1e-6, atol=1e-6)
-    )
-
-
-def _check_adapter(adapter: Adapter, info: BackboneInfo, camera: Camera, strict: bool) -> None:
-    if adapter.backbone != info.name:
-        raise AdapterError(
-            f"adapter was made for backbone {adapter.backbone!r}, this model is {info.name!r}"
-        )
-    if adapter.embed_dim != info.embed_dim:
-        raise AdapterError(
-            f"adapter has embed_dim {adapter.embed_dim}, this model has {info.embed_dim}"
-        )
-    if adapter.patch_size != info.patch_size:
-        raise AdapterError(
-            f"adapter has patch_size {adapter.patch_size}, this model has {info.patch_size}"
-        )
-    if bool(adapter.n_r_rope) and not info.has_rope:
-        raise AdapterError(f"adapter has a RoPE table but {info.name!r} has no RoPE")
-    if strict:
-        found = pe_fingerprint(info.pos_embed)
-        if adapter.pe_fingerprint and adapter.pe_fingerprint != found:
-            raise AdapterError(
-                f"adapter was fitted on other weights of {info.name!r} (pe_fingerprint {adapter.pe_fingerprint}, "
-                f"this model has {found}); pass strict=False to apply it anyway"
-            )
-        if (
-            adapter.camera is not None
-            and camera is not None
-            and not _same_camera(adapter.camera, camera)
-        ):
-            raise AdapterError(
-                f"adapter was fitted on {adapter.camera!r}, not on {camera!r}; pass strict=False to apply it anyway"
-            )
-
-
-def _components_for(components, adapter: Adapter | None) -> dict[str, bool]:
-    if components is None and adapter is not None:
-        return dict(adapter.components)
-    return normalise_components(components)
-
-
-def _checked_mask(mask: Any, camera: Camera) -> torch.Tensor:
-    """The scene mask as (H, W) bool, refused when it cannot belong to ``camera``.
-
-    It may be at the camera's size or at another size of the same aspect ratio (it is resized
-    with the camera to every input); a different aspect ratio or nothing left inside the lens is
-    a mistake that would otherwise show only as worse depth.
-    """
-    mask = torch.as_tensor(mask).bool()
-    if mask.ndim != 2:
-        raise CameraError(f"mask must be (H, W), got shape {tuple(mask.shape)}")
-    height, width = mask.shape
-    if abs(height * camera.width - width * camera.height) > 0.01 * width * camera.height:
-        raise CameraError(
-            f"mask is {width}x{height} px but the camera is {camera.width}x{camera.height}: the aspect ratios differ"
-        )
-    valid = camera.valid_mask().cpu()
-    if not bool((resize_mask(mask, (int(valid.shape[0]), int(valid.shape[1]))) & valid).any()):
-        raise CameraError("mask leaves no pixel inside the camera's valid region")
-    return mask
-
-
 def apply(
     model: nn.Module,
     camera: Camera | Sequence[Camera] | None = None,
@@ -748,106 +436,6 @@ def apply(
         finally:
             _release()
         raise
-
-
-def _views_of(camera, adapter, mask) -> tuple[list, list, list]:
-    """Per-view (cameras, adapters, masks) of ``apply``'s arguments, each checked; no model read."""
-    from raytun3r_plugin.cameras import Camera
-
-    def one_adapter(item):
-        if isinstance(item, str) or hasattr(item, "__fspath__"):
-            item = Adapter.load(item)
-        if item is not None and not isinstance(item, Adapter):
-            raise AdapterError(
-                f"adapter must be an Adapter, a path or None, got {type(item).__name__}"
-            )
-        return item
-
-    rig = isinstance(camera, (list, tuple)) or isinstance(adapter, (list, tuple))
-    if not rig:
-        adapters = [one_adapter(adapter)]
-        cameras = [camera if camera is not None or adapters[0] is None else adapters[0].camera]
-        masks = [mask]
-    else:
-        given = (
-            [one_adapter(item) for item in adapter] if isinstance(adapter, (list, tuple)) else None
-        )
-        if camera is None:  # then the adapters are a list (a rig needs a list of either)
-            cameras = [item.camera if item is not None else None for item in given or []]
-        elif isinstance(camera, (list, tuple)):
-            cameras = list(camera)
-        else:
-            cameras = [camera] * len(given or [None])
-        if not cameras:
-            raise CameraError("apply got an empty camera list: a rig needs at least one camera")
-        if given is None:
-            adapters = [one_adapter(adapter)] * len(cameras)
-        elif len(given) != len(cameras):
-            raise AdapterError(
-                f"apply got {len(cameras)} cameras and {len(given)} adapters: give one adapter "
-                "per camera (None for a camera without one) or a single adapter"
-            )
-        else:
-            adapters = given
-        if isinstance(mask, (list, tuple)):
-            masks = list(mask)
-            if len(masks) != len(cameras):
-                raise CameraError(
-                    f"apply got {len(cameras)} cameras and {len(masks)} masks: give one per camera"
-                )
-        else:
-            if mask is not None and len(cameras) > 1:
-                raise CameraError(
-                    "a rig takes one mask per camera (a list, None for a camera without one)"
-                )
-            masks = [mask] * len(cameras)
-    for index, view_camera in enumerate(cameras):
-        where = f"camera {index} of the rig" if rig else "camera"
-        if view_camera is None:
-            raise CameraError(
-                f"apply needs a camera (or an adapter that carries one): {where} has none"
-            )
-        if not isinstance(view_camera, Camera):
-            raise CameraError(
-                f"{where} must be a raytun3r_plugin.cameras.Camera, got {type(view_camera).__name__}"
-            )
-    first = cameras[0]
-    for index, view_camera in enumerate(cameras[1:], start=1):
-        aspect, expected = view_camera.width / view_camera.height, first.width / first.height
-        if abs(aspect - expected) / expected > 0.01:
-            raise CameraError(
-                f"camera {index} of the rig is {view_camera.width}x{view_camera.height} px (aspect "
-                f"{aspect:.4f}), camera 0 is {first.width}x{first.height} (aspect {expected:.4f}): "
-                "a rig's views share one network input size, so its cameras need one aspect "
-                "ratio (crop with camera.cropped(...) first)"
-            )
-    masks = [
-        None if view_mask is None else _checked_mask(view_mask, view_camera)
-        for view_mask, view_camera in zip(masks, cameras, strict=True)
-    ]
-    return cameras, adapters, masks
-
-
-def _check_branch_width(adapter: Adapter, spec: BackboneSpec, branches: list) -> None:
-    """Refuse, naming the branches, an adapter that is not sized for a branched model's main one.
-
-    Its learned tables have the width of one network; they are applied to the main branch only.
-    """
-    main_path, _spec, _root, main = branches[0]
-    if adapter.embed_dim == main.embed_dim:
-        return
-    widths = ", ".join(f"'{path}' {info.embed_dim}" for path, _s, _r, info in branches)
-    other = [path for path, _s, _r, info in branches[1:] if info.embed_dim == adapter.embed_dim]
-    why = (
-        f"that is the width of the branch '{other[0]}', but"
-        if other
-        else "which matches none of its branches; and"
-    )
-    raise AdapterError(
-        f"adapter has embed_dim {adapter.embed_dim} and this {spec.family} model's branches have "
-        f"{widths}: {why} the adapter of a {spec.family} model is fitted for and applied to its "
-        f"main branch '{main_path}' (the other branches take the parameter-free corrections only)"
-    )
 
 
 def _apply_locked(
@@ -926,43 +514,6 @@ def _apply_locked(
     except BaseException:
         _rollback(model, installed)
         raise
-
-
-def _same_views(existing: tuple[View, ...], views: tuple) -> bool:
-    """True when ``views`` (camera, adapter, mask per position) are what ``existing`` holds."""
-    if len(existing) != len(views):
-        return False
-    for view, (camera, adapter, mask) in zip(existing, views, strict=True):
-        if not _same_camera(view.camera, camera) or not _same_mask(view.mask, mask):
-            return False
-        if (view.adapter is None) != (adapter is None):
-            return False
-        if view.adapter is not None and not view.adapter.same_as(adapter):
-            return False
-    return True
-
-
-def _check_per_view(spec: BackboneSpec, found: list, branch_path: str, state: PatchState) -> None:
-    """Refuse a rig where a hook in use computes one value for every view (``per_view=False``).
-
-    Passed where the one value would be right for every view anyway: a RoPE hook without any
-    RoPE table among the views' adapters, another hook when every camera's map is the identity
-    (pinhole cameras inside the knee, whose corrections are upstream's own values).
-    """
-    identity = all(map_is_identity(view.camera, state.knee_deg) for view in state.views)
-    for target, path, _owner in found:
-        if target.hook == "rope" and not state.uses("rope"):
-            continue
-        if target.hook != "rope" and identity:
-            continue
-        if not target.per_view:
-            where = f"{branch_path}.{path}" if branch_path else path
-            served = sorted(HOOK_COMPONENTS.get(target.hook, ()))
-            raise InputError(
-                f"{spec.family}: a rig of different cameras needs every hook per view, but "
-                f"{where}.{target.attribute} ({target.name!r}) computes one value for all views "
-                f"upstream; apply with components that leave {served} off, or one camera"
-            )
 
 
 def _install(installed: list[_Installed], owner, attribute: str, replacement) -> None:

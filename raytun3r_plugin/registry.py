@@ -53,7 +53,7 @@ class PatchTarget:
         signature: the upstream method's parameter names after ``self``, in order.
         owner_classes: accepted class names of the owners (checked along the MRO).
         build: ``build(owner, state) -> behaviour``, with ``state`` the
-            :class:`raytun3r_plugin.patching.PatchState`; the installed wrapper calls
+            :class:`raytun3r_plugin.patch_state.PatchState`; the installed wrapper calls
             ``behaviour(original, *args, **kwargs)`` with the upstream method bound to the owner,
             looked up at call time. The behaviour must hold neither ``original`` nor ``owner``
             (see :mod:`raytun3r_plugin.hooks`).
