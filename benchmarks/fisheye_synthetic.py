@@ -28,7 +28,7 @@ from raytun3r_plugin.apps.benchmark import (
     SEQUENCES_PER_CELL,
     run_benchmark,
 )
-from raytun3r_plugin.apps.cli import parse_view_weights
+from raytun3r_plugin.apps.cli_adapt import parse_view_weights
 from raytun3r_plugin.apps.demo import BUILT_IN_NETWORKS, DEFAULT_NETWORK, default_network
 from raytun3r_plugin.baselines.multi_ph import VIEW_NAMES
 from raytun3r_plugin.registry import quiet_upstream
