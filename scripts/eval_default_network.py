@@ -39,7 +39,8 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from train_default_network import TRAIN_SEED_BASE, pinhole_camera, sequence_spec  # noqa: E402
+from default_network_data import pinhole_camera, sequence_spec  # noqa: E402
+from train_default_network import TRAIN_SEED_BASE  # noqa: E402
 
 TARGETS = {"abs_rel_ratio": 0.6, "rotation_ratio": 0.5}
 CAMERAS = ("pinhole", "kb4_120", "kb4_190")
