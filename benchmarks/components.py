@@ -84,7 +84,8 @@ def baseline_rows(model, seq, held_out: list[int], n_adapt: int, cache: str) -> 
     """Multi-PH, and LoRA and calibration tokens fitted like raytun3r's tables (the demo's
     configuration, ``components=[]``: the unpatched model), scored on ``held_out``."""
     from raytun3r_plugin.apps.benchmark import fitted_baseline
-    from raytun3r_plugin.apps.demo import DEMO_LR, DEMO_STEPS, adapt_config
+    from raytun3r_plugin.apps.demo import DEMO_LR, DEMO_STEPS
+    from raytun3r_plugin.apps.fits import adapt_config
 
     rows = [
         {
@@ -119,7 +120,8 @@ def baseline_rows(model, seq, held_out: list[int], n_adapt: int, cache: str) -> 
 def ablation_rows(model, seed: int, refit: bool, baselines: bool = False) -> list[dict]:
     """The ``--ablations`` rows on one demo sequence (frames 0-23 fitted, 24-35 scored)."""
     from raytun3r_plugin.adaptation.train import adapt
-    from raytun3r_plugin.apps.demo import DEMO_LR, DEMO_STEPS, adapt_config
+    from raytun3r_plugin.apps.demo import DEMO_LR, DEMO_STEPS
+    from raytun3r_plugin.apps.fits import adapt_config
 
     size, n_adapt = 112, 24
     seq = synthetic.render_sequence("indoor", demo_camera(size), n_frames=36, seed=seed)

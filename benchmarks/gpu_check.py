@@ -138,7 +138,8 @@ def run_checks(cuda: torch.device) -> None:
     import raytun3r_plugin as rt
     from raytun3r_plugin import cameras, synthetic
     from raytun3r_plugin.apps.benchmark import ground_truth_depth
-    from raytun3r_plugin.apps.demo import adapt_config, default_network, supervised_config
+    from raytun3r_plugin.apps.demo import default_network
+    from raytun3r_plugin.apps.fits import adapt_config, supervised_config
 
     size = 112
     cpu_model, _ = default_network()

@@ -52,14 +52,9 @@ from raytun3r_plugin.adaptation.recipes import recipe_names
 from raytun3r_plugin.adaptation.rig import adapt_rig
 from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.apps.benchmark import CAMERAS, ZERO_ADAPTER, ground_truth_depth, make_camera
-from raytun3r_plugin.apps.demo import (
-    BUILT_IN_NETWORKS,
-    DEFAULT_NETWORK,
-    adapt_config,
-    default_network,
-    supervised_config,
-)
+from raytun3r_plugin.apps.demo import BUILT_IN_NETWORKS, DEFAULT_NETWORK, default_network
 from raytun3r_plugin.apps.evaluation import MethodOutput, frame_windows, score
+from raytun3r_plugin.apps.fits import adapt_config, supervised_config
 from raytun3r_plugin.registry import quiet_upstream
 
 RIG_SEED = 70_000

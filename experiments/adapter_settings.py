@@ -20,8 +20,9 @@ from raytun3r_plugin import synthetic
 from raytun3r_plugin.adaptation.losses import LossWeights
 from raytun3r_plugin.adaptation.train import SELF_SUPERVISED_WEIGHTS, adapt
 from raytun3r_plugin.apps.benchmark import CAMERAS, make_camera
-from raytun3r_plugin.apps.demo import adapt_config, default_network
+from raytun3r_plugin.apps.demo import default_network
 from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
+from raytun3r_plugin.apps.fits import adapt_config
 from raytun3r_plugin.registry import quiet_upstream
 
 SETTINGS = {

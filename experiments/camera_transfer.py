@@ -42,8 +42,9 @@ from raytun3r_plugin.apps.benchmark import (
     make_camera,
     sequence_seed,
 )
-from raytun3r_plugin.apps.demo import adapt_config, default_network, supervised_config
+from raytun3r_plugin.apps.demo import default_network
 from raytun3r_plugin.apps.evaluation import run_method, score
+from raytun3r_plugin.apps.fits import adapt_config, supervised_config
 from raytun3r_plugin.registry import quiet_upstream
 
 SIZE, N_ADAPT, N_EVAL = 112, 24, 12

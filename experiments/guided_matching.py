@@ -54,8 +54,9 @@ from raytun3r_plugin.adaptation.matchers import (  # noqa: E402
     matches_from_flows,
 )
 from raytun3r_plugin.apps.benchmark import CAMERAS, ground_truth_depth, make_camera  # noqa: E402
-from raytun3r_plugin.apps.demo import adapt_config, default_network  # noqa: E402
+from raytun3r_plugin.apps.demo import default_network  # noqa: E402
 from raytun3r_plugin.apps.evaluation import headline, run_method, score  # noqa: E402
+from raytun3r_plugin.apps.fits import adapt_config  # noqa: E402
 from raytun3r_plugin.registry import quiet_upstream  # noqa: E402
 
 SEQUENCES = (

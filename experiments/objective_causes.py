@@ -40,8 +40,9 @@ from raytun3r_plugin.adaptation.pose_terms import (
 from raytun3r_plugin.adaptation.train import adapt, objective_value, prepare_problem
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.apps.benchmark import CAMERAS, ground_truth_depth, make_camera
-from raytun3r_plugin.apps.demo import adapt_config, default_network, supervised_config
+from raytun3r_plugin.apps.demo import default_network
 from raytun3r_plugin.apps.evaluation import format_table
+from raytun3r_plugin.apps.fits import adapt_config, supervised_config
 from raytun3r_plugin.registry import quiet_upstream, spec_for
 
 SEQUENCES = (

@@ -38,7 +38,8 @@ from raytun3r_plugin.apps.benchmark import (
     make_camera,
     sequence_seed,
 )
-from raytun3r_plugin.apps.demo import adapt_config, default_network
+from raytun3r_plugin.apps.demo import default_network
+from raytun3r_plugin.apps.fits import adapt_config
 from raytun3r_plugin.registry import quiet_upstream
 
 

@@ -29,13 +29,9 @@ from raytun3r_plugin.apps.benchmark import (
     sequence_seed,
     timed_row,
 )
-from raytun3r_plugin.apps.demo import (
-    DEFAULT_NETWORK,
-    adapt_config,
-    default_network,
-    supervised_config,
-)
+from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, default_network
 from raytun3r_plugin.apps.evaluation import format_table
+from raytun3r_plugin.apps.fits import adapt_config, supervised_config
 from raytun3r_plugin.registry import quiet_upstream
 
 DEFAULT_VARIANTS = "targets,hybrid:0.3,hybrid:1,hybrid:3,model:1"

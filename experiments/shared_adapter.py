@@ -61,8 +61,9 @@ from raytun3r_plugin.apps.benchmark import (
     make_camera,
     sequence_seed,
 )
-from raytun3r_plugin.apps.demo import default_network, supervised_config
+from raytun3r_plugin.apps.demo import default_network
 from raytun3r_plugin.apps.evaluation import headline, run_method, score
+from raytun3r_plugin.apps.fits import supervised_config
 from raytun3r_plugin.apps.workers import cpu_jobs, map_in_workers
 from raytun3r_plugin.registry import quiet_upstream
 

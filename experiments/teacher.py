@@ -59,7 +59,8 @@ from raytun3r_plugin.apps.benchmark import (
     sequence_line,
     sequence_seed,
 )
-from raytun3r_plugin.apps.demo import adapt_config, default_network, supervised_config
+from raytun3r_plugin.apps.demo import default_network
+from raytun3r_plugin.apps.fits import adapt_config, supervised_config
 from raytun3r_plugin.apps.workers import cpu_jobs, map_in_workers
 from raytun3r_plugin.registry import quiet_upstream
 

@@ -35,8 +35,9 @@ from raytun3r_plugin.apps.benchmark import (
     make_camera,
     sequence_seed,
 )
-from raytun3r_plugin.apps.demo import adapt_config, default_network, supervised_config
+from raytun3r_plugin.apps.demo import default_network
 from raytun3r_plugin.apps.evaluation import run_method
+from raytun3r_plugin.apps.fits import adapt_config, supervised_config
 from raytun3r_plugin.baselines.multi_ph import view_lookup
 from raytun3r_plugin.metrics import align_scale
 from raytun3r_plugin.registry import quiet_upstream

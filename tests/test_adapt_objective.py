@@ -292,7 +292,7 @@ def test_objective_scores_the_supervised_solution_below_the_zero_adapter(tmp_pat
     adapter: the objective points towards the correction that depth says is right."""
     from raytun3r_plugin import synthetic
     from raytun3r_plugin.apps.benchmark import CAMERAS, make_camera
-    from raytun3r_plugin.apps.demo import adapt_config
+    from raytun3r_plugin.apps.fits import adapt_config
     from raytun3r_plugin.weights import load_backbone
 
     model = load_backbone("raytun3r-da3-tiny")

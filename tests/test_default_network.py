@@ -466,7 +466,8 @@ def test_the_demo_and_benchmarks_fit_every_network_with_the_library_recipe():
 
     from raytun3r_plugin.adaptation.config import AdaptConfig
     from raytun3r_plugin.apps import demo
-    from raytun3r_plugin.apps.demo import adapt_config, default_network
+    from raytun3r_plugin.apps.demo import default_network
+    from raytun3r_plugin.apps.fits import adapt_config
     from raytun3r_plugin.errors import InputError
 
     model, description = default_network()
@@ -512,7 +513,7 @@ def test_adapt_config_pose_weight_replaces_only_the_pose_term():
     being dropped."""
     from raytun3r_plugin.adaptation.config import DEFAULT_WEIGHTS
     from raytun3r_plugin.adaptation.losses import LossWeights
-    from raytun3r_plugin.apps.demo import adapt_config
+    from raytun3r_plugin.apps.fits import adapt_config
     from raytun3r_plugin.errors import InputError
 
     weights = adapt_config(112, 10, pose_source="model", pose_weight=3.0).weights.as_dict()

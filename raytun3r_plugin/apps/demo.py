@@ -27,12 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from raytun3r_plugin.apps.fits import (  # noqa: F401  (the scripts' import path for them)
-    adapt_config,
-    fit_description,
-    supervised_config,
-    teacher_settings,
-)
+from raytun3r_plugin.apps.fits import adapt_config, fit_description, supervised_config
 
 #: The built-in network the demo and the benchmarks use: v3, whose pose head beats the
 #: no-rotation answer on held-out pairs (issue 13; model card, "Versions"). ``raytun3r-da3-tiny``
