@@ -5,6 +5,7 @@ Part of :mod:`raytun3r_plugin.adaptation.train` (which re-exports every name her
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -382,6 +383,15 @@ class AdaptConfig:
         the 110-degree centre view; ``changes`` override any field. No match enters the
         objective (windows are still chosen from the matches)."""
         return cls.from_recipe("teacher-only", **changes)
+
+    def sized_for(self, model: nn.Module) -> AdaptConfig:
+        """These settings with an ``input_size`` of None resolved to ``model``'s own
+        (:func:`~raytun3r_plugin.registry.native_input_size`); unchanged otherwise."""
+        if self.input_size is not None:
+            return self
+        from raytun3r_plugin.registry import native_input_size
+
+        return dataclasses.replace(self, input_size=native_input_size(model))
 
     def recipe_record(self, model: nn.Module | None = None) -> dict[str, Any]:
         """What an adapter file records about the recipe: ``{"name", "version", "changes"}``,

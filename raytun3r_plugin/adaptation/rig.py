@@ -67,7 +67,6 @@ from raytun3r_plugin.errors import AlreadyAppliedError, InputError
 from raytun3r_plugin.patching import apply, handle_of
 from raytun3r_plugin.poses import invert_rigid
 from raytun3r_plugin.prediction import predict
-from raytun3r_plugin.registry import native_input_size
 
 if TYPE_CHECKING:
     from raytun3r_plugin.datasets.rig import Rig
@@ -137,9 +136,9 @@ def adapt_rig(
         AlreadyAppliedError: the model carries a raytun3r patch.
         InputError: a camera without a usable window, or cameras whose input layouts differ.
     """
-    config = AdaptConfig.from_recipe("rig", model=model) if config is None else config
-    if config.input_size is None:
-        config = dataclasses.replace(config, input_size=native_input_size(model))
+    config = (AdaptConfig.from_recipe("rig", model=model) if config is None else config).sized_for(
+        model
+    )
     if handle_of(model) is not None:
         raise AlreadyAppliedError(
             "adapt_rig needs an unpatched model; remove the existing raytun3r patch first"
@@ -305,7 +304,6 @@ def adapt_rig(
 
 def _for_camera(config: AdaptConfig, rig: Rig, name: str) -> AdaptConfig:
     """The camera's config: its own cache entry (``sequence_id``) when the config has one."""
-    import dataclasses
 
     if config.sequence_id is None:
         return config

@@ -37,7 +37,6 @@ raytun3r_plugin.adaptation.train import X`` keeps working for every name it ever
 from __future__ import annotations
 
 import copy
-import dataclasses
 import json
 import math
 import os
@@ -100,7 +99,6 @@ from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
 from raytun3r_plugin.patching import apply, handle_of
 from raytun3r_plugin.preprocess import InputLayout, input_layout
-from raytun3r_plugin.registry import native_input_size
 
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
@@ -288,11 +286,14 @@ def adapt(
     """
     if depth is not None and poses is not None:
         raise InputError("adapt: give depth (the supervised fit) or poses (the pose oracle)")
+    if poses is not None and split_segments(frames) is not None:
+        raise InputError("adapt: poses are for one segment; fit several segments without them")
     if config is None:
-        recipe = "supervised" if depth is not None else "pose-oracle" if poses is not None else None
-        config = AdaptConfig.from_recipe(recipe or "default", model=model)
-    if config.input_size is None:
-        config = dataclasses.replace(config, input_size=native_input_size(model))
+        recipe = (
+            "supervised" if depth is not None else "pose-oracle" if poses is not None else "default"
+        )
+        config = AdaptConfig.from_recipe(recipe, model=model)
+    config = config.sized_for(model)
     if handle_of(model) is not None:
         raise AlreadyAppliedError(
             "adapt needs an unpatched model; remove the existing raytun3r patch first"
@@ -304,8 +305,6 @@ def adapt(
     )
     problem = prepare_problem(camera, frames, config, adapter.patch_size, mask=mask, depth=depth)
     if poses is not None:
-        if split_segments(frames) is not None:
-            raise InputError("adapt: poses are for one segment; fit several segments without them")
         with_pose_targets(problem, poses)
     intrinsics = None
     if config.refine_intrinsics:

@@ -161,7 +161,6 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adaptation.train import adapt, artifact_paths
     from raytun3r_plugin.cameras import load as load_camera
     from raytun3r_plugin.images import read_depth_maps, read_frames, read_mask
-    from raytun3r_plugin.registry import native_input_size
 
     settings = _adapt_settings(args)
     config = _adapt_config(args, settings, supervised=bool(args.depth))
@@ -186,10 +185,7 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     mask = read_mask(args.mask, width, height) if args.mask else None
     depth = (depths if len(segments) > 1 else depths[0]) if depths else None
     model = _load_model(args.backbone, args.weights)
-    if config.input_size is None:
-        import dataclasses
-
-        config = dataclasses.replace(config, input_size=native_input_size(model))
+    config = config.sized_for(model)
     recipe = config.recipe_record(model)
     changed = ", ".join(f"{key} {new}" for key, (_, new) in recipe["changes"].items())
     print(
