@@ -110,7 +110,6 @@ from default_network_data import (  # noqa: E402
     rotate_views,
     sequence_spec,
 )
-from default_network_vggt import build_vggt, pe_table  # noqa: E402
 from default_network_losses import (  # noqa: E402
     FLOW_KINDS,
     FlowAux,
@@ -124,6 +123,7 @@ from default_network_losses import (  # noqa: E402
     targets,
     token_grid,
 )
+from default_network_vggt import build_vggt, pe_table  # noqa: E402
 
 __all__ = [
     "jittered",
@@ -303,7 +303,9 @@ def main(argv=None) -> int:
     from raytun3r_plugin.patches.da3 import build_tiny_network
 
     if args.arch == "vggt" and (args.aux_flow > 0 or args.aux_attn > 0):
-        raise SystemExit("--aux-flow/--aux-attn read DA3's backbone: not available with --arch vggt")
+        raise SystemExit(
+            "--aux-flow/--aux-attn read DA3's backbone: not available with --arch vggt"
+        )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     kwargs = dict(TINY_KWARGS if args.tiny else MODEL_KWARGS)

@@ -7,7 +7,6 @@ from __future__ import annotations
 import importlib.util
 import json
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
@@ -130,9 +129,14 @@ def test_vggt_smoke_run_resumes_exactly_and_exports_a_loadable_network(tmp_path)
     assert train.main(["--out", str(b), *SMOKE]) == 0  # uninterrupted
     from safetensors.torch import load_file
 
-    wa, wb = load_file(str(a / "checkpoint.safetensors")), load_file(str(b / "checkpoint.safetensors"))
+    wa, wb = (
+        load_file(str(a / "checkpoint.safetensors")),
+        load_file(str(b / "checkpoint.safetensors")),
+    )
     assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
-    assert "aggregator.patch_embed.pos_embed" in wa and not any(k.startswith("backbone.") for k in wa)
+    assert "aggregator.patch_embed.pos_embed" in wa and not any(
+        k.startswith("backbone.") for k in wa
+    )
     # the PE table started as the sin-cos map (not the stub's trunc-normal 0.02), and moved
     first = train.sincos_table(37, 32, 0.5)
     assert float((wa["aggregator.patch_embed.pos_embed"][0, 1:] - first).abs().max()) < 0.05
@@ -164,16 +168,12 @@ def test_vggt_arch_refuses_the_da3_only_auxiliaries(tmp_path):
     assert not (tmp_path / "x").exists()
 
 
-def test_vggt_arch_without_the_stub_names_pythonpath(tmp_path):
-    code = (
-        "import sys; sys.path.insert(0, 'scripts'); import default_network_vggt as v; "
-        "v.require_vggt()"
-    )
-    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT)}
-    done = subprocess.run(
-        [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True
-    )
-    assert done.returncode != 0 and "PYTHONPATH=tests/stubs" in done.stderr
+def test_vggt_arch_without_the_stub_names_pythonpath(monkeypatch):
+    vggt = _script("default_network_vggt")
+    monkeypatch.setitem(sys.modules, "vggt", None)  # import vggt now raises ImportError
+    monkeypatch.setitem(sys.modules, "vggt.models.vggt", None)
+    with pytest.raises(SystemExit, match="PYTHONPATH=tests/stubs"):
+        vggt.require_vggt()
 
 
 def test_load_trained_network_refuses_a_file_without_its_record(tmp_path):
@@ -187,3 +187,53 @@ def test_load_trained_network_refuses_a_file_without_its_record(tmp_path):
     weights.with_suffix(".json").write_text(json.dumps({"arch": "pi3", "build_kwargs": {}}))
     with pytest.raises(WeightsError, match="unknown arch 'pi3'"):
         load_trained_network(weights)
+
+
+def test_the_benchmark_fits_and_scores_a_trained_vggt_network(tmp_path):
+    """The synthetic benchmark runs end to end on an exported VGGT (the path of
+    ``benchmarks/fisheye_synthetic.py --weights``): every row, a fitted adapter, its gap."""
+    train = _script("train_default_network")
+    out = tmp_path / "run"
+    assert train.main(["--out", str(out), *SMOKE, "--export", str(out / "net.safetensors")]) == 0
+    from raytun3r_plugin.apps.benchmark import CAMERAS, DEVELOPMENT_SEED, run_benchmark
+    from raytun3r_plugin.apps.trained_networks import load_trained_network
+
+    model, description = load_trained_network(out / "net.safetensors")
+    table = run_benchmark(
+        model,
+        tmp_path / "bench",
+        size=56,
+        n_adapt=4,
+        n_eval=3,
+        steps=2,
+        sequences=1,
+        cameras=CAMERAS[-1:],
+        scenes=("indoor",),
+        network=description,
+        base_seed=DEVELOPMENT_SEED,
+    )
+    assert "small VGGT-architecture network" in table
+    rows = json.loads((tmp_path / "bench" / "results.json").read_text())["sequences"]
+    methods = {row["method"] for row in rows}
+    assert {"vanilla", "raytun3r, no adapter", "raytun3r", "raytun3r, supervised"} <= methods
+    fitted = next(row for row in rows if row["method"] == "raytun3r")
+    assert fitted["params"] > 0 and np.isfinite(fitted["abs_rel"])
+
+
+def test_benchmark_script_refuses_weights_with_a_network_and_unknown_cameras(
+    tmp_path, monkeypatch, capsys
+):
+    spec = importlib.util.spec_from_file_location(
+        "fisheye_synthetic", ROOT / "benchmarks" / "fisheye_synthetic.py"
+    )
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    for extra, message in (
+        (["--weights", "x.safetensors", "--network", "raytun3r-da3-tiny"], "no --network"),
+        (["--cameras", "KB4 999"], "unknown ['KB4 999']"),
+    ):
+        monkeypatch.setattr(sys, "argv", ["fisheye_synthetic.py", "--out", str(tmp_path), *extra])
+        with pytest.raises(SystemExit) as stopped:
+            bench.main()
+        assert stopped.value.code == 2 and message in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # refused before anything ran
