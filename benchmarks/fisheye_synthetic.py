@@ -96,6 +96,12 @@ def main() -> None:
         "older tables of docs/results.md)",
     )
     parser.add_argument(
+        "--first-sequence",
+        type=int,
+        default=0,
+        help="start each cell at its K-th sequence (the seeds of a run with more sequences)",
+    )
+    parser.add_argument(
         "--cameras",
         nargs="+",
         default=None,
@@ -181,6 +187,7 @@ def main() -> None:
         size=args.size,
         steps=args.steps,
         sequences=args.sequences,
+        first_sequence=args.first_sequence,
         network=description,
         progress=False,
         base_seed=DEVELOPMENT_SEED if args.development else HELD_OUT_SEED,

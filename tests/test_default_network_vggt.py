@@ -195,10 +195,20 @@ def test_the_benchmark_fits_and_scores_a_trained_vggt_network(tmp_path):
     train = _script("train_default_network")
     out = tmp_path / "run"
     assert train.main(["--out", str(out), *SMOKE, "--export", str(out / "net.safetensors")]) == 0
-    from raytun3r_plugin.apps.benchmark import CAMERAS, DEVELOPMENT_SEED, run_benchmark
+    from raytun3r_plugin.apps.benchmark import (
+        CAMERAS,
+        DEVELOPMENT_SEED,
+        run_benchmark,
+        sequence_seed,
+    )
     from raytun3r_plugin.apps.trained_networks import load_trained_network
 
     model, description = load_trained_network(out / "net.safetensors")
+    from raytun3r_plugin.errors import InputError
+
+    with pytest.raises(InputError, match="first_sequence"):
+        run_benchmark(model, tmp_path / "refused", first_sequence=-1)
+    assert not (tmp_path / "refused").exists()
     table = run_benchmark(
         model,
         tmp_path / "bench",
@@ -207,6 +217,7 @@ def test_the_benchmark_fits_and_scores_a_trained_vggt_network(tmp_path):
         n_eval=3,
         steps=2,
         sequences=1,
+        first_sequence=1,
         cameras=CAMERAS[-1:],
         scenes=("indoor",),
         network=description,
@@ -214,6 +225,8 @@ def test_the_benchmark_fits_and_scores_a_trained_vggt_network(tmp_path):
     )
     assert "small VGGT-architecture network" in table
     rows = json.loads((tmp_path / "bench" / "results.json").read_text())["sequences"]
+    # the second sequence of the DS 195 indoor cell: the seed it has in a full run
+    assert {row["seed"] for row in rows} == {sequence_seed(2, 0, 1, DEVELOPMENT_SEED)}
     methods = {row["method"] for row in rows}
     assert {"vanilla", "raytun3r, no adapter", "raytun3r", "raytun3r, supervised"} <= methods
     fitted = next(row for row in rows if row["method"] == "raytun3r")
