@@ -259,7 +259,14 @@ def cmd_adapt_rig(args: argparse.Namespace) -> int:
     rig = rig.subset(list(instants))
     model = _load_model(args.backbone, args.weights)
     config = AdaptConfig.from_recipe(args.recipe or "rig", **_adapt_settings(args))
-    adapters = adapt_rig(model, rig, config, out_dir=args.out, cross_camera=args.cross_camera)
+    adapters = adapt_rig(
+        model,
+        rig,
+        config,
+        out_dir=args.out,
+        resume=not args.restart,
+        cross_camera=args.cross_camera,
+    )
     paths = rig_artifact_paths(args.out, rig.names)
     for name in rig.names:
         verdict = adapters[name].training_info["verdict"]["summary"]
@@ -467,5 +474,11 @@ def add_fit_commands(sub, rule: str) -> None:
         help="add reprojection terms between the cameras at each instant (docs/rigs.md)",
     )
     p.add_argument("--out", required=True, help="output folder: <camera>.safetensors per camera")
+    p.add_argument(
+        "--restart",
+        action="store_true",
+        help="start over even if a checkpoint of another run is in --out (default: an "
+        "interrupted run with the same settings resumes)",
+    )
     _add_fit_arguments(p)
     p.set_defaults(func=cmd_adapt_rig)
