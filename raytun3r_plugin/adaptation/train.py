@@ -21,8 +21,7 @@ Determinism: the window of step ``k`` and the match subset it uses are functions
 ``(seed, k)`` only, so the same seed gives identical tables, and a resumed run continues exactly
 where the interrupted one stopped.
 
-The run is split at its seams (each module re-exported here, so ``from
-raytun3r_plugin.adaptation.train import X`` keeps working for every name it ever offered):
+The run is split at its seams; each name lives in one module and is imported from there:
 
 * :mod:`~raytun3r_plugin.adaptation.config`: :class:`AdaptConfig` and the default loss weights;
 * :mod:`~raytun3r_plugin.adaptation.problem`: :func:`prepare_problem` (frames, masks, pairs,
@@ -31,7 +30,9 @@ raytun3r_plugin.adaptation.train import X`` keeps working for every name it ever
   :func:`objective_value`;
 * :mod:`~raytun3r_plugin.adaptation.checkpoint`: artefact paths, loss log, checkpoint;
 * :mod:`~raytun3r_plugin.adaptation.guard`: the collapse guard and :func:`fit_verdict`;
-* this module: :func:`adapt`, the loop that ties them together.
+* :mod:`~raytun3r_plugin.adaptation.loop`: the optimisation loop :func:`adapt` and
+  :func:`~raytun3r_plugin.adaptation.rig.adapt_rig` share;
+* this module: :func:`adapt`, which prepares a camera's fit and runs it on that loop.
 """
 
 from __future__ import annotations
@@ -48,22 +49,13 @@ import torch
 from torch import nn
 
 from raytun3r_plugin.adaptation.checkpoint import (
-    CHECKPOINT_FORMAT,
-    CHECKPOINT_VERSION,
     _restore_checkpoint,
     _save_checkpoint,
     artifact_paths,
-    load_checkpoint,
     read_loss_log,
     write_loss_artifacts,
 )
 from raytun3r_plugin.adaptation.config import (
-    PE_REGULARISERS,
-    POSE_SOURCES,
-    SCALES,
-    SELF_SUPERVISED_WEIGHTS,
-    SUPERVISED_WEIGHTS,
-    TEACHER_WEIGHTS,
     TERMS,
     AdaptConfig,
 )
@@ -71,68 +63,29 @@ from raytun3r_plugin.adaptation.guard import (
     GUARD_MIN_CORRELATION,
     GUARD_SPREAD_RANGE,
     _CollapseGuard,
-    depth_health,
     fit_verdict,
 )
 from raytun3r_plugin.adaptation.loop import run_fit_loop
-from raytun3r_plugin.adaptation.losses import LossWeights
 from raytun3r_plugin.adaptation.problem import (
-    MAX_DEPTH_SAMPLES,
     AdaptationProblem,
     prepare_problem,
-    scene_mask,
     split_segments,
     with_pose_targets,
 )
 from raytun3r_plugin.adaptation.step import (
     adaptation_step,
-    objective_value,
     regulariser_scale,
-    window_of_step,
     window_parallax,
-    window_terms,
 )
 from raytun3r_plugin.adaptation.teacher import teacher_coverage, teacher_targets
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
 from raytun3r_plugin.patching import apply, handle_of
-from raytun3r_plugin.preprocess import InputLayout, input_layout
 
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
 
-__all__ = [
-    "CHECKPOINT_FORMAT",
-    "CHECKPOINT_VERSION",
-    "GUARD_MIN_CORRELATION",
-    "GUARD_SPREAD_RANGE",
-    "MAX_DEPTH_SAMPLES",
-    "PE_REGULARISERS",
-    "POSE_SOURCES",
-    "SCALES",
-    "SELF_SUPERVISED_WEIGHTS",
-    "SUPERVISED_WEIGHTS",
-    "TEACHER_WEIGHTS",
-    "TERMS",
-    "AdaptConfig",
-    "AdaptationProblem",
-    "InputLayout",
-    "LossWeights",
-    "adapt",
-    "adaptation_step",
-    "artifact_paths",
-    "depth_health",
-    "fit_verdict",
-    "input_layout",
-    "load_checkpoint",
-    "objective_value",
-    "prepare_problem",
-    "read_loss_log",
-    "scene_mask",
-    "window_of_step",
-    "window_terms",
-    "write_loss_artifacts",
-]
+__all__ = ["adapt"]
 
 
 # --------------------------------------------------------------------------------------------
