@@ -127,7 +127,8 @@ def _errors(events: list[dict]) -> list[str]:
         method, params = event.get("method"), event.get("params", {})
         if method == "Runtime.consoleAPICalled" and params.get("type") in ("error", "assert"):
             found.append(
-                "console: " + " ".join(str(a.get("value", a.get("description"))) for a in params["args"])
+                "console: "
+                + " ".join(str(a.get("value", a.get("description"))) for a in params["args"])
             )
         elif method == "Runtime.exceptionThrown":
             details = params.get("exceptionDetails", {})
@@ -159,9 +160,15 @@ def render_page(
     to_browser_read, to_browser_write = os.pipe()
     from_browser_read, from_browser_write = os.pipe()
 
-    def _wire_pipes() -> None:  # in the child: the protocol's fixed descriptors 3 and 4
-        os.dup2(to_browser_read, 3)
-        os.dup2(from_browser_write, 4)
+    def _wire_pipes() -> None:
+        # In the child: the protocol's fixed descriptors 3 and 4 (inheritable, so they survive
+        # exec); copied above 10 first, as a pipe may itself sit on 3 or 4.
+        import fcntl
+
+        reading = fcntl.fcntl(to_browser_read, fcntl.F_DUPFD, 10)
+        writing = fcntl.fcntl(from_browser_write, fcntl.F_DUPFD, 10)
+        os.dup2(reading, 3)
+        os.dup2(writing, 4)
 
     with tempfile.TemporaryDirectory(prefix="raytun3r-chromium-") as profile:
         process = subprocess.Popen(
@@ -182,7 +189,7 @@ def render_page(
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
             preexec_fn=_wire_pipes,
-            pass_fds=(3, 4),
+            close_fds=False,  # descriptors 3 and 4 must reach the browser; the others are CLOEXEC
         )
         os.close(to_browser_read)
         os.close(from_browser_write)
@@ -214,13 +221,15 @@ def _drive(pipe: _Pipe, page: Path, png_path, width: int) -> PageRender:
     pipe.call("Emulation.setDeviceMetricsOverride", session, height=800, **screen)
     pipe.call("Page.navigate", session, url=page.as_uri())
     pipe.wait_for("Page.loadEventFired")
-    value = pipe.call(
-        "Runtime.evaluate", session, expression=_IMAGE_CHECK, returnByValue=True
-    )["result"]["value"]
+    value = pipe.call("Runtime.evaluate", session, expression=_IMAGE_CHECK, returnByValue=True)[
+        "result"
+    ]["value"]
     images = [(entry["src"], bool(entry["ok"])) for entry in json.loads(value)]
     height = int(pipe.call("Page.getLayoutMetrics", session)["cssContentSize"]["height"] + 0.999)
     if png_path is not None:
         pipe.call("Emulation.setDeviceMetricsOverride", session, height=height, **screen)
-        shot = pipe.call("Page.captureScreenshot", session, format="png", captureBeyondViewport=True)
+        shot = pipe.call(
+            "Page.captureScreenshot", session, format="png", captureBeyondViewport=True
+        )
         Path(png_path).write_bytes(base64.b64decode(shot["data"]))
     return PageRender(images=images, errors=_errors(pipe.events), size=(width, height))

@@ -1,4 +1,4 @@
-"""``raytun3r`` command line: adapt, recipes, infer, eval, inspect, weights, demo, bench."""
+"""``raytun3r`` command line: adapt, recipes, infer, eval, inspect, weights, demo, bench, report."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from raytun3r_plugin.apps.cli_adapt import (  # the fitting commands
     add_fit_commands,
     parse_named_numbers,
 )
+from raytun3r_plugin.apps.cli_report import add_report_command
 from raytun3r_plugin.errors import InputError, Raytun3rError
 
 
@@ -445,6 +446,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bins", type=int, default=20, help="radius bins over rho in [0, 1]")
     p.add_argument("--out", default="jacobian", help="folder for jacobian.csv and jacobian.png")
     p.set_defaults(func=cmd_analyze_jacobian)
+
+    add_report_command(sub)
 
     p = sub.add_parser("backbones", help="list the backbone names load_backbone accepts")
     p.set_defaults(
