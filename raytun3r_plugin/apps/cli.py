@@ -157,8 +157,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     adapter = Adapter.load(args.adapter) if args.adapter else None
     # Scored at the long side the adapter was fitted at unless --size says otherwise.
     long_side = args.size or _default_long_side(adapter, model)
+    reader_options = {"camera": args.camera} if args.camera else {}
     seq = fit_sequence(
-        load_sequence(args.dataset, kind=args.kind), long_side, max_frames=args.max_frames
+        load_sequence(args.dataset, kind=args.kind, **reader_options),
+        long_side,
+        max_frames=args.max_frames,
     )
     if seq.cam_from_world is None:
         raise InputError(f"{args.dataset}: the sequence has no ground-truth poses to score against")
@@ -344,9 +347,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--dataset",
         required=True,
-        help="sequence folder or file (synthetic, colmap, scannetpp, tumvi, kitti360)",
+        help="sequence folder or file (synthetic, colmap, scannetpp, tumvi, kitti360, "
+        "eth3d_rig, adt, fiord)",
     )
     p.add_argument("--kind", default=None, help="reader to use (default: detect)")
+    p.add_argument(
+        "--camera",
+        default=None,
+        help="passed to the reader as camera=: the calibration file of a FIORD scene (required "
+        "there), the camera name of an ETH3D rig",
+    )
     p.add_argument(
         "--method",
         default="vanilla,center-ph,raytun3r",

@@ -42,7 +42,7 @@ CURVES_PER_FOLDER = 3
 
 _STYLE = """
 body { font-family: system-ui, -apple-system, 'Segoe UI', sans-serif; margin: 24px auto;
-       max-width: 1180px; color: #1d1d1f; line-height: 1.4; }
+       max-width: 1180px; padding: 0 16px; color: #1d1d1f; line-height: 1.4; }
 h1 { font-size: 1.5em; margin-bottom: 0.2em; } h2 { font-size: 1.2em; margin-top: 1.6em; }
 h3 { font-size: 1.0em; }
 .meta { color: #555; font-size: 0.9em; }
@@ -56,6 +56,8 @@ td.num { text-align: right; font-variant-numeric: tabular-nums; }
 th { background: #f2f2f2; }
 img { max-width: 100%; height: auto; display: block; margin: 6px 0; }
 figcaption, .note { color: #555; font-size: 0.85em; }
+.pair { display: flex; gap: 28px; align-items: flex-start; flex-wrap: wrap; }
+.pair > div { flex: 1 1 420px; }
 """
 
 
@@ -249,9 +251,6 @@ def _fit_section(path: Path, depth: DepthSource | None, heading: str = "h2") -> 
         parts.append(
             '<div class="verdict status-warn">No verdict recorded (not fitted by raytun3r adapt).</div>'
         )
-    parts.append(
-        "<h3>Numbers</h3>" + _table(_fit_rows(adapter, records), ["quantity", "value", "note"])
-    )
     if depth is not None:
         parts.append("<h3>Depth before and after the fit</h3>" + _depth_html(adapter, depth))
     if records:
@@ -266,16 +265,22 @@ def _fit_section(path: Path, depth: DepthSource | None, heading: str = "h2") -> 
         )
     else:
         parts.append(f'<p class="note">No loss log ({_esc(log.name)}) beside the adapter.</p>')
+    numbers = "<h3>Numbers</h3>" + _table(
+        _fit_rows(adapter, records), ["quantity", "value", "note"]
+    )
+    pe = ""
     if adapter.camera is not None:
         from raytun3r_plugin.apps.adapter_report import pe_correction_field
 
         values, lens, title = pe_correction_field(adapter)
-        parts.append(
+        pe = (
             "<h3>PE correction</h3>"
             + _img(field_figure(values, title, "PE units", valid=lens), "PE correction")
             + "<figcaption>Size of the positional-embedding correction the adapter adds per "
             "token (grey: outside the lens). Zero everywhere is the identity adapter.</figcaption>"
         )
+    # The table and the PE picture side by side, before the wide pictures.
+    parts.insert(3, f'<div class="pair"><div>{numbers}</div><div>{pe}</div></div>')
     return "\n".join(parts)
 
 
@@ -451,7 +456,7 @@ def build_report(path: str | os.PathLike, depth: DepthSource | None = None) -> s
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         f"<title>{_esc(title)}</title><style>{_STYLE}</style></head><body>"
         f"<h1>{_esc(title)}</h1>"
-        f'<p class="meta">{_esc(p.resolve())}; written {stamp} by raytun3r {_esc(__version__)}</p>\n'
+        f'<p class="meta">{_esc(p)}; written {stamp} by raytun3r {_esc(__version__)}</p>\n'
         + "\n".join(body)
         + "\n</body></html>\n"
     )
