@@ -52,7 +52,7 @@ def _png(figure) -> bytes:
     return buffer.getvalue()
 
 
-def smoothed(values: Sequence[float], window: int) -> np.ndarray:
+def smoothed(values: Sequence[float] | np.ndarray, window: int) -> np.ndarray:
     """Centred moving mean of ``values`` over ``window`` steps (shorter at the ends), non-finite
     values left out; NaN where a window holds none. A fit cycles through its windows one per
     step, so a window of one pass over them averages out which window a step happened to see."""
@@ -69,7 +69,7 @@ def smoothed(values: Sequence[float], window: int) -> np.ndarray:
         return np.where(count > 0, (sums[high] - sums[low]) / np.maximum(count, 1), np.nan)
 
 
-def trend_change(values: Sequence[float], window: int) -> float | None:
+def trend_change(values: Sequence[float] | np.ndarray, window: int) -> float | None:
     """Relative change of the mean over the last ``window`` steps against the ``window`` steps
     before them (``-0.02``: 2 % lower), or None with fewer than two windows of finite values or a
     zero mean before. Small values say the term has settled."""
