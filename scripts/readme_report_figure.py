@@ -14,6 +14,7 @@ after. Needs the ``viz`` extra and Chromium.
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 from pathlib import Path
 
@@ -42,8 +43,12 @@ def main() -> None:
     seq = synthetic.render_sequence("indoor", camera, n_frames=36, seed=1000)
     model, _ = default_network()
     config = adapt_config(size, DEMO_STEPS, lr=DEMO_LR, seed=0)
+    out = Path(args.out).resolve()
+    page = Path(args.html).resolve() if args.html else None
+    home = Path.cwd()
     with tempfile.TemporaryDirectory() as scratch, quiet_upstream():
-        fit = Path(scratch) / "demo_fit.safetensors"
+        os.chdir(scratch)  # the page names the fit as given: a short relative path
+        fit = Path("demo_fit.safetensors")
         adapter = adapt(
             model, camera, seq.first_images(n_adapt), config, out_path=fit, progress=False
         )
@@ -51,11 +56,11 @@ def main() -> None:
             model, camera, seq.images[n_adapt:], adapter, config
         )
         adapter.save(fit)
-        page = Path(args.html) if args.html else Path(scratch) / "report.html"
+        page = page or Path(scratch) / "report.html"
         write_report(fit, page, DepthSource(seq.images, model, index=args.frame))
-        out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
         seen = render_page(page, out, width=args.width)
+        os.chdir(home)
     problems = seen.errors + [f"image did not load: {src}" for src in seen.broken_images]
     if problems:
         raise SystemExit("the browser saw problems: " + "; ".join(problems))

@@ -16,6 +16,7 @@ pytest.importorskip("depth_anything_3")
 pytest.importorskip("matplotlib")
 
 from raytun3r_plugin.apps.cli import main  # noqa: E402
+from raytun3r_plugin.apps.report import build_report, report_kind  # noqa: E402
 from raytun3r_plugin.figures import smoothed, trend_change  # noqa: E402
 
 NETWORK = "raytun3r-da3-tiny-v3"
@@ -151,18 +152,32 @@ def test_benchmark_report_has_the_table_charts_and_fits(fit, tmp_path):
         for method, (d, a) in methods.items()
     ]
     (bench / "results.json").write_text(json.dumps({"sequences": [], "summary": summary}))
+    # --png renders the page in Chromium and fails the command on a broken image or an error.
     assert main(["report", str(bench), "--png", str(tmp_path / "bench.png")]) == 0
     page = (bench / "report.html").read_text(encoding="utf-8")
     _self_contained(page)
     rows = re.findall(r"<tr><td>KB4 190</td><td>(\w+)</td><td>([^<]+)</td>", page)
     assert rows == [(row["scene"], row["method"]) for row in summary]
     assert "<h3>d_reproj_px</h3>" in page and "<h3>abs_rel</h3>" in page
-    assert (
-        "KB4_190_indoor_90000.safetensors" in page
-        and html_escape(fit["training"]["verdict"]["summary"]) in page
+    assert "KB4_190_indoor_90000.safetensors" in page
+    assert html_escape(fit["training"]["verdict"]["summary"]) in page
+    assert page.count("<img") == 4  # two metric charts, the fit's PE correction and loss curves
+    import cv2
+
+    shot = cv2.imread(str(tmp_path / "bench.png"))
+    assert shot is not None and shot.shape[1] == 1280 and shot.std() > 20
+
+    # A demo folder (metrics.json, fits under seq*/) reads the same way.
+    demo = tmp_path / "demo"
+    shutil.copytree(
+        bench, demo / "seq0", ignore=shutil.ignore_patterns("results.json", "report.html")
     )
-    seen, _ = _render(bench / "report.html", tmp_path / "bench2.png")
-    assert len(seen.images) == 4  # two metric charts, the fit's loss curves and PE correction
+    demo_rows = [{"method": m, "abs_rel": a, "d_reproj_px": d} for m, (d, a) in methods.items()]
+    (demo / "metrics.json").write_text(json.dumps({"network": "tiny", "summary": demo_rows}))
+    assert report_kind(demo) == "demo"
+    demo_page = build_report(demo)
+    assert re.findall(r"<tr><td>([^<]+)</td><td class=\"num\">", demo_page)[:3] == list(methods)
+    assert "network: tiny" in demo_page and "Fits (1)" in demo_page
 
 
 def test_report_refuses_what_it_cannot_draw_and_writes_nothing(fit, tmp_path, capsys):
