@@ -218,3 +218,25 @@ def test_loss_picture_falls_back_to_opencv_without_matplotlib(fit, tmp_path, mon
     fallback = cv2.imread(str(paths["curve"]))
     assert fallback.shape == (420, 720, 3)  # plots.line_chart's default size
     assert drawn is not None and drawn.shape != fallback.shape
+
+
+def test_the_browser_check_sees_a_broken_image_and_a_console_error(tmp_path, monkeypatch):
+    """The check the report tests rely on can fail: a page with one good and one undecodable
+    image and a script that logs an error."""
+    _chromium()
+    from raytun3r_plugin.apps.browser import render_page
+    from raytun3r_plugin.errors import MissingDependencyError
+
+    good = "iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAYAAAAfFcSJAAAADUlEQVR42mP8z8DwHwAFBQIAX8jx0gAAAABJRU5ErkJggg=="
+    page = tmp_path / "bad.html"
+    page.write_text(
+        f'<html><body><img src="data:image/png;base64,{good}">'
+        '<img src="data:image/png;base64,AAAA"><script>console.error("drawn wrong")</script>'
+        "</body></html>"
+    )
+    seen = render_page(page, None)
+    assert [ok for _, ok in seen.images] == [True, False] and len(seen.broken_images) == 1
+    assert seen.errors == ["console: drawn wrong"]
+    monkeypatch.setenv("RAYTUN3R_CHROMIUM", str(tmp_path / "no-such-browser"))
+    with pytest.raises(MissingDependencyError, match="cannot start Chromium"):
+        render_page(page, None)

@@ -171,26 +171,33 @@ def render_page(
         os.dup2(writing, 4)
 
     with tempfile.TemporaryDirectory(prefix="raytun3r-chromium-") as profile:
-        process = subprocess.Popen(
-            [
-                executable,
-                "--headless",
-                "--no-sandbox",  # root in containers and CI; the page is a local file we wrote
-                "--disable-gpu",
-                "--no-first-run",
-                "--no-default-browser-check",
-                "--disable-extensions",
-                "--hide-scrollbars",
-                "--remote-debugging-pipe",
-                f"--user-data-dir={profile}",
-                "about:blank",
-            ],
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            preexec_fn=_wire_pipes,
-            close_fds=False,  # descriptors 3 and 4 must reach the browser; the others are CLOEXEC
-        )
+        try:
+            process = subprocess.Popen(
+                [
+                    executable,
+                    "--headless",
+                    "--no-sandbox",  # root in containers and CI; the page is a local file we wrote
+                    "--disable-gpu",
+                    "--no-first-run",
+                    "--no-default-browser-check",
+                    "--disable-extensions",
+                    "--hide-scrollbars",
+                    "--remote-debugging-pipe",
+                    f"--user-data-dir={profile}",
+                    "about:blank",
+                ],
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+                preexec_fn=_wire_pipes,
+                close_fds=False,  # descriptors 3 and 4 must reach the browser; the others are CLOEXEC
+            )
+        except OSError as error:
+            for fd in (to_browser_read, to_browser_write, from_browser_read, from_browser_write):
+                os.close(fd)
+            raise MissingDependencyError(
+                f"{executable}: cannot start Chromium ({error})"
+            ) from error
         os.close(to_browser_read)
         os.close(from_browser_write)
         try:

@@ -392,10 +392,16 @@ def _folder_section(folder: Path, kind: str) -> str:
 
 def _fits_section(fits: list[Path]) -> str:
     from raytun3r_plugin.adapter import Adapter
+    from raytun3r_plugin.errors import AdapterError
 
-    rows = []
+    rows, drawn = [], []
     for path in fits:
-        info = Adapter.load(path).training_info or {}
+        try:
+            info = Adapter.load(path).training_info or {}
+        except AdapterError as error:  # another safetensors file in the folder
+            rows.append({"fit": str(path.name), "status": "not an adapter", "verdict": str(error)})
+            continue
+        drawn.append(path)
         verdict = info.get("verdict") or {}
         rows.append(
             {
@@ -406,9 +412,9 @@ def _fits_section(fits: list[Path]) -> str:
             }
         )
     parts = [f"<h2>Fits ({len(fits)})</h2>", _table(rows, ["fit", "status", "steps", "verdict"])]
-    for path in fits[:CURVES_PER_FOLDER]:
+    for path in drawn[:CURVES_PER_FOLDER]:
         parts.append(_fit_section(path, None, heading="h3"))
-    if len(fits) > CURVES_PER_FOLDER:
+    if len(drawn) > CURVES_PER_FOLDER:
         parts.append(
             f'<p class="note">Curves of the first {CURVES_PER_FOLDER} fits shown; '
             "`raytun3r report FILE.safetensors` draws any one of them.</p>"
