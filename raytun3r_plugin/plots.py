@@ -1,4 +1,6 @@
-"""Small pictures drawn with OpenCV (always installed), so no plotting library is needed.
+"""Small pictures drawn with OpenCV (always installed): the fallback where matplotlib (the
+``viz`` extra, :mod:`raytun3r_plugin.figures`) is not installed, and the Jacobian chart of
+``raytun3r analyze jacobian``.
 
 ``line_chart`` draws loss curves; ``heatmap`` draws a scalar field (e.g. the size of the PE
 correction over the image) with a labelled colour bar. Both return BGR uint8 images for
