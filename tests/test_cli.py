@@ -708,7 +708,8 @@ def test_infer_rescales_the_camera_to_frames_of_another_size(setup, tmp_path, ca
 
 def test_adapt_infer_and_eval_feed_the_network_the_same_input(setup, tmp_path, monkeypatch):
     """The three paths from native frames to the network share one preparation."""
-    from raytun3r_plugin.adaptation.train import AdaptConfig, prepare_problem
+    from raytun3r_plugin.adaptation.config import AdaptConfig
+    from raytun3r_plugin.adaptation.problem import prepare_problem
     from raytun3r_plugin.apps import inference
     from raytun3r_plugin.apps.evaluation import fit_sequence
     from raytun3r_plugin.datasets import Sequence

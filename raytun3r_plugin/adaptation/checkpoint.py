@@ -13,10 +13,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch import nn
 
 from raytun3r_plugin._io import atomic_save_safetensors
 from raytun3r_plugin.adaptation.config import TERMS
-from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AdapterError
 
 __all__ = [
@@ -109,13 +109,18 @@ def read_loss_log(path: str | os.PathLike) -> list[dict[str, Any]]:
 
 def _save_checkpoint(
     path: Path,
-    adapter: Adapter,
+    adapter: nn.Module,
     optimizer: torch.optim.Optimizer,
     step: int,
     identity: dict[str, str],
 ) -> None:
+    """Write the tables of ``adapter`` (an :class:`Adapter`, or a rig's ``ModuleList`` of
+    them), the Adam moments and ``identity`` as metadata, atomically."""
     names = [name for name, _ in adapter.named_parameters()]
-    tensors = {f"adapter.{name}": value for name, value in adapter.tensors().items()}
+    tensors = {
+        f"adapter.{name}": value.detach().to("cpu", torch.float32).contiguous().clone()
+        for name, value in adapter.state_dict().items()
+    }
     state = optimizer.state_dict()["state"]
     for index, name in enumerate(names):
         for key, value in state.get(index, {}).items():
@@ -146,7 +151,7 @@ def load_checkpoint(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], d
 
 
 def _restore_checkpoint(
-    path: Path, adapter: Adapter, optimizer: torch.optim.Optimizer, identity: dict[str, str]
+    path: Path, adapter: nn.Module, optimizer: torch.optim.Optimizer, identity: dict[str, str]
 ) -> int:
     tensors, metadata = load_checkpoint(path)
     for key, expected in identity.items():
