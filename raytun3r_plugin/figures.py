@@ -4,7 +4,8 @@
   drawn over the faint per-step values, so a reader sees whether each term settled;
 * :func:`depth_figure`: an input frame beside depth maps on one colour scale, with colour bars;
 * :func:`field_figure`: a scalar field over the image (the PE correction) with a colour bar;
-* :func:`metric_bars`: a metric per method and cell (benchmark tables).
+* :func:`metric_bars`: a metric per method and cell (benchmark tables);
+* :func:`curves_figure`: curves over a common abscissa, one chart per panel (analyses).
 
 Figures are built with ``matplotlib.figure.Figure`` on the Agg canvas, never through pyplot's
 global state, so they are safe in worker threads and leave no window behind. Without
@@ -24,6 +25,7 @@ import numpy as np
 from raytun3r_plugin.errors import MissingDependencyError
 
 __all__ = [
+    "curves_figure",
     "depth_figure",
     "field_figure",
     "loss_figure",
@@ -207,4 +209,33 @@ def metric_bars(
     axis.tick_params(labelsize=8)
     axis.grid(True, axis="y", linewidth=0.4, alpha=0.5)
     axis.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    return _png(figure)
+
+
+def curves_figure(
+    panels: Sequence[tuple[str, Mapping[str, Sequence[float]]]],
+    x: Sequence[float],
+    *,
+    x_label: str,
+    log_y: bool = True,
+    size_px: tuple[int, int] = (1280, 400),
+) -> bytes:
+    """One chart per ``(title, {name: values})`` panel, side by side, every curve over the
+    abscissa ``x`` (log y scale with ``log_y``; non-finite and, on a log scale, non-positive
+    values left out), legend in each chart. The PNG is ``size_px`` (width, height) pixels."""
+    figure = _figure(size_px[0] / 100, size_px[1] / 100)
+    abscissa = np.asarray(x, dtype=np.float64)
+    for k, (title, series) in enumerate(panels):
+        axis = figure.add_subplot(1, max(1, len(panels)), k + 1)
+        for name, values in series.items():
+            y = np.asarray(values, dtype=np.float64)
+            keep = np.isfinite(y) & ((y > 0) if log_y else True)
+            axis.plot(abscissa[keep], y[keep], marker=".", linewidth=1.2, label=name)
+        if log_y:
+            axis.set_yscale("log")
+        axis.set_title(title, fontsize=9)
+        axis.set_xlabel(x_label, fontsize=8)
+        axis.tick_params(labelsize=8)
+        axis.grid(True, linewidth=0.4, alpha=0.5)
+        axis.legend(fontsize=7)
     return _png(figure)

@@ -1,6 +1,6 @@
-"""Small pictures drawn with OpenCV (always installed): the fallback where matplotlib (the
-``viz`` extra, :mod:`raytun3r_plugin.figures`) is not installed, and the Jacobian chart of
-``raytun3r analyze jacobian``.
+"""Small pictures drawn with OpenCV (always installed): the fallback for the loss curves, the PE
+picture and the Jacobian chart where matplotlib (the ``viz`` extra,
+:mod:`raytun3r_plugin.figures`) is not installed.
 
 ``line_chart`` draws loss curves; ``heatmap`` draws a scalar field (e.g. the size of the PE
 correction over the image) with a labelled colour bar. Both return BGR uint8 images for
