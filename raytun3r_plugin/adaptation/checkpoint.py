@@ -25,6 +25,7 @@ __all__ = [
     "artifact_paths",
     "load_checkpoint",
     "read_loss_log",
+    "trend_window",
     "write_loss_artifacts",
 ]
 
@@ -56,14 +57,15 @@ def write_loss_artifacts(
 
     Columns: ``step``, ``loss``, every term the run had (``terms``: these columns instead, e.g.
     a rig fit's per-camera ones), ``grad_norm``, ``skipped``, ``time_s``. The picture shows the
-    total and the raw value of each term (``plotted``: these columns instead) over the steps
-    (log scale).
+    total and each term (``plotted``: these columns instead) over the steps: with matplotlib (the
+    ``viz`` extra) one chart per term on its own scale, its trend smoothed over one pass through
+    the fit's windows (:func:`raytun3r_plugin.figures.loss_figure`); without it, the raw values
+    on one log axis (OpenCV, :func:`raytun3r_plugin.plots.line_chart`).
     """
     import csv
 
-    import cv2
-
-    from raytun3r_plugin.plots import line_chart
+    from raytun3r_plugin.errors import MissingDependencyError
+    from raytun3r_plugin.figures import loss_figure
 
     if terms is None:
         terms = [name for name in TERMS if records and name in records[0]]
@@ -79,7 +81,21 @@ def write_loss_artifacts(
         if all(name in r for r in records) and any(float(r[name]) > 0 for r in records)
     }
     title = title or f"adaptation losses ({len(records)} steps)"
-    cv2.imwrite(str(paths["curve"]), line_chart(series, title))
+    try:
+        Path(paths["curve"]).write_bytes(loss_figure(series, trend_window(records), title=title))
+    except MissingDependencyError:
+        import cv2
+
+        from raytun3r_plugin.plots import line_chart
+
+        cv2.imwrite(str(paths["curve"]), line_chart(series, title))
+
+
+def trend_window(records: list[dict[str, Any]]) -> int:
+    """Steps in one pass through a fit's windows (the distinct ``window`` indices of its log;
+    at least 1): the span over which a loss trend is smoothed, so every window counts once."""
+    windows = {r.get("window") for r in records if r.get("window") is not None}
+    return max(1, len(windows)) if windows else max(1, len(records) // 10)
 
 
 def read_loss_log(path: str | os.PathLike) -> list[dict[str, Any]]:

@@ -1,4 +1,4 @@
-"""``raytun3r`` command line: adapt, recipes, infer, eval, inspect, weights, demo, bench."""
+"""``raytun3r`` command line: adapt, recipes, infer, eval, inspect, weights, demo, bench, report."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from raytun3r_plugin.apps.cli_adapt import (  # the fitting commands
     add_fit_commands,
     parse_named_numbers,
 )
+from raytun3r_plugin.apps.cli_report import add_report_command
 from raytun3r_plugin.errors import InputError, Raytun3rError
 
 
@@ -156,8 +157,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     adapter = Adapter.load(args.adapter) if args.adapter else None
     # Scored at the long side the adapter was fitted at unless --size says otherwise.
     long_side = args.size or _default_long_side(adapter, model)
+    reader_options = {"camera": args.camera} if args.camera else {}
     seq = fit_sequence(
-        load_sequence(args.dataset, kind=args.kind), long_side, max_frames=args.max_frames
+        load_sequence(args.dataset, kind=args.kind, **reader_options),
+        long_side,
+        max_frames=args.max_frames,
     )
     if seq.cam_from_world is None:
         raise InputError(f"{args.dataset}: the sequence has no ground-truth poses to score against")
@@ -343,9 +347,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--dataset",
         required=True,
-        help="sequence folder or file (synthetic, colmap, scannetpp, tumvi, kitti360)",
+        help="sequence folder or file (synthetic, colmap, scannetpp, tumvi, kitti360, "
+        "eth3d_rig, adt, fiord)",
     )
     p.add_argument("--kind", default=None, help="reader to use (default: detect)")
+    p.add_argument(
+        "--camera",
+        default=None,
+        help="passed to the reader as camera=: the calibration file of a FIORD scene (required "
+        "there), the camera name of an ETH3D rig",
+    )
     p.add_argument(
         "--method",
         default="vanilla,center-ph,raytun3r",
@@ -445,6 +456,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bins", type=int, default=20, help="radius bins over rho in [0, 1]")
     p.add_argument("--out", default="jacobian", help="folder for jacobian.csv and jacobian.png")
     p.set_defaults(func=cmd_analyze_jacobian)
+
+    add_report_command(sub)
 
     p = sub.add_parser("backbones", help="list the backbone names load_backbone accepts")
     p.set_defaults(
