@@ -99,7 +99,7 @@ def cmd_weights(args: argparse.Namespace) -> int:
 
 def cmd_infer(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adapter import Adapter
-    from raytun3r_plugin.apps.inference import predict_with_camera, write_outputs
+    from raytun3r_plugin.apps.inference import predict_with_camera
     from raytun3r_plugin.cameras import load as load_camera
     from raytun3r_plugin.images import read_frames, read_mask
     from raytun3r_plugin.preprocess import layout_for_inference
@@ -123,21 +123,18 @@ def cmd_infer(args: argparse.Namespace) -> int:
         long_side=args.size or _default_long_side(adapter, model),
         strict=not args.no_strict,
     )
-    mask = (
-        layout.native_mask(read_mask(args.mask, frames.shape[2], frames.shape[1]))
-        if args.mask
-        else None
-    )
+    from raytun3r_plugin.apps.cli_exports import export_options, write_infer_outputs
+
+    options = export_options(args)  # checked before the network runs
+    raw_mask = read_mask(args.mask, frames.shape[2], frames.shape[1]) if args.mask else None
+    native_mask = None if raw_mask is None else layout.native_mask(raw_mask)
     images = layout.frames(frames)[None]
     # Patched with the (cropped) native camera, as adapt patched the model: the adapter's camera
     # check compares like with like, and the patch rescales it to the input as during the fit.
     prediction = predict_with_camera(
-        model, layout.native_camera, adapter, images, strict=not args.no_strict, mask=mask
+        model, layout.native_camera, adapter, images, strict=not args.no_strict, mask=native_mask
     )
-    summary = write_outputs(args.out, prediction, images, layout.camera, names)
-    print(
-        f"wrote depth for {summary['frames']} frames, trajectory.txt and points.ply ({summary['points']:,} points) to {args.out}"
-    )
+    write_infer_outputs(args, options, prediction, images, layout, frames, names, raw_mask)
     return 0
 
 
@@ -332,6 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="apply an adapter fitted on other weights or another camera",
     )
     p.add_argument("--out", required=True)
+    from raytun3r_plugin.apps.cli_exports import add_output_arguments
+
+    add_output_arguments(p)
     p.set_defaults(func=cmd_infer)
 
     add_fit_commands(sub, rule)
