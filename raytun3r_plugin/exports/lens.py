@@ -79,16 +79,25 @@ def kb4_project(points: np.ndarray, params: np.ndarray) -> np.ndarray:
     return np.stack([fx * x * scale + cx, fy * y * scale + cy], -1)
 
 
-def _kb4_torch(rays: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
-    r = torch.linalg.vector_norm(rays[:, :2], dim=-1)
-    theta = torch.atan2(r, rays[:, 2])
-    t2 = theta * theta
-    k = params[4:]
-    theta_d = theta * (1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
-    scale = theta_d / r.clamp_min(1e-12)
-    return torch.stack(
-        [params[0] * rays[:, 0] * scale + params[2], params[1] * rays[:, 1] * scale + params[3]], -1
-    )
+def _kb4_residual_and_jacobian(
+    params: np.ndarray, direction: np.ndarray, powers: np.ndarray, uv: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (2N,) of the Kannala-Brandt projection against ``uv`` and their (2N, 8)
+    Jacobian in fx, fy, cx, cy, k1..k4; ``direction`` (N, 2) = (x, y) / r, ``powers`` (N, 5) =
+    theta, theta^3, ..., theta^9."""
+    fx, fy, cx, cy = params[:4]
+    theta_d = powers @ np.concatenate([[1.0], params[4:]])
+    u = fx * direction[:, 0] * theta_d + cx
+    v = fy * direction[:, 1] * theta_d + cy
+    count = len(uv)
+    jac = np.zeros((2 * count, 8))
+    jac[:count, 0] = direction[:, 0] * theta_d
+    jac[:count, 2] = 1.0
+    jac[:count, 4:] = fx * direction[:, :1] * powers[:, 1:]
+    jac[count:, 1] = direction[:, 1] * theta_d
+    jac[count:, 3] = 1.0
+    jac[count:, 4:] = fy * direction[:, 1:] * powers[:, 1:]
+    return np.concatenate([u - uv[:, 0], v - uv[:, 1]]), jac
 
 
 def _samples(camera: Camera, max_angle_deg: float, step: int) -> tuple[np.ndarray, np.ndarray]:
@@ -123,32 +132,24 @@ def fit_kb4(camera: Camera, max_angle_deg: float, iterations: int = 30) -> tuple
     coef_u = np.linalg.lstsq(basis * direction[:, :1], uv[:, 0] - cx, rcond=None)[0]
     coef_v = np.linalg.lstsq(basis * direction[:, 1:], uv[:, 1] - cy, rcond=None)[0]
     ks = 0.5 * (coef_u[1:] / coef_u[0] + coef_v[1:] / coef_v[0])
-    params = torch.tensor([coef_u[0], coef_v[0], cx, cy, *ks], dtype=torch.float64)
-    rays_t, uv_t = torch.from_numpy(rays), torch.from_numpy(uv)
-
-    def residual(p: torch.Tensor) -> torch.Tensor:
-        return (_kb4_torch(rays_t, p) - uv_t).reshape(-1)
-
-    damping = 1e-6
-    cost = float(residual(params).square().sum())
+    params = np.array([coef_u[0], coef_v[0], cx, cy, *ks])
+    residual, jac = _kb4_residual_and_jacobian(params, direction, basis, uv)
+    cost, damping = float(residual @ residual), 1e-6
     for _ in range(iterations):
-        jac = torch.func.jacfwd(residual)(params)
-        res = residual(params)
         normal = jac.T @ jac
-        step_p = torch.linalg.solve(
-            normal + damping * torch.diag(torch.diagonal(normal)), -jac.T @ res
-        )
+        step_p = np.linalg.solve(normal + damping * np.diag(np.diag(normal)), -jac.T @ residual)
         trial = params + step_p
-        trial_cost = float(residual(trial).square().sum())
+        trial_residual, trial_jac = _kb4_residual_and_jacobian(trial, direction, basis, uv)
+        trial_cost = float(trial_residual @ trial_residual)
         if trial_cost < cost:
-            params, damping = trial, max(damping / 10, 1e-12)
-            if cost - trial_cost < 1e-14 * max(cost, 1e-30):
-                cost = trial_cost
+            converged = cost - trial_cost < 1e-14 * max(cost, 1e-30)
+            params, residual, jac, cost = trial, trial_residual, trial_jac, trial_cost
+            damping = max(damping / 10, 1e-12)
+            if converged:
                 break
-            cost = trial_cost
         else:
             damping *= 10
-    fitted = params.numpy()
+    fitted = params
     uv_all, rays_all = _samples(camera, max_angle_deg, 1)
     error = np.linalg.norm(kb4_project(rays_all, fitted) - uv_all, axis=-1)
     record = {
