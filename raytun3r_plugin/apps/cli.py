@@ -99,11 +99,13 @@ def cmd_weights(args: argparse.Namespace) -> int:
 
 def cmd_infer(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adapter import Adapter
+    from raytun3r_plugin.apps.cli_exports import export_options, write_infer_outputs
     from raytun3r_plugin.apps.inference import predict_with_camera
     from raytun3r_plugin.cameras import load as load_camera
     from raytun3r_plugin.images import read_frames, read_mask
     from raytun3r_plugin.preprocess import layout_for_inference
 
+    options = export_options(args)  # the output options, checked before anything runs
     adapter = Adapter.load(args.adapter) if args.adapter else None
     if args.camera:
         camera = load_camera(args.camera, camera=args.camera_id)
@@ -123,9 +125,6 @@ def cmd_infer(args: argparse.Namespace) -> int:
         long_side=args.size or _default_long_side(adapter, model),
         strict=not args.no_strict,
     )
-    from raytun3r_plugin.apps.cli_exports import export_options, write_infer_outputs
-
-    options = export_options(args)  # checked before the network runs
     raw_mask = read_mask(args.mask, frames.shape[2], frames.shape[1]) if args.mask else None
     native_mask = None if raw_mask is None else layout.native_mask(raw_mask)
     images = layout.frames(frames)[None]
