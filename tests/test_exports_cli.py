@@ -24,9 +24,8 @@ pytest.importorskip("rerun")
 def inputs(tmp_path_factory):
     """Random da3-small weights, a 160 x 128 fisheye (cropped to 154 x 128 at 84 px) with its
     file, a double-sphere file of the same size, and four rendered frames."""
-    from safetensors.torch import save_model
-
     from raytun3r_plugin.patches.da3 import build_network
+    from safetensors.torch import save_model
 
     folder = tmp_path_factory.mktemp("exports_cli")
     torch.manual_seed(0)

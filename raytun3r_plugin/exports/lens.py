@@ -60,7 +60,7 @@ _COLMAP_EXACT = {
 COLMAP_MAX_ANGLE_DEG = 89.0
 
 #: Default refusal threshold of a fitted lens: worst reprojection error over the fitted region.
-DEFAULT_MAX_FIT_ERROR_PX = 1.0
+DEFAULT_MAX_FIT_ERROR_PX = 2.0
 
 
 def kb4_project(points: np.ndarray, params: np.ndarray) -> np.ndarray:
