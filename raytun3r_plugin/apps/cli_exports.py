@@ -4,9 +4,17 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
 from raytun3r_plugin.exports import DEPTH_CONVENTIONS, FORMATS, ExportOptions, check_formats
 from raytun3r_plugin.exports.lens import DEFAULT_MAX_FIT_ERROR_PX
+
+if TYPE_CHECKING:
+    import numpy as np
+    import torch
+
+    from raytun3r_plugin.prediction import Prediction
+    from raytun3r_plugin.preprocess import InputLayout
 
 __all__ = ["add_output_arguments", "export_names", "export_options", "write_infer_outputs"]
 
@@ -80,12 +88,12 @@ def export_options(args: argparse.Namespace) -> ExportOptions:
 def write_infer_outputs(
     args: argparse.Namespace,
     options: ExportOptions,
-    prediction,
-    images,
-    layout,
-    frames,
+    prediction: Prediction,
+    images: torch.Tensor,
+    layout: InputLayout,
+    frames: np.ndarray,
     names: list[str],
-    raw_mask=None,
+    raw_mask: np.ndarray | None = None,
 ) -> dict:
     """Write ``infer``'s files at the resolution ``--depth-resolution`` asks for, and say what
     was written (the lens notes of each export first)."""

@@ -21,6 +21,11 @@ from raytun3r_plugin.errors import InputError
 __all__ = ["resample_maps"]
 
 
+def _bilinear(maps: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of (S, 1, h, w) maps at normalised positions, zero outside."""
+    return F.grid_sample(maps, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+
+
 def resample_maps(
     maps: np.ndarray | torch.Tensor,
     source_valid: np.ndarray | torch.Tensor,
@@ -54,9 +59,8 @@ def resample_maps(
     ys = (torch.arange(height, dtype=torch.float64) + 0.5) / height * 2 - 1
     grid = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1)[None]  # (1, H, W, 2)
     grid = grid.expand(values.shape[0], -1, -1, -1)
-    sample = dict(mode="bilinear", padding_mode="zeros", align_corners=False)
-    total = F.grid_sample((weighted * usable)[:, None], grid, **sample)[:, 0]
-    weight = F.grid_sample(usable[:, None], grid, **sample)[:, 0]
+    total = _bilinear((weighted * usable)[:, None], grid)[:, 0]
+    weight = _bilinear(usable[:, None], grid)[:, 0]
     inside = target.valid_mask("cpu")[None] & (weight > 1e-9)
     out = torch.where(inside, total / weight.clamp_min(1e-12), torch.zeros_like(total))
     return out.to(torch.float32).numpy()

@@ -59,6 +59,7 @@ def write_rrd(path: str | Path, scene: ExportScene, options: ExportOptions) -> d
     )
     depth = scene.depth_as(options.depth_convention)
     convention = depth_convention_text(options.depth_convention)
+    stamps = np.arange(len(scene), dtype=float) if scene.timestamps is None else scene.timestamps
     centres = np.stack([scene.world_from_cam(k)[:3, 3] for k in range(len(scene))])
     recording = rr.RecordingStream(APPLICATION_ID)
     with atomic_path(path) as temporary:
@@ -73,7 +74,7 @@ def write_rrd(path: str | Path, scene: ExportScene, options: ExportOptions) -> d
         recording.log("world", rr.ViewCoordinates.RDF, static=True)
         for k in range(len(scene)):
             recording.set_time("frame", sequence=k)
-            recording.set_time("time", duration=float(scene.timestamps[k]))
+            recording.set_time("time", duration=float(stamps[k]))
             image = (np.clip(scene.images[k], 0, 1) * 255 + 0.5).astype(np.uint8)
             recording.log("frames/image", rr.Image(image))
             recording.log("frames/depth", rr.DepthImage(depth[k], meter=1.0))
