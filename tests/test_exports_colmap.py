@@ -117,6 +117,22 @@ def test_lenses_colmap_lacks_are_fitted_with_their_error_stated(model):
         colmap_lens(camera, max_fit_error_px=lens.fit["worst_px"] / 2)
 
 
+@pytest.mark.parametrize("model", ["FOV", "EUCM", "THIN_PRISM_FISHEYE", "OPENCV", "PINHOLE"])
+def test_opencv_fisheye_only_fits_what_a_basic_reader_lacks(model):
+    """--colmap-lens opencv-fisheye (gsplat's COLMAP loader reads models 0-5 only): the basic
+    models stay exact, the others become a fitted OPENCV_FISHEYE that COLMAP projects as stated."""
+    camera = EXACT[model]
+    lens = colmap_lens(camera, choice="opencv-fisheye")
+    if model in ("OPENCV", "PINHOLE"):
+        assert lens.exact and lens.model == model
+        return
+    assert lens.model == "OPENCV_FISHEYE" and lens.fit["fitted_to"] == camera.model
+    rays = _rays_within(camera, lens.fit["max_angle_deg"])
+    ours = camera.project(torch.from_numpy(rays))[0].numpy()
+    theirs = np.asarray(_colmap_camera(lens, camera).img_from_cam(rays))
+    assert np.linalg.norm(theirs - (ours + 0.5), axis=-1).max() <= lens.fit["worst_px"] + 1e-6
+
+
 @pytest.fixture(scope="module")
 def written(tmp_path_factory):
     camera = fisheye(W, H, 190.0)

@@ -7,7 +7,7 @@ import argparse
 from typing import TYPE_CHECKING
 
 from raytun3r_plugin.exports import DEPTH_CONVENTIONS, FORMATS, ExportOptions, check_formats
-from raytun3r_plugin.exports.lens import DEFAULT_MAX_FIT_ERROR_PX
+from raytun3r_plugin.exports.lens import COLMAP_LENS_CHOICES, DEFAULT_MAX_FIT_ERROR_PX
 
 if TYPE_CHECKING:
     import numpy as np
@@ -64,6 +64,14 @@ def add_output_arguments(parser: argparse.ArgumentParser) -> None:
         help="a lens a format has no model for is fitted as OPENCV_FISHEYE; refuse when the "
         "fit misses by more than this many pixels (default %(default)s)",
     )
+    parser.add_argument(
+        "--colmap-lens",
+        choices=COLMAP_LENS_CHOICES,
+        default="native",
+        help="native: COLMAP's own model where it has one (EUCM and RAD_TAN_THIN_PRISM_FISHEYE "
+        "need COLMAP 4.1+); opencv-fisheye: only PINHOLE, OPENCV, OPENCV_FISHEYE, other lenses "
+        "fitted (gsplat's COLMAP loader, older COLMAP)",
+    )
 
 
 def export_names(args: argparse.Namespace) -> list[str]:
@@ -82,6 +90,7 @@ def export_options(args: argparse.Namespace) -> ExportOptions:
         max_points=args.max_points,
         confidence_quantile=args.confidence_quantile,
         max_fit_error_px=args.max_fit_error_px,
+        colmap_lens=args.colmap_lens,
     )
 
 

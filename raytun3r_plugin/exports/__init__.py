@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from raytun3r_plugin.errors import InputError, MissingDependencyError
-from raytun3r_plugin.exports.lens import DEFAULT_MAX_FIT_ERROR_PX
+from raytun3r_plugin.exports.lens import COLMAP_LENS_CHOICES, DEFAULT_MAX_FIT_ERROR_PX
 from raytun3r_plugin.exports.scene import (
     DEPTH_CONVENTIONS,
     ExportScene,
@@ -54,12 +54,16 @@ class ExportOptions:
         confidence_quantile: per frame, drop pixels below this confidence quantile.
         max_fit_error_px: a lens the format has no model for is fitted as OPENCV_FISHEYE and
             refused when its worst reprojection error over the valid image exceeds this.
+        colmap_lens: ``native`` (COLMAP's own model where it has one) or ``opencv-fisheye``
+            (only PINHOLE, OPENCV, OPENCV_FISHEYE; the rest fitted), see
+            :data:`~raytun3r_plugin.exports.lens.COLMAP_LENS_CHOICES`.
     """
 
     depth_convention: str = "range"
     max_points: int = 50_000
     confidence_quantile: float = 0.2
     max_fit_error_px: float = DEFAULT_MAX_FIT_ERROR_PX
+    colmap_lens: str = "native"
 
     def __post_init__(self) -> None:
         check_depth_convention(self.depth_convention)
@@ -71,6 +75,10 @@ class ExportOptions:
             )
         if not self.max_fit_error_px > 0:
             raise InputError(f"max fit error must be > 0 px, got {self.max_fit_error_px}")
+        if self.colmap_lens not in COLMAP_LENS_CHOICES:
+            raise InputError(
+                f"COLMAP lens must be one of {list(COLMAP_LENS_CHOICES)}, got {self.colmap_lens!r}"
+            )
 
 
 @dataclass

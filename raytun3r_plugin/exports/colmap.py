@@ -212,7 +212,7 @@ def write_colmap(
 
 def plan(scene: ExportScene, options: ExportOptions) -> ExportPlan:
     """Decide the lens (refusing a fit worse than ``options.max_fit_error_px``); write later."""
-    lens = colmap_lens(scene.camera, options.max_fit_error_px)
+    lens = colmap_lens(scene.camera, options.max_fit_error_px, options.colmap_lens)
     return ExportPlan(
         "colmap", lambda out: write_colmap(Path(out) / "colmap", scene, lens, options), lens.notes
     )

@@ -210,7 +210,8 @@ def _fitted(camera: Camera, max_angle_deg: float, max_error_px: float, target: s
             f"{target} has no {camera.model!r} lens; the closest OPENCV_FISHEYE lens misses by up to "
             f"{record['worst_px']:.3g} px (median {record['median_px']:.3g} px) over the valid image, "
             f"more than the allowed {max_error_px:g} px. Alternatives: --export glb or rerun (they keep "
-            "the exact lens as 3-D points), a larger --max-fit-error-px, or calibrate the camera as kb4"
+            "the exact lens as 3-D points), a larger --max-fit-error-px, --colmap-lens native (COLMAP "
+            "4.1+ models), or calibrate the camera as kb4"
         )
     note = (
         f"{target}: {camera.model} lens written as a fitted OPENCV_FISHEYE: worst {record['worst_px']:.3g} px, "
@@ -221,17 +222,40 @@ def _fitted(camera: Camera, max_angle_deg: float, max_error_px: float, target: s
     )
 
 
-def colmap_lens(camera: Camera, max_fit_error_px: float = DEFAULT_MAX_FIT_ERROR_PX) -> WrittenLens:
-    """The lens ``camera`` is written with in a COLMAP model (exact where COLMAP has it)."""
+#: What ``--colmap-lens`` accepts: ``native`` = COLMAP's own model where it has one;
+#: ``opencv-fisheye`` = only the models readers that know the first six COLMAP models read
+#: (PINHOLE, OPENCV, OPENCV_FISHEYE; gsplat's COLMAP loader, COLMAP before 4.1), every other
+#: lens fitted as OPENCV_FISHEYE.
+COLMAP_LENS_CHOICES = ("native", "opencv-fisheye")
+_BASIC_COLMAP = ("PINHOLE", "OPENCV", "OPENCV_FISHEYE")
+
+
+def colmap_lens(
+    camera: Camera,
+    max_fit_error_px: float = DEFAULT_MAX_FIT_ERROR_PX,
+    choice: str = "native",
+) -> WrittenLens:
+    """The lens ``camera`` is written with in a COLMAP model: exact where COLMAP has the model
+    (``choice="native"``; with ``"opencv-fisheye"`` only PINHOLE, OPENCV and OPENCV_FISHEYE are
+    exact), else a fitted OPENCV_FISHEYE (:func:`fit_kb4`).
+
+    Raises:
+        InputError: an unknown ``choice``, or a fit worse than ``max_fit_error_px``.
+    """
+    if choice not in COLMAP_LENS_CHOICES:
+        raise InputError(f"COLMAP lens must be one of {list(COLMAP_LENS_CHOICES)}, got {choice!r}")
     values = camera.values
+    native = _COLMAP_EXACT.get(camera.model, "EUCM" if camera.model == "ucm" else None)
+    if choice == "opencv-fisheye" and native not in _BASIC_COLMAP:
+        native = None
+    if native is None:
+        span = min(COLMAP_MAX_ANGLE_DEG, math.degrees(camera.max_angle))
+        return _fitted(camera, span, max_fit_error_px, "COLMAP")
     if camera.model in _COLMAP_EXACT:
         params = tuple(values[n] for n in camera.param_names)
         model = _COLMAP_EXACT[camera.model]
-    elif camera.model == "ucm":  # UCM(alpha) = EUCM(alpha, beta = 1), the same formula
+    else:  # UCM(alpha) = EUCM(alpha, beta = 1), the same formula
         params, model = (*(values[n] for n in camera.param_names), 1.0), "EUCM"
-    else:
-        span = min(COLMAP_MAX_ANGLE_DEG, math.degrees(camera.max_angle))
-        return _fitted(camera, span, max_fit_error_px, "COLMAP")
     notes = []
     if camera.fov_deg > 2 * COLMAP_MAX_ANGLE_DEG:
         notes.append(
