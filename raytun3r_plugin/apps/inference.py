@@ -133,7 +133,11 @@ def write_outputs(
     for name, frame_depth, frame in zip(scene.names, depth, scene.images, strict=True):
         with atomic_path(out / "depth" / f"{name}.npy") as temporary, open(temporary, "wb") as f:
             np.save(f, frame_depth.astype(np.float32))
-        ok, png = cv2.imencode(".png", depth_panel(frame, frame_depth, valid, unit=depth_unit))
+        ok, png = cv2.imencode(
+            ".png", depth_panel(frame, frame_depth, valid, unit=depth_unit, label=depth_convention)
+        )
+        if not ok:
+            raise OSError(f"could not encode the depth picture of frame {name!r}")
         atomic_write_bytes(out / "depth" / f"{name}.png", png.tobytes())
     write_tum(out / "trajectory.txt", scene.timestamps, scene.cam_from_world)
     points = scene.sample_points(max_points=max_points, confidence_quantile=0.0)

@@ -61,6 +61,7 @@ def depth_panel(
     valid: np.ndarray | None = None,
     unit: str = "units",
     min_height: int = 240,
+    label: str = "depth",
 ) -> np.ndarray:
     """One picture of a prediction: input frame | colourised depth | colour bar with its scale.
 
@@ -69,6 +70,7 @@ def depth_panel(
         depth: (H, W) depth; invalid (non-finite, <= 0 or outside ``valid``) pixels are black.
         valid: optional (H, W) bool mask, e.g. the camera's image circle.
         unit: the depth unit written on the bar ("m" for a metric model).
+        label: the bar's title before the unit: ``"range"`` or ``"z"`` says the convention.
         min_height: small inputs are enlarged (nearest neighbour) to at least this height so
             that the labels stay readable.
 
@@ -103,7 +105,7 @@ def depth_panel(
     bar = np.full((panel_h, bar_w + text_w, 3), 255, np.uint8)
     bar[top : panel_h - bottom, 4:bar_w] = bar_colours
     font, font_scale, thick = cv2.FONT_HERSHEY_SIMPLEX, 0.4, 1
-    cv2.putText(bar, f"depth [{unit}]", (4, 14), font, font_scale, (0, 0, 0), thick, cv2.LINE_AA)
+    cv2.putText(bar, f"{label} [{unit}]", (4, 14), font, font_scale, (0, 0, 0), thick, cv2.LINE_AA)
     if usable.any():
         near, far = 1.0 / high, 1.0 / max(low, 1e-12)
         for tick in _nice_ticks(near, far):
