@@ -130,11 +130,17 @@ def write_outputs(
 
     depth = scene.depth_as(depth_convention)
     valid = scene.valid
+    # z-depth tends to 0 towards 90 degrees: its picture takes the colour scale from rays within
+    # 75 degrees of the axis (the files hold every value).
+    central = scene.rays[..., 2] > np.cos(np.radians(75.0)) if depth_convention == "z" else None
     for name, frame_depth, frame in zip(scene.names, depth, scene.images, strict=True):
         with atomic_path(out / "depth" / f"{name}.npy") as temporary, open(temporary, "wb") as f:
             np.save(f, frame_depth.astype(np.float32))
         ok, png = cv2.imencode(
-            ".png", depth_panel(frame, frame_depth, valid, unit=depth_unit, label=depth_convention)
+            ".png",
+            depth_panel(
+                frame, frame_depth, valid, depth_unit, label=depth_convention, scale_region=central
+            ),
         )
         if not ok:
             raise OSError(f"could not encode the depth picture of frame {name!r}")

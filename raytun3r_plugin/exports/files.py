@@ -12,8 +12,13 @@ from raytun3r_plugin._io import atomic_write_bytes, atomic_write_text
 from raytun3r_plugin.poses import invert_rigid, rotation_to_quaternion
 
 
-def colourise_depth(depth: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
-    """(H, W) depth -> (H, W, 3) uint8 BGR (OpenCV turbo map on inverse depth, 2-98% range)."""
+def colourise_depth(
+    depth: np.ndarray,
+    valid: np.ndarray | None = None,
+    inverse_range: tuple[float, float] | None = None,
+) -> np.ndarray:
+    """(H, W) depth -> (H, W, 3) uint8 BGR (OpenCV turbo map on inverse depth, 2-98% range of
+    the valid pixels unless ``inverse_range`` = (low, high) inverse depth is given)."""
     import cv2
 
     valid = (
@@ -24,7 +29,7 @@ def colourise_depth(depth: np.ndarray, valid: np.ndarray | None = None) -> np.nd
     inverse = np.zeros_like(depth, dtype=np.float32)
     inverse[valid] = 1.0 / depth[valid]
     if valid.any():
-        low, high = _inverse_range(depth, valid)
+        low, high = inverse_range or _inverse_range(depth, valid)
         inverse = np.clip((inverse - low) / (high - low), 0, 1)
     image = cv2.applyColorMap((inverse * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
     image[~valid] = 0
@@ -62,6 +67,7 @@ def depth_panel(
     unit: str = "units",
     min_height: int = 240,
     label: str = "depth",
+    scale_region: np.ndarray | None = None,
 ) -> np.ndarray:
     """One picture of a prediction: input frame | colourised depth | colour bar with its scale.
 
@@ -71,6 +77,9 @@ def depth_panel(
         valid: optional (H, W) bool mask, e.g. the camera's image circle.
         unit: the depth unit written on the bar ("m" for a metric model).
         label: the bar's title before the unit: ``"range"`` or ``"z"`` says the convention.
+        scale_region: optional (H, W) bool: the colour scale spans the 2-98% range of these
+            pixels only (every usable pixel is still drawn, clipped to the scale): z-depth falls
+            to 0 towards 90 degrees off-axis, and a fisheye's rim would otherwise take the scale.
         min_height: small inputs are enlarged (nearest neighbour) to at least this height so
             that the labels stay readable.
 
@@ -85,8 +94,9 @@ def depth_panel(
     usable = np.isfinite(depth) & (depth > 0)
     if valid is not None:
         usable &= np.asarray(valid, dtype=bool)
-    low, high = _inverse_range(depth, usable)
-    coloured = colourise_depth(depth, usable)
+    scaled = usable if scale_region is None else usable & np.asarray(scale_region, dtype=bool)
+    low, high = _inverse_range(depth, scaled if scaled.any() else usable)
+    coloured = colourise_depth(depth, usable, (low, high))
     frame = np.asarray(image)
     if frame.dtype != np.uint8:
         frame = (np.clip(frame, 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
