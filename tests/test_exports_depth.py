@@ -144,3 +144,25 @@ def test_an_unknown_convention_is_refused_before_anything_is_written(tmp_path):
             depth_convention="ray",
         )
     assert not (tmp_path / "out").exists()
+
+
+def test_a_z_depth_picture_takes_its_scale_from_the_centre():
+    """z-depth near 90 degrees is close to 0: without a scale region the rim takes the whole
+    colour scale and the centre is one colour; with it the centre's gradient shows."""
+    from raytun3r_plugin.exports.files import depth_panel
+
+    height, width = 60, 80
+    depth = np.tile(np.linspace(2.0, 3.0, width, dtype=np.float32), (height, 1))
+    rim = np.zeros((height, width), bool)
+    rim[:12], rim[-12:] = True, True
+    depth[rim] = 0.01
+    frame = np.zeros((height, width, 3), np.float32)
+    scale = 240 // height
+
+    def centre_spread(panel):
+        coloured = panel[:, width * scale : 2 * width * scale].astype(np.float32)
+        return coloured[20 * scale : 40 * scale].reshape(-1, 3).std(0).sum()
+
+    plain = depth_panel(frame, depth, label="z")
+    scaled = depth_panel(frame, depth, label="z", scale_region=~rim)
+    assert centre_spread(scaled) > 5 * centre_spread(plain) + 1
