@@ -305,7 +305,8 @@ def build_parser() -> argparse.ArgumentParser:
     rule = "each side rounded to multiples of the patch size, centre-cropped only beyond a 1%% aspect change (raytun3r_plugin.preprocess)"
     p = sub.add_parser(
         "infer",
-        help="apply an adapter and write depth (.npy, .png), poses (TUM) and a point cloud (.ply)",
+        help="apply an adapter and write depth (.npy, .png), poses (TUM), a point cloud (.ply) "
+        "and exports (COLMAP, nerfstudio, GLB, Rerun)",
     )
     _add_model_arguments(p)
     _add_frame_arguments(
