@@ -41,6 +41,8 @@ CHECKED = [
     "raytun3r_plugin/adaptation/config.py",
     "raytun3r_plugin/adaptation/check.py",
     "raytun3r_plugin/pinhole_views.py",
+    "raytun3r_plugin/exports/",
+    "raytun3r_plugin/apps/cli_exports.py",
     "raytun3r_plugin/apps/fits.py",
     "raytun3r_plugin/apps/workers.py",
     "raytun3r_plugin/apps/demo.py",
