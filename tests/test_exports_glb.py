@@ -45,5 +45,5 @@ def test_points_and_frusta_read_back(tmp_path):
 def test_a_missing_trimesh_names_the_extra(monkeypatch):
     scene = scene_of(fisheye(96, 80, 190.0), frames=1)
     monkeypatch.setitem(sys.modules, "trimesh", None)
-    with pytest.raises(MissingDependencyError, match=r"raytun3r\[exports\]"):
+    with pytest.raises(MissingDependencyError, match=r"raytun3r\[viz\]"):
         plan_exports(scene, ["glb"], ExportOptions())

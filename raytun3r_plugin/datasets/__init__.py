@@ -15,9 +15,9 @@ from pathlib import Path
 from typing import Any
 
 from raytun3r_plugin.datasets.aria import load_adt, read_aria_calibration, read_aria_trajectory
-from raytun3r_plugin.datasets.colmap import load_colmap, read_images_txt
+from raytun3r_plugin.datasets.colmap import load_colmap, read_images_bin, read_images_txt
 from raytun3r_plugin.datasets.eth3d import eth3d_rig_cameras, load_eth3d_rig, load_eth3d_rig_all
-from raytun3r_plugin.datasets.fiord import is_fiord_scene, load_fiord, read_images_bin
+from raytun3r_plugin.datasets.fiord import is_fiord_scene, load_fiord
 from raytun3r_plugin.datasets.folder import load_synthetic, write_sequence
 from raytun3r_plugin.datasets.kitti360 import load_kitti360
 from raytun3r_plugin.datasets.rig import Rig, load_eth3d_rig_set, load_tumvi_rig, rig_from_sequences

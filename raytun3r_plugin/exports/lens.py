@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from raytun3r_plugin.cameras.base import Camera
+from raytun3r_plugin.cameras.formats.colmap import COLMAP_EXPORT_MODEL
 from raytun3r_plugin.errors import InputError
 
 __all__ = [
@@ -44,16 +45,9 @@ COLMAP_MODEL_IDS = {
     "EUCM": 16,
 }
 
-# raytun3r model -> COLMAP model with the same parameters in the same order.
-_COLMAP_EXACT = {
-    "pinhole": "PINHOLE",
-    "opencv": "OPENCV",
-    "kb4": "OPENCV_FISHEYE",
-    "thin_prism_fisheye": "THIN_PRISM_FISHEYE",
-    "fov": "FOV",
-    "eucm": "EUCM",
-    "fisheye624": "RAD_TAN_THIN_PRISM_FISHEYE",
-}
+# raytun3r model -> COLMAP model with the same parameters in the same order: the calibration
+# writer's table (cameras/formats/colmap.py), one home for both.
+_COLMAP_EXACT = COLMAP_EXPORT_MODEL
 
 #: COLMAP projects through x / z: no ray at or beyond 90 degrees from the axis has a pixel.
 #: Observations and fits stop a degree short of it.
