@@ -6,8 +6,12 @@ PY=${PYTHON:-python3}
 # torch first and pinned: an unpinned torch would pull a multi-GB CUDA build; 2.13.0 is the CPU
 # build this machine keeps on disk.
 "$PY" -m pip install --quiet --disable-pip-version-check "torch==2.13.0"
-"$PY" -m pip install --quiet --disable-pip-version-check -e ".[da3,test]"
+"$PY" -m pip install --quiet --disable-pip-version-check -e ".[da3,test,cluster]"
 # Depth Anything 3 declares heavy dependencies and pins numpy<2; its code needs only what the
 # [da3] extra installed above, so it goes in without its declared dependencies.
 "$PY" -m pip install --quiet --disable-pip-version-check --no-deps "depth-anything-3==0.1.1"
+# The fleet tests list the sockets Ray listens on with `ss` (iproute2).
+if ! command -v ss >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then
+    (apt-get install -y -qq iproute2 || sudo apt-get install -y -qq iproute2) >/dev/null 2>&1 || echo "install.sh: could not install iproute2 (ss); tests/test_fleet_security.py will skip"
+fi
 "$PY" -c "import raytun3r_plugin, raytun3r_plugin.patches, depth_anything_3.model.da3; print('raytun3r', raytun3r_plugin.__version__, 'installed')"
