@@ -274,6 +274,81 @@ def sequence_line(name: str, rows: list[dict]) -> str:
     )
 
 
+#: The method keys of :func:`method_rows` (a fleet manifest's ``methods``) -> their row names.
+METHOD_KEYS = {
+    "vanilla": "vanilla",
+    "center-ph": "center-ph",
+    "multi-ph": "multi-ph",
+    "no-adapter": ZERO_ADAPTER,
+    "adapted": "raytun3r",
+    "supervised": SUPERVISED,
+}
+
+
+def method_rows(
+    model,
+    seq,
+    cell: dict,
+    n_adapt: int,
+    methods,
+    *,
+    fit=None,
+    supervised_fit=None,
+    adapter_path: Path | None = None,
+    adapter=None,
+    progress: bool = False,
+) -> list[dict]:
+    """The benchmark's rows of ``methods`` (keys of :data:`METHOD_KEYS`, rows in that order) on
+    one sequence with ground truth: each scored on frames ``n_adapt`` onwards, the fits made on
+    frames before. ``adapted`` fits ``fit`` (an ``AdaptConfig``) to ``adapter_path``, or uses
+    ``adapter`` when one is given (its ``adapt_s`` is then NaN); ``supervised`` fits
+    ``supervised_fit`` to the ground-truth depth, next to ``adapter_path``. Every row is ``cell``
+    plus its ``method``, the :func:`timed_row` scores, ``adapt_s`` (s), ``params`` and
+    ``x_vanilla`` (NaN without a vanilla row)."""
+    from raytun3r_plugin.adaptation.train import adapt
+
+    held_out = list(range(n_adapt, len(seq)))
+    # One untimed window first: the first forward of a process pays one-off set-up costs that
+    # would otherwise make vanilla, the time reference, look slow.
+    run_method(model, seq, "vanilla", frames=held_out[:3])
+    rows = []
+    for key in (key for key in METHOD_KEYS if key in methods):
+        name, fitted, seconds = METHOD_KEYS[key], None, math.nan
+        if key == "adapted" and adapter is not None:
+            fitted = adapter
+        elif key in ("adapted", "supervised"):
+            supervised = key == "supervised"
+            path = None if adapter_path is None else Path(adapter_path)
+            if path is not None and supervised:
+                path = path.with_name(path.stem + "_supervised.safetensors")
+            start = time.perf_counter()
+            fitted = adapt(
+                model,
+                seq.camera,
+                seq.first_images(n_adapt),
+                supervised_fit if supervised else fit,
+                out_path=path,
+                resume=False,
+                progress=progress,
+                depth=ground_truth_depth(seq, n_adapt) if supervised else None,
+            )
+            seconds = time.perf_counter() - start
+        method = "raytun3r" if key in ("no-adapter", "adapted", "supervised") else key
+        rows.append(
+            {
+                **cell,
+                "method": name,
+                **timed_row(model, seq, method, held_out, adapter=fitted),
+                "adapt_s": seconds,
+                "params": 0 if fitted is None else fitted.num_parameters()["total"],
+            }
+        )
+    reference = next((r["ms_per_frame"] for r in rows if r["method"] == "vanilla"), math.nan)
+    for row in rows:
+        row["x_vanilla"] = row["ms_per_frame"] / reference
+    return rows
+
+
 def sequence_rows(
     model,
     camera,
@@ -304,71 +379,22 @@ def sequence_rows(
     ``ms_per_frame`` (:func:`timed_row`) and ``x_vanilla`` (its ``ms_per_frame`` over vanilla's
     on this sequence)."""
     from raytun3r_plugin import synthetic
-    from raytun3r_plugin.adaptation.train import adapt
 
     baselines = check_baselines(baselines)
     seq = synthetic.render_sequence(scene, camera, n_frames=n_adapt + n_eval, seed=seed)
     held_out = list(range(n_adapt, len(seq)))
     cell = {"camera": label, "scene": scene, "seed": seed}
-    # One untimed window first: the first forward of a process pays one-off set-up costs that
-    # would otherwise make vanilla, the time reference, look slow.
-    run_method(model, seq, "vanilla", frames=held_out[:3])
-    rows = []
-    for method in ("vanilla", "center-ph", "multi-ph"):
-        rows.append(
-            {
-                **cell,
-                "method": method,
-                **timed_row(model, seq, method, held_out),
-                "adapt_s": math.nan,
-                "params": 0,
-            }
-        )
-    # The patch with a zero adapter: the parameter-free corrections alone, so the table shows
-    # what the fitted tables add on top of them.
-    zero = timed_row(model, seq, "raytun3r", held_out)
-    rows.append({**cell, "method": ZERO_ADAPTER, **zero, "adapt_s": math.nan, "params": 0})
-    start = time.perf_counter()
     path = out / f"{label.replace(' ', '_')}_{scene}_{seed}.safetensors"
-    adapter = adapt(
+    rows = method_rows(
         model,
-        camera,
-        seq.first_images(n_adapt),
-        adapt_config(size, steps, seed=0, recipe=recipe, **(fit_changes or {})),
-        out_path=path,
-        resume=False,
+        seq,
+        cell,
+        n_adapt,
+        METHOD_KEYS,
+        fit=adapt_config(size, steps, seed=0, recipe=recipe, **(fit_changes or {})),
+        supervised_fit=supervised_config(size, steps),
+        adapter_path=path,
         progress=progress,
-    )
-    seconds = time.perf_counter() - start
-    rows.append(
-        {
-            **cell,
-            "method": "raytun3r",
-            **timed_row(model, seq, "raytun3r", held_out, adapter=adapter),
-            "adapt_s": seconds,
-            "params": adapter.num_parameters()["total"],
-        }
-    )
-    start = time.perf_counter()
-    supervised = adapt(
-        model,
-        camera,
-        seq.first_images(n_adapt),
-        supervised_config(size, steps),
-        out_path=path.with_name(path.stem + "_supervised.safetensors"),
-        resume=False,
-        progress=progress,
-        depth=ground_truth_depth(seq, n_adapt),
-    )
-    seconds = time.perf_counter() - start
-    rows.append(
-        {
-            **cell,
-            "method": SUPERVISED,
-            **timed_row(model, seq, "raytun3r", held_out, adapter=supervised),
-            "adapt_s": seconds,
-            "params": supervised.num_parameters()["total"],
-        }
     )
     for name in baselines:
         with fitted_baseline(

@@ -1,4 +1,4 @@
-"""``raytun3r`` command line: adapt, recipes, infer, eval, inspect, weights, demo, bench."""
+"""``raytun3r`` command line: adapt, recipes, infer, eval, inspect, weights, demo, bench, fleet."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from raytun3r_plugin.apps.cli_adapt import (  # the fitting commands
     add_fit_commands,
     parse_named_numbers,
 )
+from raytun3r_plugin.apps.cli_fleet import add_fleet_commands
 from raytun3r_plugin.errors import InputError, Raytun3rError
 
 
@@ -335,6 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_infer)
 
     add_fit_commands(sub, rule)
+    add_fleet_commands(sub)
 
     p = sub.add_parser(
         "eval", help="run a method on a dataset sequence and print the metrics table"
