@@ -30,7 +30,16 @@ from raytun3r_plugin.apps.fleet_manifest import Manifest, Segment
 #: Files and folders of DIR.
 TASKS, ATTEMPTS, PARTIAL = "tasks", "attempts", ".partial-"
 #: Columns of ``adapters.csv`` / ``adapters.md``.
-ADAPT_COLUMNS = ["camera", "segments", "frames", "recipe", "verdict", "adapt_s", "params", "adapter"]
+ADAPT_COLUMNS = [
+    "camera",
+    "segments",
+    "frames",
+    "recipe",
+    "verdict",
+    "adapt_s",
+    "params",
+    "adapter",
+]
 
 
 @dataclass(frozen=True)
@@ -68,11 +77,22 @@ def tree_digest(path: str | os.PathLike) -> str:
     return digest.hexdigest()
 
 
+def _without_paths(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _without_paths(v) for k, v in value.items() if k != "path"}
+    if isinstance(value, list):
+        return [_without_paths(v) for v in value]
+    return value
+
+
 def task_key(record: dict) -> str:
-    """SHA-256 of a task's canonical JSON record (sorted keys), with the package version."""
+    """SHA-256 of a task's canonical JSON record (sorted keys) with the package version. File
+    paths are left out (every file enters by its content digest), so moving the data or the
+    manifest keeps the finished tasks."""
     from raytun3r_plugin import __version__
 
-    text = json.dumps({**record, "raytun3r": __version__}, sort_keys=True, default=str)
+    view = _without_paths({**record, "raytun3r": __version__})
+    text = json.dumps(view, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -81,13 +101,13 @@ def _segment_record(segment: Segment) -> dict:
     if segment.kind == "render":
         record["source"] = dict(segment.source)
     elif segment.kind == "frames":
-        record["source"] = segment.source
+        record["source"] = {"path": segment.source}
         record["digest"] = tree_digest(segment.source)
     else:
         record["source"] = dict(segment.source)
         record["digest"] = tree_digest(segment.source["path"])
     if isinstance(segment.depth, str):
-        record["depth"], record["depth_digest"] = segment.depth, tree_digest(segment.depth)
+        record["depth"] = {"path": segment.depth, "digest": tree_digest(segment.depth)}
     else:
         record["depth"] = segment.depth
     return record
@@ -167,7 +187,11 @@ def load_network(backbone: str, weights: dict | None, blob: bytes | None):
     if weights is not None:
         path = Path(weights["path"])
         if blob is not None:
-            path = Path(tempfile.gettempdir()) / "raytun3r-weights" / f"{weights['digest']}{path.suffix}"
+            path = (
+                Path(tempfile.gettempdir())
+                / "raytun3r-weights"
+                / f"{weights['digest']}{path.suffix}"
+            )
             if not path.is_file():
                 atomic_write_bytes(path, blob)
     model = load_backbone(backbone, None if path is None else str(path))
@@ -200,10 +224,10 @@ def _load_segment(segment: dict, camera, size: int):
     if segment["kind"] == "frames":
         from raytun3r_plugin.images import read_depth_maps, read_frames
 
-        frames, names = read_frames(source)
+        frames, names = read_frames(source["path"])
         depth = None
-        if isinstance(with_depth, str):
-            depth = read_depth_maps(with_depth, names, frames.shape[2], frames.shape[1])
+        if isinstance(with_depth, dict):
+            depth = read_depth_maps(with_depth["path"], names, frames.shape[2], frames.shape[1])
         return frames, depth, camera
     from raytun3r_plugin.apps.evaluation import fit_sequence
     from raytun3r_plugin.datasets import load_sequence

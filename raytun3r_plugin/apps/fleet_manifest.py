@@ -33,7 +33,16 @@ from typing import Any
 
 from raytun3r_plugin.errors import InputError
 
-TOP_KEYS = {"backbone", "weights", "size", "recipe", "recipe_changes", "cameras", "segments", "eval"}
+TOP_KEYS = {
+    "backbone",
+    "weights",
+    "size",
+    "recipe",
+    "recipe_changes",
+    "cameras",
+    "segments",
+    "eval",
+}
 EVAL_KEYS = {"adapt_frames", "methods", "adapters"}
 SEGMENT_SOURCES = ("render", "frames", "dataset")
 SEGMENT_KEYS = {"name", "camera", "scene", "depth", *SEGMENT_SOURCES}
@@ -231,7 +240,9 @@ def _check_eval(base: Path, data: Any, manifest: Manifest, problems: _Problems) 
         manifest.methods = tuple(methods)
     for camera, value in (data.get("adapters") or {}).items():
         if camera not in manifest.cameras:
-            problems.add(f"eval.adapters.{camera}", f"not one of cameras {sorted(manifest.cameras)}")
+            problems.add(
+                f"eval.adapters.{camera}", f"not one of cameras {sorted(manifest.cameras)}"
+            )
         manifest.adapters[str(camera)] = _file(base, value, f"eval.adapters.{camera}", problems)
 
 
