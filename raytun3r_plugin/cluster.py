@@ -26,7 +26,7 @@ import os
 import secrets
 import sys
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from typing import Any
 
@@ -151,7 +151,12 @@ def connected(spec: ClusterSpec) -> Iterator[Any]:
         yield ray
         return
     if spec.address is not None:
-        ray.init(address=spec.address, log_to_driver=False, configure_logging=False)
+        host = spec.address.split("://")[-1].rsplit(":", 1)[0]
+        # A cluster on this machine's loopback (tests, a laptop): Ray would otherwise look for it
+        # at the machine's network address (see RAY_LOCAL_ONLY_VARIABLE).
+        local = _local_only(ray) if host in (LOOPBACK, "localhost") else nullcontext()
+        with local:
+            ray.init(address=spec.address, log_to_driver=False, configure_logging=False)
         try:
             yield ray
         finally:
