@@ -30,9 +30,16 @@ from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from typing import Any
 
-from raytun3r_plugin.errors import InputError, MissingDependencyError
+from raytun3r_plugin.errors import InputError, MissingDependencyError, TaskError
 
-__all__ = ["ClusterSpec", "TaskOutcome", "connected", "node_of_this_process", "run_tasks"]
+__all__ = [
+    "ClusterSpec",
+    "TaskOutcome",
+    "connected",
+    "map_tasks",
+    "node_of_this_process",
+    "run_tasks",
+]
 
 #: The address every embedded cluster uses: Ray binds its servers to all interfaces unless its
 #: node address is exactly this one.
@@ -324,3 +331,31 @@ def _run_on_ray(
         finally:
             for reference in pending:  # the driver stopped early: nothing keeps running
                 ray.cancel(reference, force=True)
+
+
+def map_tasks(
+    function: Callable[..., Any],
+    tasks: Sequence[tuple],
+    spec: ClusterSpec | None = None,
+    *,
+    initializer: Callable[..., Any] | None = None,
+    initargs: tuple = (),
+) -> Iterator[tuple[int, Any]]:
+    """``(index, function(state, *task))`` for every task, in the order they finish, for loops
+    that need every result (the benchmark, the experiments): the first task that fails stops
+    the rest. In this process (one worker) its exception is raised as it is; from Ray, as
+    :class:`TaskError` naming its index and error."""
+    spec = spec or ClusterSpec()
+    if spec.in_process:
+        state = None if initializer is None else initializer(*initargs)
+        for index, arguments in enumerate(tasks):
+            yield index, function(state, *arguments)
+        return
+    outcomes = run_tasks(function, tasks, spec, initializer=initializer, initargs=initargs)
+    try:
+        for outcome in outcomes:
+            if not outcome.ok:
+                raise TaskError(f"task {outcome.index} failed: {outcome.error}")
+            yield outcome.index, outcome.value
+    finally:
+        outcomes.close()  # on Ray: cancels the tasks still pending

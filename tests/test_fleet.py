@@ -67,9 +67,9 @@ def ray_cluster():
 
 
 def test_a_bad_manifest_is_refused_with_every_problem_before_anything_runs(tmp_path):
-    from raytun3r_plugin.apps.cli_fleet import run_fleet
-
     import yaml
+
+    from raytun3r_plugin.apps.cli_fleet import run_fleet
 
     folder = tmp_path / "in"
     manifest = _fleet_manifest(folder)

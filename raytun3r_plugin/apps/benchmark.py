@@ -23,6 +23,14 @@ from typing import Any
 
 from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
 from raytun3r_plugin.apps.fits import adapt_config, fit_description, supervised_config
+from raytun3r_plugin.apps.sequence_methods import (  # noqa: F401 - also imported from here
+    METHOD_KEYS,
+    SUPERVISED,
+    ZERO_ADAPTER,
+    ground_truth_depth,
+    method_rows,
+    timed_row,
+)
 from raytun3r_plugin.errors import InputError
 
 HELD_OUT_SEED = 90_000  # training of the default network uses seeds far below this
@@ -54,8 +62,6 @@ NEW_LENSES = (
     BenchCamera("EUCM 210", "eucm", 210.0, (("alpha", 0.62), ("beta", 1.2))),
 )
 SCENES = ("indoor", "outdoor")
-ZERO_ADAPTER = "raytun3r, no adapter"
-SUPERVISED = "raytun3r, supervised"
 #: Held-out sequences per (camera, scene): with one, the sign of a small difference is the draw of
 #: that sequence (on 30 development sequences the no-adapter patch lost to vanilla in d_reproj on
 #: 2 and in AbsRel on 2; docs/results.md, component table).
@@ -80,18 +86,6 @@ COLUMNS = [
     "ms_per_frame",
     "x_vanilla",
 ]
-
-
-def ground_truth_depth(seq, frames: int):
-    """Ground-truth range of the first ``frames`` frames as a user would pass it to ``adapt``:
-    0 (no value) on the sky, which has no depth."""
-    import numpy as np
-
-    sky = seq.meta.get("per_frame", {}).get("sky")
-    depth = np.asarray(seq.depth[:frames], dtype=np.float32).copy()
-    if sky is not None:
-        depth[np.asarray(sky[:frames], dtype=bool)] = 0.0
-    return depth
 
 
 def gap_closed(
@@ -195,16 +189,6 @@ def check_baselines(baselines: Iterable[str]) -> tuple[str, ...]:
     return tuple(name for name in BASELINES if name in names)
 
 
-def timed_row(model, seq, method: str, frames: list[int], adapter=None) -> dict:
-    """:func:`headline` scores of ``method`` on ``frames`` plus ``ms_per_frame``: wall time of
-    :func:`run_method` (the forward passes, with Multi-PH's resampling and fusion and the
-    patch's apply/remove; not the scoring) per scored frame, in milliseconds."""
-    start = time.perf_counter()
-    output = run_method(model, seq, method, adapter=adapter, frames=frames)
-    seconds = time.perf_counter() - start
-    return {**headline(score(seq, output)), "ms_per_frame": 1000.0 * seconds / len(frames)}
-
-
 @contextmanager
 def fitted_baseline(
     model, camera, frames, name: str, config, *, out_path=None, progress: bool = False
@@ -272,81 +256,6 @@ def sequence_line(name: str, rows: list[dict]) -> str:
         + (f" ({r['verdict']}, {r['fit_s']:.0f} s)" if r["verdict"] != "-" else "")
         for r in rows
     )
-
-
-#: The method keys of :func:`method_rows` (a fleet manifest's ``methods``) -> their row names.
-METHOD_KEYS = {
-    "vanilla": "vanilla",
-    "center-ph": "center-ph",
-    "multi-ph": "multi-ph",
-    "no-adapter": ZERO_ADAPTER,
-    "adapted": "raytun3r",
-    "supervised": SUPERVISED,
-}
-
-
-def method_rows(
-    model,
-    seq,
-    cell: dict,
-    n_adapt: int,
-    methods,
-    *,
-    fit=None,
-    supervised_fit=None,
-    adapter_path: Path | None = None,
-    adapter=None,
-    progress: bool = False,
-) -> list[dict]:
-    """The benchmark's rows of ``methods`` (keys of :data:`METHOD_KEYS`, rows in that order) on
-    one sequence with ground truth: each scored on frames ``n_adapt`` onwards, the fits made on
-    frames before. ``adapted`` fits ``fit`` (an ``AdaptConfig``) to ``adapter_path``, or uses
-    ``adapter`` when one is given (its ``adapt_s`` is then NaN); ``supervised`` fits
-    ``supervised_fit`` to the ground-truth depth, next to ``adapter_path``. Every row is ``cell``
-    plus its ``method``, the :func:`timed_row` scores, ``adapt_s`` (s), ``params`` and
-    ``x_vanilla`` (NaN without a vanilla row)."""
-    from raytun3r_plugin.adaptation.train import adapt
-
-    held_out = list(range(n_adapt, len(seq)))
-    # One untimed window first: the first forward of a process pays one-off set-up costs that
-    # would otherwise make vanilla, the time reference, look slow.
-    run_method(model, seq, "vanilla", frames=held_out[:3])
-    rows = []
-    for key in (key for key in METHOD_KEYS if key in methods):
-        name, fitted, seconds = METHOD_KEYS[key], None, math.nan
-        if key == "adapted" and adapter is not None:
-            fitted = adapter
-        elif key in ("adapted", "supervised"):
-            supervised = key == "supervised"
-            path = None if adapter_path is None else Path(adapter_path)
-            if path is not None and supervised:
-                path = path.with_name(path.stem + "_supervised.safetensors")
-            start = time.perf_counter()
-            fitted = adapt(
-                model,
-                seq.camera,
-                seq.first_images(n_adapt),
-                supervised_fit if supervised else fit,
-                out_path=path,
-                resume=False,
-                progress=progress,
-                depth=ground_truth_depth(seq, n_adapt) if supervised else None,
-            )
-            seconds = time.perf_counter() - start
-        method = "raytun3r" if key in ("no-adapter", "adapted", "supervised") else key
-        rows.append(
-            {
-                **cell,
-                "method": name,
-                **timed_row(model, seq, method, held_out, adapter=fitted),
-                "adapt_s": seconds,
-                "params": 0 if fitted is None else fitted.num_parameters()["total"],
-            }
-        )
-    reference = next((r["ms_per_frame"] for r in rows if r["method"] == "vanilla"), math.nan)
-    for row in rows:
-        row["x_vanilla"] = row["ms_per_frame"] / reference
-    return rows
 
 
 def sequence_rows(
@@ -495,18 +404,20 @@ def run_benchmark(
     recipe: str = "default",
     fit_changes: dict[str, Any] | None = None,
     jobs: int = 1,
+    address: str | None = None,
 ) -> str:
     """Run every (camera, scene) on ``sequences`` held-out sequences; return the markdown table.
 
     The table shows means over each cell's sequences; ``out_dir`` also gets every per-sequence
     row (``results.json``) and the table (``results.md``). ``baselines``: keys of
     :data:`BASELINES` (``("lora", "caltok")``) whose rows are added, each a fit per sequence;
-    they enter neither ``gap_closed`` nor the targets. ``jobs`` > 1 scores the sequences in that
-    many one-thread worker processes (:func:`~raytun3r_plugin.apps.workers.map_in_workers`,
-    ``model`` pickled to each); the table is the same up to the order of float sums, and its
-    timing columns are then those of one thread beside the other workers (the header says so).
+    they enter neither ``gap_closed`` nor the targets. ``jobs`` > 1 scores the sequences as
+    tasks on that many one-thread workers of an embedded Ray cluster, or on the cluster at
+    ``address`` (:func:`~raytun3r_plugin.cluster.map_tasks`, ``model`` sent once through the
+    object store); the table is the same up to the order of float sums, and its timing columns
+    are then those of one thread beside the other workers (the header says so).
     """
-    from raytun3r_plugin.apps.workers import map_in_workers
+    from raytun3r_plugin.cluster import ClusterSpec, map_tasks
 
     baselines = check_baselines(baselines)
     if jobs < 1:
@@ -519,7 +430,7 @@ def run_benchmark(
         "n_eval": n_eval,
         "steps": steps,
         "out": out,
-        "progress": progress and jobs == 1,
+        "progress": progress and jobs == 1 and address is None,
         "baselines": baselines,
         "recipe": recipe,
         "fit_changes": fit_changes,
@@ -537,8 +448,9 @@ def run_benchmark(
                 seed = sequence_seed(camera_index, scene_index, k, base_seed)
                 tasks.append((camera, spec.label, scene, seed, settings))
     results, began = {}, time.perf_counter()
-    for index, result in map_in_workers(
-        _sequence_rows_job, tasks, jobs, initializer=_same, initargs=(model,)
+    spec = ClusterSpec(address=address, workers=jobs)
+    for index, result in map_tasks(
+        _sequence_rows_job, tasks, spec, initializer=_same, initargs=(model,)
     ):
         results[index] = result
         _, label, scene, seed, _ = tasks[index]
@@ -583,8 +495,8 @@ def run_benchmark(
         f"(seeds {base_seed} + 100 k + 10 camera + scene); per sequence {n_adapt} adaptation frames "
         f"(30 windows, {fit_description(fit)}) and {n_eval} scored frames"
         + (
-            f"; {jobs} worker processes of one thread each (timings are one thread's beside the other workers)"
-            if jobs > 1
+            f"; {jobs} Ray workers of one thread each (timings are one thread's beside the other workers)"
+            if not spec.in_process
             else ""
         )
         + (

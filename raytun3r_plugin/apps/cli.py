@@ -269,6 +269,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             network=description,
             baselines=baselines,
             jobs=args.jobs,
+            address=args.address,
         )
     else:
         table = run_benchmark(
@@ -279,6 +280,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             progress=True,
             baselines=baselines,
             jobs=args.jobs,
+            address=args.address,
         )
     print(table)
     return 0
@@ -422,8 +424,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--jobs",
         type=int,
         default=1,
-        help="worker processes of one thread each (default 1: the timing columns are then one "
-        "process's; more makes the run shorter and the timings one thread's beside the others)",
+        help="sequences scored at once, as Ray tasks of one thread each on an embedded cluster "
+        "(default 1: in this process, and the timing columns are one process's; more makes the "
+        "run shorter and the timings one thread's beside the others; docs/fleet.md)",
+    )
+    p.add_argument(
+        "--address",
+        default=None,
+        help="score the sequences on this Ray cluster instead ('auto', HOST:PORT, ray://HOST:PORT)",
     )
     p.set_defaults(func=cmd_bench)
 

@@ -209,7 +209,7 @@ def _camera_of(record: dict):
 
 def _load_segment(segment: dict, camera, size: int):
     """(frames or Sequence, depth or None, camera) of one segment record."""
-    from raytun3r_plugin.apps.benchmark import ground_truth_depth
+    from raytun3r_plugin.apps.sequence_methods import ground_truth_depth
 
     source, with_depth = segment["source"], segment["depth"]
     if segment["kind"] == "render":
@@ -281,7 +281,7 @@ def _adapt(model, record: dict, staging: Path) -> dict:
 
 def _evaluate(model, record: dict, staging: Path) -> dict:
     from raytun3r_plugin.adapter import Adapter
-    from raytun3r_plugin.apps.benchmark import method_rows
+    from raytun3r_plugin.apps.sequence_methods import method_rows
     from raytun3r_plugin.errors import InputError
 
     (segment,) = record["segments"]
