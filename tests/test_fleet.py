@@ -12,11 +12,13 @@ import re
 import shutil
 import signal
 import subprocess
+import tempfile
 import threading
 from pathlib import Path
 
 import pytest
 
+from raytun3r_plugin.apps.fleet import file_digest
 from raytun3r_plugin.errors import InputError
 from tests.fleet_helpers import (
     descendants,
@@ -145,6 +147,45 @@ def test_a_changed_input_or_recipe_is_redone_and_nothing_else(in_process_run, tm
     assert {t.key for t in plan_tasks(read_manifest(recipe), "adapt")}.isdisjoint(keys.values())
 
 
+def test_frame_folders_and_dataset_readers_are_segments_and_depth_makes_a_supervised_fit(
+    tmp_path,
+):
+    """A frame folder through its calibration file, and a dataset read by its reader (its own
+    camera) with ``depth: true``: fitted self-supervised and to the ground truth respectively."""
+    import cv2
+    import numpy as np
+
+    from raytun3r_plugin import synthetic
+    from raytun3r_plugin.apps.cli_fleet import run_fleet
+    from raytun3r_plugin.cameras import load
+    from raytun3r_plugin.datasets import write_sequence
+
+    camera = tmp_path / "car01.json"
+    write_manifest(tmp_path, {"car01": CAMERAS["car01"]}, [render_segment("x", "car01", 1)])
+    seq = synthetic.render_sequence("indoor", load(camera), n_frames=6, seed=91013)
+    (tmp_path / "frames").mkdir()
+    for k in range(len(seq)):
+        bgr = cv2.cvtColor((seq.image(k) * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR)
+        cv2.imwrite(str(tmp_path / "frames" / f"{k:03d}.png"), bgr)
+    write_sequence(
+        synthetic.render_sequence("indoor", load(camera), 6, seed=91014), tmp_path / "ds"
+    )
+    dataset = {"path": "ds", "kind": "synthetic", "args": {}}
+    manifest = write_manifest(
+        tmp_path,
+        {"car01": CAMERAS["car01"]},
+        [
+            {"name": "car01-a", "camera": "car01", "frames": "frames"},
+            {"name": "room", "dataset": dataset, "depth": True},
+        ],
+    )
+    report = run_fleet(manifest, tmp_path / "out", "adapt", workers=1, progress=False)
+    assert report["failed"] == [] and report["ran"] == 2
+    rows = {r["camera"]: r for r in csv.DictReader((tmp_path / "out" / "adapters.csv").open())}
+    assert rows["car01"]["recipe"] == "default" and rows["room"]["recipe"] == "supervised"
+    assert rows["room"]["frames"] == "6"
+
+
 def test_a_refused_calibration_fails_its_task_and_the_others_finish_on_ray(
     ray_cluster, in_process_run, tmp_path, capsys
 ):
@@ -161,6 +202,11 @@ def test_a_refused_calibration_fails_its_task_and_the_others_finish_on_ray(
         cv2.imwrite(str(frames / f"{k:03d}.png"), np.full((64, 64, 3), 40 * k, np.uint8))
     wrong = {"name": "car02-b", "camera": "car02", "frames": "wrong-size"}
     manifest = write_manifest(tmp_path, CAMERAS, [render_segment("car01-a", "car01", 91011), wrong])
+    # The built-in network's file named as a weights file: its bytes reach the workers through
+    # the object store and are written once under the temporary folder, named by their digest.
+    weights = tmp_path / "network.safetensors"
+    shutil.copy(ROOT / "raytun3r_plugin" / "data" / "raytun3r-da3-tiny-v3.safetensors", weights)
+    manifest.write_text(manifest.read_text() + "weights: network.safetensors\n")
     out = tmp_path / "out"
     assert main(["fleet", "adapt", str(manifest), "--out", str(out), "--no-progress"]) == 1
     captured = capsys.readouterr()
@@ -172,6 +218,10 @@ def test_a_refused_calibration_fails_its_task_and_the_others_finish_on_ray(
     assert list(adapters) == ["car01"]
     _, plain, _ = in_process_run
     assert same_tensors(adapters["car01"], _adapters(plain)["car01"])  # Ray fits like in process
+    shipped = (
+        Path(tempfile.gettempdir()) / "raytun3r-weights" / f"{file_digest(weights)}.safetensors"
+    )
+    assert shipped.read_bytes() == weights.read_bytes()
     result = json.loads((adapters["car01"].parent / "result.json").read_text())
     assert result["node"] != "local" and result["pid"] != os.getpid()
     assert not [p for p in (out / "tasks").iterdir() if ".partial-" in p.name]
