@@ -25,7 +25,7 @@ from __future__ import annotations
 import os
 import secrets
 import sys
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from typing import Any
@@ -114,8 +114,8 @@ def _import_ray():
 def _embedded_environment() -> None:
     """Token authentication on, with a token of this process's own, and 127.0.0.1 kept as the
     node address (:data:`RAY_LOCAL_ONLY_VARIABLE`), for the embedded cluster and the processes it
-    starts. Set in this process's environment for its lifetime: Ray's token loader keeps the first
-    token it reads, so a second embedded cluster of this process must get the same one. A token the
+    starts. Set in this process's environment for its lifetime, so that every cluster this process
+    starts and every process those start see the same token, which Ray reads once. A token the
     caller set (``RAY_AUTH_TOKEN``) is kept. Nothing is written to ``~/.ray``."""
     os.environ.setdefault("RAY_AUTH_TOKEN", secrets.token_hex(32))
     os.environ["RAY_AUTH_MODE"] = "token"
@@ -123,7 +123,7 @@ def _embedded_environment() -> None:
     if "ray" in sys.modules:
         # Ray reads its settings once; this is how ray.init itself re-reads them after turning
         # token mode on (ray._private.authentication.authentication_token_setup).
-        from ray._raylet import Config
+        from ray._raylet import Config  # type: ignore[attr-defined]
 
         Config.initialize("")
 
@@ -147,9 +147,10 @@ def connected(spec: ClusterSpec) -> Iterator[Any]:
     """Ray, connected as ``spec`` says, for the duration of the block; yields the ``ray`` module.
 
     A connection made before (``ray.init`` by the caller, or an outer :func:`connected`) is used
-    as it is and left open. An embedded cluster listens on 127.0.0.1 only and requires a token
-    made for it (``RAY_AUTH_MODE=token``, ``RAY_AUTH_TOKEN``, in this process's environment while
-    it runs, never written to ``~/.ray``); it is stopped on leaving the block.
+    as it is and left open. An embedded cluster listens on 127.0.0.1 only and requires the token
+    of this process (``RAY_AUTH_MODE=token``, ``RAY_AUTH_TOKEN`` in its environment, never
+    written to ``~/.ray``); it is stopped on leaving the block. Joining a cluster on 127.0.0.1
+    keeps that address too; any other cluster's token comes from the caller's environment.
     """
     if spec.address is None and not _ray_connected():
         _embedded_environment()
@@ -178,10 +179,10 @@ def connected(spec: ClusterSpec) -> Iterator[Any]:
             log_to_driver=False,
             configure_logging=False,
         )
-        try:
-            yield ray
-        finally:
-            ray.shutdown()
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
 
 
 def _ray_connected() -> bool:
@@ -267,7 +268,7 @@ def run_tasks(
     initializer: Callable[..., Any] | None = None,
     initargs: tuple = (),
     progress: str | None = None,
-) -> Iterator[TaskOutcome]:
+) -> Generator[TaskOutcome, None, None]:
     """One :class:`TaskOutcome` per task, in the order they finish (task order in process).
 
     ``function(state, *task)`` runs every task, ``state = initializer(*initargs)`` once per

@@ -37,6 +37,11 @@ CHECKED = [
     "raytun3r_plugin/apps/workers.py",
     "raytun3r_plugin/apps/demo.py",
     "raytun3r_plugin/apps/benchmark.py",
+    "raytun3r_plugin/apps/sequence_methods.py",
+    "raytun3r_plugin/cluster.py",
+    "raytun3r_plugin/apps/fleet.py",
+    "raytun3r_plugin/apps/fleet_manifest.py",
+    "raytun3r_plugin/apps/cli_fleet.py",
 ]
 
 

@@ -248,6 +248,7 @@ def _config(record: dict, supervised: bool):
 
 def _adapt(model, record: dict, staging: Path) -> dict:
     from raytun3r_plugin.adaptation.train import adapt
+    from raytun3r_plugin.errors import InputError
 
     camera = _camera_of(record) if record["calibration"] else None
     frames, depths = [], []
@@ -255,6 +256,8 @@ def _adapt(model, record: dict, staging: Path) -> dict:
         images, depth, camera = _load_segment(segment, camera, record["size"])
         frames.append(images)
         depths.append(depth)
+    if camera is None:  # read_manifest gives every camera a calibration or a dataset
+        raise InputError(f"{record['camera']}: no calibration and no dataset camera")
     supervised = all(depth is not None for depth in depths)
     config = _config(record, supervised)
     started = time.perf_counter()
