@@ -106,7 +106,8 @@ def _import_ray():
         import ray
     except ImportError as error:
         raise MissingDependencyError(
-            "running tasks on Ray needs the 'cluster' extra: pip install 'raytun3r[cluster]'"
+            "running tasks on Ray needs the 'cluster' extra: pip install 'raytun3r[cluster]' "
+            "(or run them in this process: --workers 1, jobs=1)"
         ) from error
     return ray
 

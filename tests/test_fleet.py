@@ -88,7 +88,7 @@ def test_a_bad_manifest_is_refused_with_every_problem_before_anything_runs(tmp_p
     message = str(refused.value)
     for problem in (
         "backbone: 'no-such-net' is not a backbone name",
-        "recipe:",  # the unknown AdaptConfig field
+        "recipe: AdaptConfig has no field 'no_such_field'",
         "cameras.car02.calibration:",
         "segments[0] (car01-a).render.scene: expected 'indoor' or 'outdoor', got 'cave'",
         "segments[2] (car01-a).camera: 'car09' is not one of cameras",

@@ -231,7 +231,9 @@ def _check_eval(base: Path, data: Any, manifest: Manifest, problems: _Problems) 
         problems.add("eval", f"expected a mapping {sorted(EVAL_KEYS)}, got {data!r}")
         return
     _unknown(data, EVAL_KEYS, "eval", problems)
-    manifest.adapt_frames = _positive(data.get("adapt_frames"), "eval.adapt_frames", problems)
+    count = len(problems)
+    adapt_frames = _positive(data.get("adapt_frames"), "eval.adapt_frames", problems)
+    manifest.adapt_frames = adapt_frames if len(problems) == count else None
     methods = data.get("methods", list(DEFAULT_METHODS))
     unknown = [m for m in methods if m not in DEFAULT_METHODS] if isinstance(methods, list) else 0
     if not isinstance(methods, list) or unknown or not methods:
