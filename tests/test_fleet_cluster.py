@@ -111,20 +111,28 @@ def _free_port() -> int:
         return probe.getsockname()[1]
 
 
-def _ray_start(args: list[str], env: dict, wrapper: bool) -> subprocess.Popen:
-    """``ray start ... --block`` in a session of its own (stopped by :func:`kill_session`)."""
+def _ray_start(args: list[str], env: dict, wrapper: bool, log: Path) -> subprocess.Popen:
+    """``ray start ... --block`` in a session of its own (stopped by :func:`kill_session`),
+    returned once its node has joined (``ray start`` says so when the node is registered)."""
     command = (
         [sys.executable, str(ROOT / "tests" / "ray_start_loopback.py")]
         if wrapper
         else [shutil.which("ray") or "ray"]
     )
-    return subprocess.Popen(
-        [*command, "start", *args, "--block"],
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-    )
+    with open(log, "w") as output:
+        node = subprocess.Popen(
+            [*command, "start", *args, "--block"],
+            env=env,
+            stdout=output,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+    try:
+        wait_for(lambda: "Ray runtime started" in log.read_text(), 120, f"ray start ({log.name})")
+    except AssertionError:
+        kill_session(node)
+        raise AssertionError(log.read_text()[-2000:]) from None
+    return node
 
 
 def test_a_two_node_loopback_cluster_runs_tasks_on_both_nodes(tmp_path):
@@ -147,10 +155,11 @@ def test_a_two_node_loopback_cluster_runs_tasks_on_both_nodes(tmp_path):
                 ["--head", "--port", str(port), "--include-dashboard", "false", *common],
                 {**env, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"},
                 wrapper=False,
+                log=tmp_path / "head.log",
             )
         )
-        wait_for(lambda: _listening(port), 60, "the head's GCS")
-        nodes.append(_ray_start(["--address", f"127.0.0.1:{port}", *common], env, wrapper=True))
+        second = ["--address", f"127.0.0.1:{port}", *common]
+        nodes.append(_ray_start(second, env, wrapper=True, log=tmp_path / "node.log"))
         manifest, out = _manifest(tmp_path / "in"), tmp_path / "out"
         run = subprocess.run(
             [sys.executable, "-m", "raytun3r_plugin.apps.cli", "fleet", "adapt", str(manifest)]
@@ -170,11 +179,6 @@ def test_a_two_node_loopback_cluster_runs_tasks_on_both_nodes(tmp_path):
     assert len(results) == 3
     assert len({r["node"] for r in results}) == 2, results  # both nodes ran tasks
     assert sockets and not [s for s in sockets if "127.0.0.1" not in s], sockets
-
-
-def _listening(port: int) -> bool:
-    with socket.socket() as probe:
-        return probe.connect_ex(("127.0.0.1", port)) == 0
 
 
 def _sockets_of(pids: set[int]) -> list[str]:
