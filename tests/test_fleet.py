@@ -184,6 +184,21 @@ def test_frame_folders_and_dataset_readers_are_segments_and_depth_makes_a_superv
     rows = {r["camera"]: r for r in csv.DictReader((tmp_path / "out" / "adapters.csv").open())}
     assert rows["car01"]["recipe"] == "default" and rows["room"]["recipe"] == "supervised"
     assert rows["room"]["frames"] == "6"
+    # The dataset as an eval sequence: read by its reader, prepared at the input size, scored.
+    evaluated = write_manifest(
+        tmp_path / "eval",
+        {},
+        [{"name": "room", "dataset": {"path": str(tmp_path / "ds"), "kind": "synthetic"}}],
+        eval_section={"adapt_frames": 3, "methods": ["vanilla", "no-adapter"]},
+    )
+    report = run_fleet(evaluated, tmp_path / "eval-out", "eval", workers=1, progress=False)
+    assert report["failed"] == [], report["failed"]
+    table = list(csv.DictReader((tmp_path / "eval-out" / "results.csv").open()))
+    assert [(r["camera"], r["scene"], r["method"]) for r in table] == [
+        ("room", "synthetic", "vanilla"),
+        ("room", "synthetic", "raytun3r, no adapter"),
+    ]
+    assert all(0 < float(r["abs_rel"]) < 1 and float(r["coverage"]) > 0.9 for r in table)
 
 
 def test_a_refused_calibration_fails_its_task_and_the_others_finish_on_ray(
