@@ -6,21 +6,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
 from raytun3r_plugin.errors import InputError
-
-
-def default_workers(tasks: int) -> int:
-    """Tasks at once on the embedded cluster: one per CPU this process may use, at most one per
-    task, at least one."""
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cpus = os.cpu_count() or 1
-    return max(1, min(tasks, cpus))
 
 
 def run_fleet(
@@ -51,6 +40,7 @@ def run_fleet(
         run_fleet_task,
     )
     from raytun3r_plugin.apps.fleet_manifest import read_manifest
+    from raytun3r_plugin.apps.workers import cpu_jobs
     from raytun3r_plugin.cluster import ClusterSpec, run_tasks
 
     if kind not in ("adapt", "eval"):
@@ -63,7 +53,7 @@ def run_fleet(
     todo = [task for task in tasks if finished(out, task) is None]
     spec = ClusterSpec(
         address=address,
-        workers=workers or default_workers(len(todo)),
+        workers=workers or cpu_jobs(len(todo)),
         threads=threads,
         gpus=gpus,
         max_retries=max_retries,
