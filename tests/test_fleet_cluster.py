@@ -148,18 +148,20 @@ def test_a_two_node_loopback_cluster_runs_tasks_on_both_nodes(tmp_path):
         "RAY_AUTH_TOKEN": secrets.token_hex(32),
     }
     common = ["--node-ip-address", "127.0.0.1", "--num-cpus", "1", "--temp-dir", str(temp)]
+    # Ports Ray would otherwise take at fixed numbers (Ray Client 10001, the agent's 52365),
+    # which another Ray on this machine may hold.
+    head = ["--head", "--port", str(port), "--include-dashboard", "false", *common]
+    head += ["--ray-client-server-port", str(_free_port())]
+    second = ["--address", f"127.0.0.1:{port}", *common]
+    local_only = {**env, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
     nodes = []
     try:
-        nodes.append(
-            _ray_start(
-                ["--head", "--port", str(port), "--include-dashboard", "false", *common],
-                {**env, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"},
-                wrapper=False,
-                log=tmp_path / "head.log",
-            )
-        )
-        second = ["--address", f"127.0.0.1:{port}", *common]
-        nodes.append(_ray_start(second, env, wrapper=True, log=tmp_path / "node.log"))
+        for args, node_env, wrapper, log in (
+            (head, local_only, False, "head.log"),
+            (second, env, True, "node.log"),
+        ):
+            args = [*args, "--dashboard-agent-listen-port", str(_free_port())]
+            nodes.append(_ray_start(args, node_env, wrapper=wrapper, log=tmp_path / log))
         manifest, out = _manifest(tmp_path / "in"), tmp_path / "out"
         run = subprocess.run(
             [sys.executable, "-m", "raytun3r_plugin.apps.cli", "fleet", "adapt", str(manifest)]
