@@ -113,14 +113,12 @@ def _import_ray():
 
 
 def _embedded_environment() -> None:
-    """Token authentication on, with a token of this process's own, and 127.0.0.1 kept as the
-    node address (:data:`RAY_LOCAL_ONLY_VARIABLE`), for the embedded cluster and the processes it
-    starts. Set in this process's environment for its lifetime, so that every cluster this process
+    """Token authentication on, with a token of this process's own, for the embedded cluster and
+    the processes it starts. Set in this process's environment for its lifetime, so that every cluster this process
     starts and every process those start see the same token, which Ray reads once. A token the
     caller set (``RAY_AUTH_TOKEN``) is kept. Nothing is written to ``~/.ray``."""
     os.environ.setdefault("RAY_AUTH_TOKEN", secrets.token_hex(32))
     os.environ["RAY_AUTH_MODE"] = "token"
-    os.environ[RAY_LOCAL_ONLY_VARIABLE] = "0"
     if "ray" in sys.modules:
         # Ray reads its settings once; this is how ray.init itself re-reads them after turning
         # token mode on (ray._private.authentication.authentication_token_setup).
@@ -131,16 +129,23 @@ def _embedded_environment() -> None:
 
 @contextmanager
 def _local_only(ray) -> Iterator[None]:
-    """Keep 127.0.0.1 as the node address while Ray starts (see :data:`RAY_LOCAL_ONLY_VARIABLE`;
-    its module constant is read at import, so an already imported ``ray`` needs it set too)."""
+    """Keep 127.0.0.1 as the node address while Ray starts: :data:`RAY_LOCAL_ONLY_VARIABLE` in
+    the environment of the processes it starts then (they pass it on to theirs), and its module
+    constant in this one (read when ``ray`` was imported). Both are restored afterwards, so a
+    later ``ray start --address`` from this process is not refused."""
     from ray._private import ray_constants
 
-    saved = ray_constants.ENABLE_RAY_CLUSTER
+    saved = ray_constants.ENABLE_RAY_CLUSTER, os.environ.get(RAY_LOCAL_ONLY_VARIABLE)
     ray_constants.ENABLE_RAY_CLUSTER = False
+    os.environ[RAY_LOCAL_ONLY_VARIABLE] = "0"
     try:
         yield
     finally:
-        ray_constants.ENABLE_RAY_CLUSTER = saved
+        ray_constants.ENABLE_RAY_CLUSTER = saved[0]
+        if saved[1] is None:
+            os.environ.pop(RAY_LOCAL_ONLY_VARIABLE, None)
+        else:
+            os.environ[RAY_LOCAL_ONLY_VARIABLE] = saved[1]
 
 
 @contextmanager

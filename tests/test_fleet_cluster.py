@@ -141,7 +141,7 @@ def test_a_two_node_loopback_cluster_runs_tasks_on_both_nodes(tmp_path):
     temp = Path(tempfile.mkdtemp(prefix="r40-", dir="/tmp"))  # Ray's socket paths must be short
     port = _free_port()
     env = {
-        **os.environ,
+        **{k: v for k, v in os.environ.items() if k != "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"},
         "OMP_NUM_THREADS": "1",
         "PYTHONPATH": str(ROOT),
         "RAY_AUTH_MODE": "token",
