@@ -81,6 +81,14 @@ def test_a_bad_manifest_is_refused_with_every_problem_before_anything_runs(tmp_p
     data["recipe_changes"]["no_such_field"] = 1
     data["segments"][0]["render"]["scene"] = "cave"
     data["segments"].append({"name": "car01-a", "camera": "car09", "frames": "missing-folder"})
+    data["segments"].append(
+        {
+            "name": "car02-b",
+            "camera": "car02",
+            "render": data["segments"][1]["render"],
+            "depth": True,
+        }
+    )
     manifest.write_text(yaml.safe_dump(data))
     out = tmp_path / "out"
     with pytest.raises(InputError) as refused:
@@ -94,6 +102,7 @@ def test_a_bad_manifest_is_refused_with_every_problem_before_anything_runs(tmp_p
         "segments[2] (car01-a).camera: 'car09' is not one of cameras",
         "missing-folder does not exist",
         "segments: the name 'car01-a' is used more than once",
+        "cameras.car02: give depth for all of its segments (a supervised fit) or for none",
         "eval: fleet eval needs an 'eval' section",
     ):
         assert problem in message, (problem, message)

@@ -306,8 +306,14 @@ def read_manifest(path: str | Path, *, for_eval: bool = False) -> Manifest:
         cameras, segments,
     )  # fmt: skip
     for name, entry in cameras.items():
-        if entry.calibration is not None and not manifest.segments_of(name):
+        used = manifest.segments_of(name)
+        if entry.calibration is not None and not used:
             problems.add(f"cameras.{name}", "no segment uses this camera")
+        if len({segment.depth is None for segment in used}) > 1:
+            problems.add(
+                f"cameras.{name}",
+                "give depth for all of its segments (a supervised fit) or for none",
+            )
     if for_eval:
         if data.get("eval") is None:
             problems.add("eval", "fleet eval needs an 'eval' section (adapt_frames, methods)")
