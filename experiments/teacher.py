@@ -47,8 +47,8 @@ import argparse
 import numpy as np
 
 from raytun3r_plugin import synthetic
+from raytun3r_plugin.adaptation.config import TEACHER_WEIGHTS
 from raytun3r_plugin.adaptation.losses import LossWeights
-from raytun3r_plugin.adaptation.train import TEACHER_WEIGHTS
 from raytun3r_plugin.apps.benchmark import (
     CAMERAS,
     DEVELOPMENT_SEED,
