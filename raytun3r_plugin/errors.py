@@ -62,3 +62,8 @@ class PatchedCopyError(Raytun3rError, RuntimeError):
 
 class SplitInstallError(Raytun3rError, ImportError):
     """``raytun3r_plugin`` and ``raytun3r_plugin.patches`` were imported from different source trees."""
+
+
+class TaskError(Raytun3rError, RuntimeError):
+    """A task run by :mod:`raytun3r_plugin.cluster` raised, or its worker died more often than
+    it may be retried; the message names the task and its error."""

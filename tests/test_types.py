@@ -51,6 +51,11 @@ CHECKED = [
     "raytun3r_plugin/datasets/fiord.py",
     "raytun3r_plugin/apps/browser.py",
     "raytun3r_plugin/apps/report.py",
+    "raytun3r_plugin/apps/sequence_methods.py",
+    "raytun3r_plugin/cluster.py",
+    "raytun3r_plugin/apps/fleet.py",
+    "raytun3r_plugin/apps/fleet_manifest.py",
+    "raytun3r_plugin/apps/cli_fleet.py",
 ]
 
 

@@ -1,4 +1,5 @@
-"""``raytun3r`` command line: adapt, recipes, infer, eval, inspect, weights, demo, bench, report."""
+"""``raytun3r`` command line: adapt, recipes, infer, eval, inspect, weights, demo, bench, report,
+fleet."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from raytun3r_plugin.apps.cli_adapt import (  # the fitting commands
     add_fit_commands,
     parse_named_numbers,
 )
+from raytun3r_plugin.apps.cli_fleet import add_fleet_commands
 from raytun3r_plugin.apps.cli_report import add_report_command
 from raytun3r_plugin.errors import InputError, Raytun3rError
 
@@ -268,6 +270,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             network=description,
             baselines=baselines,
             jobs=args.jobs,
+            address=args.address,
         )
     else:
         table = run_benchmark(
@@ -278,6 +281,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             progress=True,
             baselines=baselines,
             jobs=args.jobs,
+            address=args.address,
         )
     print(table)
     return 0
@@ -339,6 +343,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_infer)
 
     add_fit_commands(sub, rule)
+    add_fleet_commands(sub)
 
     p = sub.add_parser(
         "eval", help="run a method on a dataset sequence and print the metrics table"
@@ -431,8 +436,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--jobs",
         type=int,
         default=1,
-        help="worker processes of one thread each (default 1: the timing columns are then one "
-        "process's; more makes the run shorter and the timings one thread's beside the others)",
+        help="sequences scored at once, as Ray tasks of one thread each on an embedded cluster "
+        "(default 1: in this process, and the timing columns are one process's; more makes the "
+        "run shorter and the timings one thread's beside the others; docs/fleet.md)",
+    )
+    p.add_argument(
+        "--address",
+        default=None,
+        help="score the sequences on this Ray cluster instead ('auto', HOST:PORT, ray://HOST:PORT)",
     )
     p.set_defaults(func=cmd_bench)
 
