@@ -15,6 +15,7 @@ from torch import nn
 from raytun3r_plugin.adaptation.losses import pe_correction_grid, pe_l2
 from raytun3r_plugin.adaptation.problem import AdaptationProblem
 from raytun3r_plugin.adapter import Adapter
+from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.prediction import predict
 
 __all__ = ["GUARD_MIN_CORRELATION", "GUARD_SPREAD_RANGE", "depth_health", "fit_verdict"]
@@ -67,7 +68,7 @@ class _CollapseGuard:
         # camera's views, (S, H, W) per view (a rig forward lays several cameras' views out).
         if images is None or valid is None:
             if problem is None:
-                raise ValueError("_CollapseGuard needs a problem, or images and valid")
+                raise InputError("_CollapseGuard needs a problem, or images and valid")
             images, valid = problem.batch(0), problem.valid
         self.images: torch.Tensor = images
         self.valid: torch.Tensor = valid

@@ -23,7 +23,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from raytun3r_plugin.errors import MissingDependencyError, Raytun3rError
+from raytun3r_plugin.errors import BrowserError, MissingDependencyError
 
 __all__ = ["PageRender", "find_chromium", "render_page"]
 
@@ -84,10 +84,10 @@ class _Pipe:
         while b"\0" not in self.buffer:
             left = self.deadline - time.monotonic()
             if left <= 0 or not select.select([self.read_fd], [], [], left)[0]:
-                raise Raytun3rError("Chromium did not answer in time")
+                raise BrowserError("Chromium did not answer in time")
             chunk = os.read(self.read_fd, 1 << 20)
             if not chunk:
-                raise Raytun3rError("Chromium closed the DevTools pipe")
+                raise BrowserError("Chromium closed the DevTools pipe")
             self.buffer += chunk
         raw, self.buffer = self.buffer.split(b"\0", 1)
         return json.loads(raw)
@@ -105,7 +105,7 @@ class _Pipe:
             answer = self._message()
             if answer.get("id") == ident:
                 if "error" in answer:
-                    raise Raytun3rError(f"Chromium refused {method}: {answer['error']}")
+                    raise BrowserError(f"Chromium refused {method}: {answer['error']}")
                 return answer.get("result", {})
             self.events.append(answer)
 
@@ -153,7 +153,7 @@ def render_page(
 
     Raises:
         MissingDependencyError: no Chromium (:func:`find_chromium`).
-        Raytun3rError: the browser did not start or answer within ``timeout_s``.
+        BrowserError: the browser did not start or answer within ``timeout_s``.
     """
     executable = find_chromium()
     page = Path(html_path).resolve()
