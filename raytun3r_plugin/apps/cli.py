@@ -12,6 +12,7 @@ from raytun3r_plugin.apps.cli_adapt import (  # the fitting commands
     add_fit_commands,
     parse_named_numbers,
 )
+from raytun3r_plugin.apps.cli_deploy import add_deploy_command  # export a model graph
 from raytun3r_plugin.errors import InputError, Raytun3rError
 
 
@@ -335,6 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_infer)
 
     add_fit_commands(sub, rule)
+    add_deploy_command(sub)
 
     p = sub.add_parser(
         "eval", help="run a method on a dataset sequence and print the metrics table"
