@@ -146,6 +146,9 @@ def table(rows: list[dict], args) -> str:
         f"{platform.machine()} CPU, torch {torch.__version__}, {args.threads} thread(s); "
         f"{args.note}",
         "",
+        "Seconds per forward are medians; the ratio is the median of the per-repeat ratios "
+        "(each repeat times both variants, order alternating).",
+        "",
         "| path | input | patched (s) | unpatched (s) | patched / unpatched | goal |",
         "|---|---|---|---|---|---|",
     ]
