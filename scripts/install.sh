@@ -6,7 +6,7 @@ PY=${PYTHON:-python3}
 # torch first and pinned: an unpinned torch would pull a multi-GB CUDA build; 2.13.0 is the CPU
 # build this machine keeps on disk.
 "$PY" -m pip install --quiet --disable-pip-version-check "torch==2.13.0"
-"$PY" -m pip install --quiet --disable-pip-version-check -e ".[da3,test,cluster]"
+"$PY" -m pip install --quiet --disable-pip-version-check -e ".[da3,test,cluster,deploy]"
 # Depth Anything 3 declares heavy dependencies and pins numpy<2; its code needs only what the
 # [da3] extra installed above, so it goes in without its declared dependencies.
 "$PY" -m pip install --quiet --disable-pip-version-check --no-deps "depth-anything-3==0.1.1"

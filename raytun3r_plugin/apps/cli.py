@@ -13,6 +13,7 @@ from raytun3r_plugin.apps.cli_adapt import (  # the fitting commands
     add_fit_commands,
     parse_named_numbers,
 )
+from raytun3r_plugin.apps.cli_deploy import add_deploy_command  # export a model graph
 from raytun3r_plugin.apps.cli_fleet import add_fleet_commands
 from raytun3r_plugin.apps.cli_report import add_report_command
 from raytun3r_plugin.errors import InputError, Raytun3rError
@@ -344,6 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_fit_commands(sub, rule)
     add_fleet_commands(sub)
+    add_deploy_command(sub)
 
     p = sub.add_parser(
         "eval", help="run a method on a dataset sequence and print the metrics table"
