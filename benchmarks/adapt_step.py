@@ -87,7 +87,8 @@ def frames(size: int, n_frames: int, cache_dir: str):
 def setup(size: int, n_frames: int, cache_dir: str, config_changes: dict | None = None):
     """Model, prepared problem, zero adapter applied, Adam. Returns (model, problem, adapter, optimizer, config, handle)."""
     from raytun3r_plugin import Adapter, apply
-    from raytun3r_plugin.adaptation.train import AdaptConfig, prepare_problem
+    from raytun3r_plugin.adaptation.config import AdaptConfig
+    from raytun3r_plugin.adaptation.problem import prepare_problem
 
     model = build_model()
     config = AdaptConfig(
@@ -104,7 +105,7 @@ def setup(size: int, n_frames: int, cache_dir: str, config_changes: dict | None 
 
 
 def run_adapt_step(model, problem, adapter, optimizer, config, step: int) -> None:
-    from raytun3r_plugin.adaptation.train import adaptation_step
+    from raytun3r_plugin.adaptation.step import adaptation_step
 
     adaptation_step(model, adapter, optimizer, problem, config, step, index=0)
 
@@ -274,7 +275,9 @@ def main() -> None:
 
     # 3. wall time of a default adaptation, extrapolated
     if not args.skip_adapt:
-        from raytun3r_plugin.adaptation.train import AdaptConfig, adapt, read_loss_log
+        from raytun3r_plugin.adaptation.checkpoint import read_loss_log
+        from raytun3r_plugin.adaptation.config import AdaptConfig
+        from raytun3r_plugin.adaptation.train import adapt
 
         fresh_cache = tempfile.mkdtemp(prefix="raytun3r-bench-cold-")
         images = frames(args.size, args.frames, cache_dir)

@@ -21,17 +21,12 @@ from __future__ import annotations
 import argparse
 import copy
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-
-import raytun3r_plugin as rt  # noqa: E402
-from raytun3r_plugin.baselines import (  # noqa: E402
+import raytun3r_plugin as rt
+from raytun3r_plugin.baselines import (
     inject_calibration_tokens,
     inject_lora,
     multi_pinhole_views,

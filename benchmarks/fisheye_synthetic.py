@@ -155,7 +155,7 @@ def main() -> None:
         "--jobs",
         type=int,
         default=1,
-        help="worker processes of one thread each (run_benchmark(jobs=)); the timing columns "
+        help="Ray workers of one thread each (run_benchmark(jobs=); 1: in this process); the timing columns "
         "are then one thread's beside the other workers",
     )
     args = parser.parse_args()

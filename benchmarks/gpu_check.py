@@ -242,8 +242,8 @@ def run_checks(cuda: torch.device) -> None:
 
     @check("adapt teacher")
     def _():
+        from raytun3r_plugin.adaptation.config import TEACHER_WEIGHTS
         from raytun3r_plugin.adaptation.losses import LossWeights
-        from raytun3r_plugin.adaptation.train import TEACHER_WEIGHTS
 
         config = adapt_config(
             size,
@@ -422,7 +422,8 @@ def adapt_run(cuda: torch.device, size: int, steps: int) -> None:
     import raytun3r_plugin as rt
     from raytun3r_plugin import cameras, synthetic
     from raytun3r_plugin.adaptation import AdaptConfig, adapt
-    from raytun3r_plugin.adaptation.train import adaptation_step, prepare_problem
+    from raytun3r_plugin.adaptation.problem import prepare_problem
+    from raytun3r_plugin.adaptation.step import adaptation_step
 
     camera = cameras.fisheye(size, 190.0, "kb4", k=(0.0, 0.0, 0.0, 0.0))
     began = time.perf_counter()
@@ -466,8 +467,8 @@ def adapt_run(cuda: torch.device, size: int, steps: int) -> None:
         began = time.perf_counter()
         fitted = adapt(model, camera, frames, config, progress=False)
         whole_s = time.perf_counter() - began
+        from raytun3r_plugin.adaptation.config import TEACHER_WEIGHTS
         from raytun3r_plugin.adaptation.losses import LossWeights
-        from raytun3r_plugin.adaptation.train import TEACHER_WEIGHTS
 
         teacher = dataclasses.replace(
             config,

@@ -28,8 +28,10 @@ from pathlib import Path
 import torch
 
 from raytun3r_plugin import synthetic
+from raytun3r_plugin.adaptation.checkpoint import read_loss_log
+from raytun3r_plugin.adaptation.config import AdaptConfig
 from raytun3r_plugin.adaptation.recipes import get_recipe
-from raytun3r_plugin.adaptation.train import AdaptConfig, adapt, read_loss_log
+from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.apps.demo import BUILT_IN_NETWORKS, default_network
 from raytun3r_plugin.cameras import fisheye
 from raytun3r_plugin.registry import quiet_upstream

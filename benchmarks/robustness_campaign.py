@@ -14,7 +14,7 @@ Adapter files are valid adapters with one mutation each (tests/adapter_generator
 calibration variants are valid Kalibr/Basalt/CamOdoCal/COLMAP/raytun3r calibrations with one
 mutation each (tests/calibration_generators.py). Both are seeded, so a run reproduces.
 
-    python benchmarks/robustness_campaign.py [--adapters 1000] [--calibrations 10000] [--kills 60]
+    python -m benchmarks.robustness_campaign [--adapters 1000] [--calibrations 10000] [--kills 60]
 """
 
 from __future__ import annotations
@@ -25,7 +25,6 @@ import multiprocessing
 import os
 import random
 import signal
-import sys
 import tempfile
 import time
 from collections import Counter
@@ -34,10 +33,8 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-import raytun3r_plugin as rt  # noqa: E402
-from raytun3r_plugin.errors import Raytun3rError  # noqa: E402
+import raytun3r_plugin as rt
+from raytun3r_plugin.errors import Raytun3rError
 
 
 class Hang(Exception):

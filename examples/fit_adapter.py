@@ -11,7 +11,8 @@ import argparse
 
 import raytun3r_plugin as rt
 from raytun3r_plugin import cameras, synthetic
-from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+from raytun3r_plugin.adaptation.config import AdaptConfig
+from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.apps.demo import default_network, demo_camera
 from raytun3r_plugin.images import read_frames, read_mask
 

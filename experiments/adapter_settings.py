@@ -17,8 +17,9 @@ import time
 import torch
 
 from raytun3r_plugin import synthetic
+from raytun3r_plugin.adaptation.config import SELF_SUPERVISED_WEIGHTS
 from raytun3r_plugin.adaptation.losses import LossWeights
-from raytun3r_plugin.adaptation.train import SELF_SUPERVISED_WEIGHTS, adapt
+from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.apps.benchmark import CAMERAS, make_camera
 from raytun3r_plugin.apps.demo import default_network
 from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score

@@ -17,26 +17,21 @@ benchmark's 90000+), with the built-in network at 112 px:
 3. **fits**: held-out AbsRel and d_reproj of the zero adapter, the default self-supervised fit
    and the same fit with the guided matches, frames 0-23 fitted and 24-35 scored.
 
-    python experiments/guided_matching.py            # 3 outdoor sequences + 1 indoor, ~10 min
+    python -m experiments.guided_matching            # 3 outdoor sequences + 1 indoor, ~10 min
 """
 
 from __future__ import annotations
 
-import sys
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
-# Helpers of two sibling scripts (experiments/objective_causes.py, benchmarks/matching_quality.py).
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
-
-from matching_quality import BINS, gt_end_points  # noqa: E402
-from objective_causes import zero_adapter_depth  # noqa: E402
-
+# Helpers of two sibling scripts, imported as modules of the repository (run this from its root
+# with ``python -m experiments.guided_matching``).
+from benchmarks.matching_quality import BINS, gt_end_points  # noqa: E402
+from experiments.objective_causes import zero_adapter_depth  # noqa: E402
 from raytun3r_plugin import synthetic  # noqa: E402
 from raytun3r_plugin.adaptation import problem as problem_module  # noqa: E402
 from raytun3r_plugin.adaptation import train  # noqa: E402
@@ -45,13 +40,13 @@ from raytun3r_plugin.adaptation.losses import (
     pixel_optimal_scale,
     sample_bilinear,
 )
-from raytun3r_plugin.adaptation.matchers import (  # noqa: E402
-    _erode,
-    _patches,
-    _sample_bilinear,
-    _to_gray_u8,
-    _zncc,
+from raytun3r_plugin.adaptation.matches import (  # noqa: E402
+    bilinear_at,
+    erode_mask,
     matches_from_flows,
+    patch_samples,
+    to_gray_u8,
+    zncc,
 )
 from raytun3r_plugin.apps.benchmark import CAMERAS, ground_truth_depth, make_camera  # noqa: E402
 from raytun3r_plugin.apps.demo import default_network  # noqa: E402
@@ -95,15 +90,15 @@ def warped_check(gray_i, gray_j, uv_i, uv_j, flow, radius=3, zncc_min=0.8, margi
     """The appearance check of ``DISFlowMatcher`` with frame j's patch warped by I + d flow."""
     fi, fj = gray_i.astype(np.float32) / 255, gray_j.astype(np.float32) / 255
     step = 2.0
-    du = (_sample_bilinear(flow, uv_i + [step, 0]) - _sample_bilinear(flow, uv_i - [step, 0])) / 4
-    dv = (_sample_bilinear(flow, uv_i + [0, step]) - _sample_bilinear(flow, uv_i - [0, step])) / 4
+    du = (bilinear_at(flow, uv_i + [step, 0]) - bilinear_at(flow, uv_i - [step, 0])) / 4
+    dv = (bilinear_at(flow, uv_i + [0, step]) - bilinear_at(flow, uv_i - [0, step])) / 4
     jacobian = (np.eye(2)[None] + np.stack([du, dv], axis=-1)).astype(np.float32)
-    patch_i, patch_j = _patches(fi, uv_i, radius), _warped_patches(fj, uv_j, jacobian, radius)
-    corr = _zncc(patch_i, patch_j)
+    patch_i, patch_j = patch_samples(fi, uv_i, radius), _warped_patches(fj, uv_j, jacobian, radius)
+    corr = zncc(patch_i, patch_j)
     keep = (corr >= zncc_min) & (patch_i.std(1) > 0.02) & (patch_j.std(1) > 0.02)
     for angle in np.arange(8) * (np.pi / 4):
         shift = np.array([np.cos(angle), np.sin(angle)], np.float32) * 2.0
-        keep &= corr - _zncc(patch_i, _warped_patches(fj, uv_j + shift, jacobian, radius)) > margin
+        keep &= corr - zncc(patch_i, _warped_patches(fj, uv_j + shift, jacobian, radius)) > margin
     return keep
 
 
@@ -122,7 +117,7 @@ def guide(seq, problem, depth) -> tuple[dict, list[float], str]:
     """Replace every usable pair's matches by guided ones; return (counts, scale ratios, bins)."""
     camera = problem.layout.camera
     valid = camera.valid_mask().numpy().astype(bool)
-    eroded = _erode(valid, 4)
+    eroded = erode_mask(valid, 4)
     truth_depth = torch.from_numpy(ground_truth_depth(seq, max(problem.inputs) + 1))
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     dis.setFinestScale(0)
@@ -148,7 +143,7 @@ def guide(seq, problem, depth) -> tuple[dict, list[float], str]:
                     * torch.median(depth[gi][known] / truth_depth[gi][known])
                 )
                 ratios.append(float(chosen) / consistent)
-                gray_i, gray_j = _to_gray_u8(seq.images[gi]), _to_gray_u8(seq.images[gj])
+                gray_i, gray_j = to_gray_u8(seq.images[gi]), to_gray_u8(seq.images[gj])
                 median = float(depth[gi][torch.from_numpy(valid)].median())
                 best = (-1.0, window.pairs[(pair.a, pair.b)])
                 for factor in SCALE_FACTORS:

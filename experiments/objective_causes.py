@@ -37,7 +37,9 @@ from raytun3r_plugin.adaptation.losses import (
 from raytun3r_plugin.adaptation.pose_terms import (
     fit_translation_scale,
 )
-from raytun3r_plugin.adaptation.train import adapt, objective_value, prepare_problem
+from raytun3r_plugin.adaptation.problem import prepare_problem
+from raytun3r_plugin.adaptation.step import objective_value
+from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.apps.benchmark import CAMERAS, ground_truth_depth, make_camera
 from raytun3r_plugin.apps.demo import default_network

@@ -56,7 +56,8 @@ from raytun3r_plugin.apps.benchmark import (
 )
 from raytun3r_plugin.apps.demo import default_network
 from raytun3r_plugin.apps.fits import adapt_config, supervised_config
-from raytun3r_plugin.apps.workers import cpu_jobs, map_in_workers
+from raytun3r_plugin.apps.workers import cpu_jobs
+from raytun3r_plugin.cluster import ClusterSpec, map_tasks
 from raytun3r_plugin.registry import quiet_upstream
 
 SIZE, NATIVE, STRIDE, N_ADAPT, N_EVAL = 112, 448, 8, 24, 12
@@ -155,15 +156,15 @@ def main() -> None:
     print(
         f"network: {description}; {args.sequences} outdoor development seeds per camera, network "
         f"input {SIZE} px, fitted on frames 0-{N_ADAPT - 1}, scored on frames "
-        f"{N_ADAPT}-{N_ADAPT + N_EVAL - 1}; {args.jobs} worker processes of one thread each\n",
+        f"{N_ADAPT}-{N_ADAPT + N_EVAL - 1}; {args.jobs} workers of one thread each (Ray tasks; 1: in this process)\n",
         flush=True,
     )
     tasks = [
         (ci, k, args.steps, methods) for ci in range(len(CAMERAS)) for k in range(args.sequences)
     ]
     rows = []
-    for _, sequence_rows in map_in_workers(
-        score_outdoor_sequence, tasks, args.jobs, initializer=_load_network
+    for _, sequence_rows in map_tasks(
+        score_outdoor_sequence, tasks, ClusterSpec(workers=args.jobs), initializer=_load_network
     ):
         rows += sequence_rows
         first = sequence_rows[0]

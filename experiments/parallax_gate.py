@@ -27,8 +27,8 @@ import numpy as np
 import torch
 
 from raytun3r_plugin import synthetic
+from raytun3r_plugin.adaptation.problem import prepare_problem
 from raytun3r_plugin.adaptation.step import window_parallax
-from raytun3r_plugin.adaptation.train import prepare_problem
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.apps.benchmark import (
     CAMERAS,

@@ -20,7 +20,7 @@ import torch
 
 from raytun3r_plugin import Adapter, synthetic
 from raytun3r_plugin.adaptation.pose_gate import pose_agreement
-from raytun3r_plugin.adaptation.train import prepare_problem
+from raytun3r_plugin.adaptation.problem import prepare_problem
 from raytun3r_plugin.apps.benchmark import (
     CAMERAS,
     DEVELOPMENT_SEED,

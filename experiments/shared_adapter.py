@@ -64,7 +64,8 @@ from raytun3r_plugin.apps.benchmark import (
 from raytun3r_plugin.apps.demo import default_network
 from raytun3r_plugin.apps.evaluation import headline, run_method, score
 from raytun3r_plugin.apps.fits import supervised_config
-from raytun3r_plugin.apps.workers import cpu_jobs, map_in_workers
+from raytun3r_plugin.apps.workers import cpu_jobs
+from raytun3r_plugin.cluster import ClusterSpec, map_tasks
 from raytun3r_plugin.registry import quiet_upstream
 
 SIZE, N_ADAPT, N_EVAL = 112, 24, 12
@@ -225,7 +226,7 @@ def main() -> None:
         f"network: {description}; {args.sequences} {'held-out' if args.held_out else 'development'} "
         f"seeds per cell, {SIZE} px, "
         f"supervised fits on frames 0-{N_ADAPT - 1}, scored on frames "
-        f"{N_ADAPT}-{N_ADAPT + N_EVAL - 1}; {args.jobs} worker processes of one thread each\n",
+        f"{N_ADAPT}-{N_ADAPT + N_EVAL - 1}; {args.jobs} workers of one thread each (Ray tasks; 1: in this process)\n",
         flush=True,
     )
     cells_chosen = [
@@ -236,11 +237,17 @@ def main() -> None:
     ]
     if args.pooled:
         tasks = [(ci, si, args.sequences, args.steps, args.held_out) for ci, si in cells_chosen]
-        done = dict(map_in_workers(score_pooled, tasks, args.jobs, initializer=_load_network))
+        done = dict(
+            map_tasks(
+                score_pooled, tasks, ClusterSpec(workers=args.jobs), initializer=_load_network
+            )
+        )
         _print_pooled([done[index] for index in range(len(tasks))])
         return
     tasks = [(ci, si, args.sequences, args.steps, base) for ci, si in cells_chosen]
-    done = dict(map_in_workers(score_cell, tasks, args.jobs, initializer=_load_network))
+    done = dict(
+        map_tasks(score_cell, tasks, ClusterSpec(workers=args.jobs), initializer=_load_network)
+    )
     cells = [done[index] for index in range(len(tasks))]
     print(
         "| camera | scene | no adapter AbsRel / d_reproj | own supervised | shared (other sequence's) "

@@ -47,8 +47,8 @@ import argparse
 import numpy as np
 
 from raytun3r_plugin import synthetic
+from raytun3r_plugin.adaptation.config import TEACHER_WEIGHTS
 from raytun3r_plugin.adaptation.losses import LossWeights
-from raytun3r_plugin.adaptation.train import TEACHER_WEIGHTS
 from raytun3r_plugin.apps.benchmark import (
     CAMERAS,
     DEVELOPMENT_SEED,
@@ -61,7 +61,8 @@ from raytun3r_plugin.apps.benchmark import (
 )
 from raytun3r_plugin.apps.demo import default_network
 from raytun3r_plugin.apps.fits import adapt_config, supervised_config
-from raytun3r_plugin.apps.workers import cpu_jobs, map_in_workers
+from raytun3r_plugin.apps.workers import cpu_jobs
+from raytun3r_plugin.cluster import ClusterSpec, map_tasks
 from raytun3r_plugin.registry import quiet_upstream
 
 SIZE, N_ADAPT, N_EVAL = 112, 24, 12
@@ -257,7 +258,7 @@ def main() -> None:
     print(
         f"network: {description}; {args.sequences} development seeds per cell, input {SIZE} px, "
         f"fitted on frames 0-{N_ADAPT - 1}, scored on {N_ADAPT}-{N_ADAPT + N_EVAL - 1}; "
-        f"{args.jobs} worker processes of one thread each\n",
+        f"{args.jobs} workers of one thread each (Ray tasks; 1: in this process)\n",
         flush=True,
     )
     labels = [label for label in args.cameras.split(",") if label]
@@ -269,8 +270,8 @@ def main() -> None:
         for k in range(args.sequences)
     ]
     rows = []
-    for _, sequence_rows in map_in_workers(
-        score_sequence, tasks, args.jobs, initializer=_load_network
+    for _, sequence_rows in map_tasks(
+        score_sequence, tasks, ClusterSpec(workers=args.jobs), initializer=_load_network
     ):
         rows += sequence_rows
         first = sequence_rows[0]

@@ -137,7 +137,7 @@ def _normalised_rope(owner, state):
     def forward(original, *, H, W):
         if not state.uses("rope"):
             return original(H=H, W=W)
-        rope = original.__self__  # looked up per call: the behaviour keeps no owner
+        rope = hooks.owner_of(original)  # looked up per call: the behaviour keeps no owner
         periods, dtype, mode = rope.periods, rope.dtype, rope.normalize_coords
         if mode == "max":
             scale_h = scale_w = max(H, W)

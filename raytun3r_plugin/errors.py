@@ -62,3 +62,13 @@ class PatchedCopyError(Raytun3rError, RuntimeError):
 
 class SplitInstallError(Raytun3rError, ImportError):
     """``raytun3r_plugin`` and ``raytun3r_plugin.patches`` were imported from different source trees."""
+
+
+class TaskError(Raytun3rError, RuntimeError):
+    """A task run by :mod:`raytun3r_plugin.cluster` raised, or its worker died more often than
+    it may be retried; the message names the task and its error."""
+
+
+class BrowserError(Raytun3rError, RuntimeError):
+    """Headless Chromium did not render a page: it did not start, answer or load it in time, or
+    refused a DevTools request (``raytun3r report --png``, the report's browser test)."""

@@ -12,6 +12,7 @@ they do is written once here.
 
 from __future__ import annotations
 
+import functools
 import sys
 
 import torch
@@ -20,6 +21,19 @@ import torch.nn.functional as F
 from raytun3r_plugin.errors import InputError, UnsupportedUpstreamError
 from raytun3r_plugin.registry import rope_base
 from raytun3r_plugin.rope import apply_rope_2d, displaced_positions
+
+
+def owner_of(original):
+    """The instance an ``original`` runs on: the owner the wrapper looked up for this call.
+
+    The wrapper passes upstream's class method as ``functools.partial(method, owner)`` rather
+    than a bound method (torch.compile rebuilds a bound method after a graph break by an
+    attribute look-up on the owner, which finds the wrapper again); an instance attribute that
+    was there before the patch comes as it was (a bound method).
+    """
+    if isinstance(original, functools.partial):
+        return original.args[0]
+    return original.__self__
 
 
 def pe_interpolation(owner, state):

@@ -24,7 +24,8 @@ if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load 
 
 __all__ = ["PatchState", "View"]
 
-# Handles disabled in the current thread / context (see RaytunHandle.disabled).
+# Handles disabled in the current thread / context (see RaytunHandle.disabled). torch.compile
+# cannot trace or guard a ContextVar, so compiled code reads PatchState.disabled_blocks instead.
 _DISABLED: contextvars.ContextVar[frozenset[int]] = contextvars.ContextVar(
     "raytun3r_disabled", default=frozenset()
 )
@@ -111,6 +112,8 @@ class PatchState:
         self.rig = self._differ(self.views)
         # Weak: the state is reachable from the model's own wrappers.
         self._model = weakref.ref(model) if model is not None else None
+        # Open ``handle.disabled()`` blocks in any thread: what compiled code reads (:attr:`active`).
+        self.disabled_blocks = 0
 
     def _views(self, given) -> tuple[View, ...]:
         caches: list[tuple[Camera, Any, GeometryCache]] = [
@@ -170,10 +173,21 @@ class PatchState:
         )
         twin.rig = twin._differ(twin.views)
         twin._model = weakref.ref(memo[id(model)])
+        twin.disabled_blocks = 0
         return twin
 
     @property
     def active(self) -> bool:
+        """False inside ``handle.disabled()``: of this thread / context in eager code; under
+        ``torch.compile``, of any thread (docs/deployment.md).
+
+        Compiled code cannot read a ``ContextVar`` (a graph break at every hook), so there the
+        switch is the plain counter :attr:`disabled_blocks`, which torch.compile guards on: the
+        first call inside a ``disabled()`` block compiles the upstream variant once, and both
+        variants stay cached.
+        """
+        if torch.compiler.is_compiling():
+            return self.disabled_blocks == 0
         return id(self) not in _DISABLED.get()
 
     def uses(self, component: str) -> bool:

@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import functools
 import inspect
 import threading
+import types
 import weakref
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -131,7 +133,9 @@ class _Wrapper:
         self.__doc__ = getattr(named, "__doc__", None)
         self.__module__ = getattr(named, "__module__", type(owner).__module__)
 
-    def _original(self) -> Callable:
+    def _original(self, bound: bool = False) -> Callable:
+        """Upstream's method for this owner: the class function with the owner as a partial
+        (what a call runs), or, with ``bound``, a bound method (what introspection sees)."""
         owner = self._owner()
         if owner is None:
             raise NotAppliedError(
@@ -139,7 +143,12 @@ class _Wrapper:
             )
         if self._previous is not _NOTSET:
             return self._previous
-        return getattr(type(owner), self._target.attribute).__get__(owner, type(owner))
+        method = getattr(type(owner), self._target.attribute)
+        if isinstance(method, types.FunctionType) and not bound:
+            # Not ``method.__get__(owner)``: torch.compile rebuilds a bound method after a graph
+            # break as ``owner.<attribute>``, which finds this wrapper again (endless recursion).
+            return functools.partial(method, owner)
+        return method.__get__(owner, type(owner))
 
     def _built(self) -> Callable:
         with self._lock:
@@ -153,11 +162,11 @@ class _Wrapper:
 
     @property
     def __wrapped__(self) -> Callable:
-        return self._original()
+        return self._original(bound=True)
 
     @property
     def __signature__(self) -> inspect.Signature:
-        return inspect.signature(self._original())
+        return inspect.signature(self._original(bound=True))
 
     def __deepcopy__(self, memo: dict) -> _Wrapper:
         state = copy.deepcopy(self._state, memo)  # refuses a copy of only a part of the model
@@ -294,11 +303,17 @@ class RaytunHandle:
 
     @contextlib.contextmanager
     def disabled(self) -> Iterator[None]:
-        """Plain upstream behaviour inside the block (in this thread / context only)."""
+        """Plain upstream behaviour inside the block (in this thread / context only).
+
+        A compiled model (``torch.compile``) cannot see a thread's context: while a block is
+        open it runs upstream's behaviour in every thread (docs/deployment.md).
+        """
         token = _DISABLED.set(_DISABLED.get() | {id(state) for state in self._states})
+        _count_disabled(self._states, +1)
         try:
             yield
         finally:
+            _count_disabled(self._states, -1)
             _DISABLED.reset(token)
 
     def __enter__(self) -> RaytunHandle:
@@ -343,6 +358,17 @@ class RaytunHandle:
         status = "active" if self.is_active else "removed"
         cameras = f"cameras={list(self.cameras)!r}" if self.is_rig else f"camera={self.camera!r}"
         return f"RaytunHandle({self.spec.family}, {status}, {cameras}, components={[k for k, v in self.components.items() if v]})"
+
+
+# Guards the read-modify-write of PatchState.disabled_blocks across threads.
+_DISABLED_COUNT_LOCK = threading.Lock()
+
+
+def _count_disabled(states: tuple[PatchState, ...], step: int) -> None:
+    """Add ``step`` to every state's count of open ``disabled()`` blocks (what compiled code reads)."""
+    with _DISABLED_COUNT_LOCK:
+        for state in states:
+            state.disabled_blocks += step
 
 
 def _undo(installed: list[_Installed]) -> None:

@@ -1,4 +1,6 @@
-"""Small pictures drawn with OpenCV (always installed), so no plotting library is needed.
+"""Small pictures drawn with OpenCV (always installed): the fallback for the loss curves, the PE
+picture and the Jacobian chart where matplotlib (the ``viz`` extra,
+:mod:`raytun3r_plugin.figures`) is not installed.
 
 ``line_chart`` draws loss curves; ``heatmap`` draws a scalar field (e.g. the size of the PE
 correction over the image) with a labelled colour bar. Both return BGR uint8 images for

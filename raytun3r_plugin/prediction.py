@@ -86,9 +86,11 @@ def predict(model: nn.Module, images: torch.Tensor, **kwargs) -> Prediction:
     every output tensor is on the model's device. Each backbone's normalisation and pose
     conventions are handled by its registered spec.
     """
-    from raytun3r_plugin.registry import spec_for
+    from raytun3r_plugin.registry import spec_for, uncompiled
 
     spec, root = spec_for(model)
+    if uncompiled(model) is root and model is not root:
+        root = model  # torch.compile(network): run the compiled module (attributes pass through)
     if isinstance(images, torch.Tensor):
         # Every caller (adapt's windows, eval, infer, Multi-PH's views) builds its inputs on the
         # CPU; one move here lets a model on a GPU take them all.

@@ -377,9 +377,21 @@ def quiet_upstream() -> Iterator[None]:
         yield
 
 
+def uncompiled(model: nn.Module) -> nn.Module:
+    """The module ``torch.compile(module)`` wrapped (its ``_orig_mod``), else ``model`` itself."""
+    inner = getattr(model, "_orig_mod", None)
+    if type(model).__name__ == "OptimizedModule" and isinstance(inner, nn.Module):
+        return inner
+    return model
+
+
 def spec_for(model: nn.Module) -> tuple[BackboneSpec, nn.Module]:
-    """The registered spec that recognises ``model`` and the root module to patch."""
+    """The registered spec that recognises ``model`` and the root module to patch.
+
+    A ``torch.compile`` wrapper is recognised as the module it wraps (docs/deployment.md).
+    """
     _load_builtins()
+    model = uncompiled(model)
     for spec in _SPECS.values():
         for candidate in (*spec.composites, spec):
             root = candidate.recognise(model)

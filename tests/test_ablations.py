@@ -179,7 +179,8 @@ def test_pe_correction_radial_only_is_the_radial_term(net, camera):
 
 
 def test_adapt_with_radial_only_leaves_the_angular_table_at_zero(net, camera, tmp_path):
-    from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+    from raytun3r_plugin.adaptation.config import AdaptConfig
+    from raytun3r_plugin.adaptation.train import adapt
     from tests.test_losses import room_sequence
 
     frames, _, _ = room_sequence(camera, 4, step=0.35, yaw=0.06)

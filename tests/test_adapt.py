@@ -13,18 +13,15 @@ import pytest
 import torch
 
 from raytun3r_plugin import Adapter, apply, handle_of
-from raytun3r_plugin.adaptation.train import (
+from raytun3r_plugin.adaptation.checkpoint import artifact_paths, load_checkpoint, read_loss_log
+from raytun3r_plugin.adaptation.config import (
     SELF_SUPERVISED_WEIGHTS,
     SUPERVISED_WEIGHTS,
     AdaptConfig,
-    adapt,
-    artifact_paths,
-    input_layout,
-    load_checkpoint,
-    read_loss_log,
 )
+from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
-from raytun3r_plugin.preprocess import RULE, RULE_VERSION
+from raytun3r_plugin.preprocess import RULE, RULE_VERSION, input_layout
 from tests.helpers import fisheye
 from tests.test_losses import room_sequence
 
@@ -451,7 +448,7 @@ def body_mask(camera) -> torch.Tensor:
 
 
 def test_mask_keeps_matches_and_losses_off_the_excluded_pixels(camera, frames, cache_dir):
-    from raytun3r_plugin.adaptation.train import prepare_problem
+    from raytun3r_plugin.adaptation.problem import prepare_problem
 
     mask = body_mask(camera)
     plain = prepare_problem(camera, frames, config(cache_dir))

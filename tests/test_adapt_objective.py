@@ -20,6 +20,9 @@ import torch
 from raytun3r_plugin.patches.da3 import build_tiny_network
 
 from raytun3r_plugin.adaptation import train
+from raytun3r_plugin.adaptation.checkpoint import artifact_paths
+from raytun3r_plugin.adaptation.config import AdaptConfig
+from raytun3r_plugin.adaptation.guard import depth_health
 from raytun3r_plugin.adaptation.losses import (
     pe_energy,
     pixel_optimal_scale,
@@ -29,14 +32,9 @@ from raytun3r_plugin.adaptation.losses import (
 from raytun3r_plugin.adaptation.pose_terms import (
     fit_translation_scale,
 )
-from raytun3r_plugin.adaptation.train import (
-    AdaptConfig,
-    adapt,
-    artifact_paths,
-    depth_health,
-    objective_value,
-    prepare_problem,
-)
+from raytun3r_plugin.adaptation.problem import prepare_problem
+from raytun3r_plugin.adaptation.step import objective_value
+from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.cameras import KannalaBrandt4
 from raytun3r_plugin.errors import InputError

@@ -541,3 +541,27 @@ def test_camera_follows_input_size(case, net, images):
         pytest.raises(InputError, match="aspect"),
     ):
         outputs(net, images)
+
+
+# ---------------------------------------------------------------------------------------------
+# torch.compile (docs/deployment.md): slow, each compile traces the model again
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_compiled_patched_model(case):
+    """Compiled = eager patched; no recompiles for one camera and size; ``disabled()``,
+    ``remove()`` and a new camera behave as in eager, each compiling its variant once."""
+    from tests.compile_checks import check_compiled_lifecycle
+
+    check_compiled_lifecycle(case.family, "aot_eager")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("component", COMPONENTS)
+def test_compiled_patched_model_with_one_component(case, component):
+    from tests.compile_checks import check_compiled_lifecycle
+
+    check_compiled_lifecycle(
+        case.family, "eager", components={c: c == component for c in COMPONENTS}
+    )

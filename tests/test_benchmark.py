@@ -302,7 +302,7 @@ def test_rotation_effect_compares_the_fit_with_vanilla_and_center_ph_per_sequenc
 
 
 def test_bench_in_worker_processes_scores_the_same_sequences_in_order(tmp_path):
-    """``run_benchmark(jobs=2)``: the model pickled to two one-thread workers, rows put back in
+    """``run_benchmark(jobs=2)``: the model sent to two one-thread Ray workers, rows put back in
     task order; against the in-process run the rows before any fit differ only by the order of
     float sums, and the header says the timings are one thread's."""
     pytest.importorskip("depth_anything_3")
@@ -320,8 +320,8 @@ def test_bench_in_worker_processes_scores_the_same_sequences_in_order(tmp_path):
         out = tmp_path / f"jobs{jobs}"
         tables[jobs] = run_benchmark(model, out, jobs=jobs, **settings)
         rows[jobs] = json.loads((out / "results.json").read_text())["sequences"]
-    assert "2 worker processes of one thread each" in tables[2]
-    assert "worker processes" not in tables[1]
+    assert "2 Ray workers of one thread each" in tables[2]
+    assert "Ray workers" not in tables[1]
     keys = [(r["seed"], r["method"]) for r in rows[1]]
     assert keys == [(r["seed"], r["method"]) for r in rows[2]]
     seeds = [sequence_seed(2, 0, k) for k in (0, 1)]

@@ -109,7 +109,8 @@ def test_save_and_load_round_trip_and_refuse_other_sizes(net, tmp_path):
 
 
 def test_adapt_fits_the_tokens(net, tmp_path):
-    from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+    from raytun3r_plugin.adaptation.config import AdaptConfig
+    from raytun3r_plugin.adaptation.train import adapt
     from tests.test_losses import room_sequence
 
     camera = fisheye(84, 70, 190.0)
@@ -416,7 +417,8 @@ def test_pi3_global_blocks_need_decode_for_the_frame_count(family):
 
 @pytest.mark.parametrize("family", ["vggt", "pi3"])
 def test_adapt_fits_vggt_and_pi3_tokens(family, tmp_path):
-    from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+    from raytun3r_plugin.adaptation.config import AdaptConfig
+    from raytun3r_plugin.adaptation.train import adapt
     from tests.backbones import make
     from tests.test_losses import room_sequence
 

@@ -604,8 +604,11 @@ def test_adapt_then_infer_on_a_non_square_camera(setup, tmp_path, width, height,
         == 0
     )
     depth = np.load(out / "depth" / "0000.npy")
-    assert depth.shape == (layout.height, layout.width) and np.isfinite(depth).all()
+    # At the frames' resolution (the crop's, when the layout crops), 0 outside the lens circle.
+    assert depth.shape == (layout.native_camera.height, layout.native_camera.width)
+    assert np.isfinite(depth).all() and (depth[layout.native_camera.valid_mask().numpy()] > 0).all()
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["depth"]["camera"] == json.loads(layout.native_camera.to_json())
     assert summary["input_size"] == [layout.width, layout.height]
     assert summary["camera"] == json.loads(layout.camera.to_json())
 
@@ -677,10 +680,12 @@ def test_infer_rescales_the_camera_to_frames_of_another_size(setup, tmp_path, ca
         )
         == 0
     )
-    assert np.load(out / "depth" / "0000.npy").shape == (84, 112)
-    assert json.loads((out / "summary.json").read_text())["camera"] == json.loads(
-        camera.resized(320, 240).resized(112, 84).to_json()
-    )
+    # Depth at the frames' resolution by default; the network saw 112 x 84.
+    assert np.load(out / "depth" / "0000.npy").shape == (240, 320)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["camera"] == json.loads(camera.resized(320, 240).resized(112, 84).to_json())
+    assert summary["depth"]["resolution"] == "frames"
+    assert summary["depth"]["camera"] == json.loads(camera.resized(320, 240).to_json())
     # Frames of another aspect ratio are not a resize of this camera: an error, not a stretch.
     _, other = _write_segment(
         tmp_path / "other", camera, n_frames=2, render_camera=fisheye(160, 100, 190.0)
@@ -708,7 +713,8 @@ def test_infer_rescales_the_camera_to_frames_of_another_size(setup, tmp_path, ca
 
 def test_adapt_infer_and_eval_feed_the_network_the_same_input(setup, tmp_path, monkeypatch):
     """The three paths from native frames to the network share one preparation."""
-    from raytun3r_plugin.adaptation.train import AdaptConfig, prepare_problem
+    from raytun3r_plugin.adaptation.config import AdaptConfig
+    from raytun3r_plugin.adaptation.problem import prepare_problem
     from raytun3r_plugin.apps import inference
     from raytun3r_plugin.apps.evaluation import fit_sequence
     from raytun3r_plugin.datasets import Sequence

@@ -156,7 +156,8 @@ def test_peft_gives_identical_outputs(net, tmp_path):
 
 
 def test_adapt_fits_the_lora_factors_with_the_same_objective(net, tmp_path):
-    from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+    from raytun3r_plugin.adaptation.config import AdaptConfig
+    from raytun3r_plugin.adaptation.train import adapt
     from tests.test_losses import room_sequence
 
     camera = fisheye(84, 70, 190.0)

@@ -17,6 +17,7 @@ import torch
 from raytun3r_plugin.patches.da3 import build_tiny_network
 
 from raytun3r_plugin import synthetic
+from raytun3r_plugin.adaptation.config import AdaptConfig
 from raytun3r_plugin.adaptation.losses import (
     LossWeights,
 )
@@ -26,7 +27,7 @@ from raytun3r_plugin.adaptation.photometric import (
     photometric_loss,
     photometric_optimal_scale,
 )
-from raytun3r_plugin.adaptation.train import AdaptConfig, adapt
+from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.cameras import KannalaBrandt4
 from raytun3r_plugin.errors import InputError
 
@@ -201,8 +202,8 @@ def test_the_photometric_scale_is_recorded_and_scales_the_reprojection(tmp_path)
     with it steps and measures its windows' parallax at that scale."""
     from depth_anything_3.utils.logger import logger
 
+    from raytun3r_plugin.adaptation.problem import prepare_problem
     from raytun3r_plugin.adaptation.step import window_parallax
-    from raytun3r_plugin.adaptation.train import prepare_problem
     from raytun3r_plugin.adapter import Adapter
 
     saved = AdaptConfig(scale="photometric").to_dict()

@@ -166,17 +166,17 @@ def test_the_recipe_survives_the_file_and_inspect_shows_it(network, segment, tmp
 
 
 def test_progress_off_a_terminal_is_lines_not_one_long_line(network, segment, capsys, monkeypatch):
-    from raytun3r_plugin.adaptation import train
+    from raytun3r_plugin.adaptation import loop
 
     camera, frames = segment
     config = AdaptConfig.from_recipe("matches", steps=4, n_windows=2, checkpoint_every=0)
-    monkeypatch.setattr(train._Progress, "every_s", 0.0)
+    monkeypatch.setattr(loop._Progress, "every_s", 0.0)
     adapt(network, camera, frames[:6], config, progress=True)
     lines = capsys.readouterr().err.splitlines()
     steps = [line for line in lines if line.startswith("adapt: step")]
     assert len(steps) == 4 and all(len(line) < 120 for line in lines)
     assert not any("\r" in line for line in lines)
-    monkeypatch.setattr(train._Progress, "every_s", 3600.0)
+    monkeypatch.setattr(loop._Progress, "every_s", 3600.0)
     adapt(network, camera, frames[:6], config, progress=True)
     steps = [line for line in capsys.readouterr().err.splitlines() if "adapt: step" in line]
     assert steps == ["adapt: step 4/4 " + steps[0].split(" 4/4 ")[1]]

@@ -124,8 +124,15 @@ def test_adapt_rig_fits_each_camera_in_one_forward(stereo, tmp_path):
 
     type(model).forward = spy
     try:
+        # No guard here: its checks are forwards too (tests/test_rig_fit_loop.py has them).
         config = AdaptConfig.from_recipe(
-            "matches", steps=3, input_size=56, n_windows=2, checkpoint_every=0, min_parallax_px=0.0
+            "matches",
+            steps=3,
+            input_size=56,
+            n_windows=2,
+            checkpoint_every=0,
+            min_parallax_px=0.0,
+            guard=False,
         )
         fitted = adapt_rig(model, stereo, config, out_dir=tmp_path, progress=False)
     finally:

@@ -9,8 +9,10 @@ import torch
 from raytun3r_plugin.patches.da3 import build_tiny_network
 
 from raytun3r_plugin import synthetic
-from raytun3r_plugin.adaptation.problem import split_segments
-from raytun3r_plugin.adaptation.train import AdaptConfig, adapt, objective_value, prepare_problem
+from raytun3r_plugin.adaptation.config import AdaptConfig
+from raytun3r_plugin.adaptation.problem import prepare_problem, split_segments
+from raytun3r_plugin.adaptation.step import objective_value
+from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.apps.adapter_report import describe_file
 from raytun3r_plugin.cameras import KannalaBrandt4

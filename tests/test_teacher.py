@@ -17,15 +17,12 @@ import torch
 from raytun3r_plugin.patches.da3 import build_tiny_network
 
 from raytun3r_plugin import apply, synthetic
+from raytun3r_plugin.adaptation.config import TEACHER_WEIGHTS, AdaptConfig
 from raytun3r_plugin.adaptation.losses import LossWeights, grouped_silog_loss, silog_loss
+from raytun3r_plugin.adaptation.problem import prepare_problem
+from raytun3r_plugin.adaptation.step import objective_value
 from raytun3r_plugin.adaptation.teacher import teacher_targets, teacher_views
-from raytun3r_plugin.adaptation.train import (
-    TEACHER_WEIGHTS,
-    AdaptConfig,
-    adapt,
-    objective_value,
-    prepare_problem,
-)
+from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.apps.adapter_report import describe_file
 from raytun3r_plugin.apps.evaluation import center_pinhole, run_method

@@ -38,18 +38,13 @@ __all__ = [
 ]
 
 # Losses and training (issue 6).
+from raytun3r_plugin.adaptation.checkpoint import read_loss_log  # noqa: E402
+from raytun3r_plugin.adaptation.config import AdaptConfig  # noqa: E402
 from raytun3r_plugin.adaptation.losses import LossWeights  # noqa: E402
-from raytun3r_plugin.adaptation.train import (  # noqa: E402
-    AdaptationProblem,
-    AdaptConfig,
-    InputLayout,
-    adapt,
-    adaptation_step,
-    input_layout,
-    prepare_problem,
-    read_loss_log,
-    scene_mask,
-)
+from raytun3r_plugin.adaptation.problem import AdaptationProblem, prepare_problem, scene_mask  # noqa: E402
+from raytun3r_plugin.adaptation.step import adaptation_step  # noqa: E402
+from raytun3r_plugin.adaptation.train import adapt  # noqa: E402
+from raytun3r_plugin.preprocess import InputLayout, input_layout  # noqa: E402
 
 __all__ += [
     "AdaptConfig",

@@ -13,10 +13,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch import nn
 
 from raytun3r_plugin._io import atomic_save_safetensors
 from raytun3r_plugin.adaptation.config import TERMS
-from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AdapterError
 
 __all__ = [
@@ -25,6 +25,7 @@ __all__ = [
     "artifact_paths",
     "load_checkpoint",
     "read_loss_log",
+    "trend_window",
     "write_loss_artifacts",
 ]
 
@@ -56,14 +57,15 @@ def write_loss_artifacts(
 
     Columns: ``step``, ``loss``, every term the run had (``terms``: these columns instead, e.g.
     a rig fit's per-camera ones), ``grad_norm``, ``skipped``, ``time_s``. The picture shows the
-    total and the raw value of each term (``plotted``: these columns instead) over the steps
-    (log scale).
+    total and each term (``plotted``: these columns instead) over the steps: with matplotlib (the
+    ``viz`` extra) one chart per term on its own scale, its trend smoothed over one pass through
+    the fit's windows (:func:`raytun3r_plugin.figures.loss_figure`); without it, the raw values
+    on one log axis (OpenCV, :func:`raytun3r_plugin.plots.line_chart`).
     """
     import csv
 
-    import cv2
-
-    from raytun3r_plugin.plots import line_chart
+    from raytun3r_plugin.errors import MissingDependencyError
+    from raytun3r_plugin.figures import loss_figure
 
     if terms is None:
         terms = [name for name in TERMS if records and name in records[0]]
@@ -79,7 +81,21 @@ def write_loss_artifacts(
         if all(name in r for r in records) and any(float(r[name]) > 0 for r in records)
     }
     title = title or f"adaptation losses ({len(records)} steps)"
-    cv2.imwrite(str(paths["curve"]), line_chart(series, title))
+    try:
+        Path(paths["curve"]).write_bytes(loss_figure(series, trend_window(records), title=title))
+    except MissingDependencyError:
+        import cv2
+
+        from raytun3r_plugin.plots import line_chart
+
+        cv2.imwrite(str(paths["curve"]), line_chart(series, title))
+
+
+def trend_window(records: list[dict[str, Any]]) -> int:
+    """Steps in one pass through a fit's windows (the distinct ``window`` indices of its log;
+    at least 1): the span over which a loss trend is smoothed, so every window counts once."""
+    windows = {r.get("window") for r in records if r.get("window") is not None}
+    return max(1, len(windows)) if windows else max(1, len(records) // 10)
 
 
 def read_loss_log(path: str | os.PathLike) -> list[dict[str, Any]]:
@@ -93,13 +109,18 @@ def read_loss_log(path: str | os.PathLike) -> list[dict[str, Any]]:
 
 def _save_checkpoint(
     path: Path,
-    adapter: Adapter,
+    adapter: nn.Module,
     optimizer: torch.optim.Optimizer,
     step: int,
     identity: dict[str, str],
 ) -> None:
+    """Write the tables of ``adapter`` (an :class:`Adapter`, or a rig's ``ModuleList`` of
+    them), the Adam moments and ``identity`` as metadata, atomically."""
     names = [name for name, _ in adapter.named_parameters()]
-    tensors = {f"adapter.{name}": value for name, value in adapter.tensors().items()}
+    tensors = {
+        f"adapter.{name}": value.detach().to("cpu", torch.float32).contiguous().clone()
+        for name, value in adapter.state_dict().items()
+    }
     state = optimizer.state_dict()["state"]
     for index, name in enumerate(names):
         for key, value in state.get(index, {}).items():
@@ -130,7 +151,7 @@ def load_checkpoint(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], d
 
 
 def _restore_checkpoint(
-    path: Path, adapter: Adapter, optimizer: torch.optim.Optimizer, identity: dict[str, str]
+    path: Path, adapter: nn.Module, optimizer: torch.optim.Optimizer, identity: dict[str, str]
 ) -> int:
     tensors, metadata = load_checkpoint(path)
     for key, expected in identity.items():

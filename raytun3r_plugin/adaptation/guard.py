@@ -15,6 +15,7 @@ from torch import nn
 from raytun3r_plugin.adaptation.losses import pe_correction_grid, pe_l2
 from raytun3r_plugin.adaptation.problem import AdaptationProblem
 from raytun3r_plugin.adapter import Adapter
+from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.prediction import predict
 
 __all__ = ["GUARD_MIN_CORRELATION", "GUARD_SPREAD_RANGE", "depth_health", "fit_verdict"]
@@ -41,7 +42,7 @@ def depth_health(reference: torch.Tensor, current: torch.Tensor) -> tuple[float,
 
 
 class _CollapseGuard:
-    """Every ``guard_every`` steps: predict window 0, compare its log-depth with the zero
+    """Every ``guard_every`` steps: predict window 0 (of every camera, for a rig), compare its log-depth with the zero
     adapter's (:func:`depth_health`), keep a copy of the tables while healthy and restore the
     last healthy copy when not.
 
@@ -52,16 +53,25 @@ class _CollapseGuard:
 
     def __init__(
         self,
-        problem: AdaptationProblem,
+        problem: AdaptationProblem | None,
         min_correlation: float | None = None,
         spread_range: tuple[float, float] | None = None,
+        *,
+        images: torch.Tensor | None = None,
+        valid: torch.Tensor | None = None,
     ) -> None:
         self.min_correlation = (
             GUARD_MIN_CORRELATION if min_correlation is None else float(min_correlation)
         )
         self.spread_range = tuple(GUARD_SPREAD_RANGE if spread_range is None else spread_range)
-        self.images = problem.batch(0)
-        self.valid = problem.valid
+        # The views of one forward, (S, 3, H, W), and where their depth counts: (H, W) for one
+        # camera's views, (S, H, W) per view (a rig forward lays several cameras' views out).
+        if images is None or valid is None:
+            if problem is None:
+                raise InputError("_CollapseGuard needs a problem, or images and valid")
+            images, valid = problem.batch(0), problem.valid
+        self.images: torch.Tensor = images
+        self.valid: torch.Tensor = valid
         self.reference: torch.Tensor | None = None
         self.snapshot: dict[str, torch.Tensor] | None = None
         self.healthy_step = 0
@@ -81,7 +91,7 @@ class _CollapseGuard:
         """
         depth = self._depth(model)
         if self.reference is None:
-            self.usable = self.valid[None].expand_as(depth) & torch.isfinite(depth) & (depth > 0)
+            self.usable = self.valid.expand_as(depth) & torch.isfinite(depth) & (depth > 0)
             self.reference = torch.log(depth[self.usable])
             self.snapshot = {name: p.detach().clone() for name, p in adapter.named_parameters()}
             self.healthy_step = step
@@ -100,6 +110,7 @@ class _CollapseGuard:
             self.snapshot = {name: p.detach().clone() for name, p in adapter.named_parameters()}
             self.healthy_step = step
             return True
+        assert self.snapshot is not None  # taken at the first check
         with torch.no_grad():
             for name, parameter in adapter.named_parameters():
                 parameter.copy_(self.snapshot[name])
@@ -152,11 +163,11 @@ def fit_verdict(
     size = f"PE correction {100 * relative:.1f} % of the PE rms, RoPE shift up to {rope:.3f} token"
     if parallax is not None and parallax["windows_kept"] == 0:
         status = "no signal"
-        finite = [m for m in parallax["window_median_px"] if m is not None]
+        medians = [m for m in parallax["window_median_px"] if m is not None]
         summary = (
             f"NO SIGNAL: the matches of all {parallax['windows_dropped']} windows move less than "
             f"{parallax['min_parallax_px']} px per unit log depth (largest window median "
-            f"{max(finite, default=0.0):.3f} px; far points only, or no translation), so they "
+            f"{max(medians, default=0.0):.3f} px; far points only, or no translation), so they "
             "cannot tell near from far; no step taken, tables left as they started"
         )
     elif guard is not None and guard.tripped is not None:

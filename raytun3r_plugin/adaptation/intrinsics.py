@@ -38,16 +38,20 @@ from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
-from raytun3r_plugin.adaptation.pose_targets import (
-    _so3_exp,
-    _tangent_basis,
-    camera_focal_px,
-    tangent_sampson_error,
-    unproject_pixels,
+from raytun3r_plugin.adaptation.intrinsics_solver import (
+    JointIntrinsicsProblem,
+    LMState,
+    NormalEquations,
+    _collect_pairs,
+    _Intrinsics,
+    _PairData,
+    _rotation_deg,
 )
-from raytun3r_plugin.errors import CameraError, InputError
+from raytun3r_plugin.adaptation.pose_targets import (
+    camera_focal_px,
+)
+from raytun3r_plugin.errors import InputError
 
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.adaptation.windows import AdaptationSet
@@ -69,11 +73,6 @@ DISTORTION_TERM: dict[str, str | None] = {
     "mei": "xi",
     "fov": "omega",
 }
-
-# Finite-difference steps: relative focal (log units) and the distortion parameter.
-_EPS_FOCAL = 1e-6
-_EPS_DIST = 1e-6
-_EPS_POSE = 1e-7
 
 
 def distortion_term(camera: Camera) -> str | None:
@@ -150,88 +149,6 @@ class IntrinsicsReport:
 
 
 # --------------------------------------------------------------------------------------------
-# Data
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class _PairData:
-    uv_i: np.ndarray  # (M, 2) native pixels
-    uv_j: np.ndarray
-    R: np.ndarray  # (3, 3) start rotation
-    t: np.ndarray  # (3,) start unit translation
-
-
-def _collect_pairs(adaptation: AdaptationSet, max_matches: int) -> list[_PairData]:
-    """Each distinct ordered global pair once, its target's inliers, evenly subsampled."""
-    seen: set[tuple[int, int]] = set()
-    out: list[_PairData] = []
-    for window in adaptation.windows:
-        for key, matches in window.pairs.items():
-            pair = window.global_pair(*key)
-            target = window.targets.get(key)
-            if pair in seen or target is None or not target.ok:
-                continue
-            seen.add(pair)
-            idx = np.flatnonzero(target.inlier_mask)
-            if idx.size > max_matches:
-                # Evenly spaced, not random: the result must not depend on a generator.
-                idx = idx[np.linspace(0, idx.size - 1, max_matches).round().astype(np.int64)]
-            if idx.size < 8:
-                continue
-            out.append(
-                _PairData(
-                    np.asarray(matches.uv_i, np.float64)[idx],
-                    np.asarray(matches.uv_j, np.float64)[idx],
-                    target.R.copy(),
-                    target.t.copy(),
-                )
-            )
-    return out
-
-
-def _rotation_deg(R: np.ndarray) -> float:
-    return math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0))))
-
-
-class _Intrinsics:
-    """The camera as a function of ``(s, d)``: focal factor ``exp(s)``, distortion value ``d``."""
-
-    def __init__(self, camera: Camera, dist_index: int | None) -> None:
-        self.camera = camera
-        self.base = camera.params.detach().to(torch.float64).clone()
-        self.dist_index = dist_index
-
-    def start(self) -> np.ndarray:
-        d = 0.0 if self.dist_index is None else float(self.base[self.dist_index])
-        return np.array([0.0, d])
-
-    def make(self, x: np.ndarray) -> Camera:
-        p = self.base.clone()
-        p[:2] = p[:2] * math.exp(float(x[0]))
-        if self.dist_index is not None:
-            p[self.dist_index] = float(x[1])
-        return type(self.camera)(
-            self.camera.width, self.camera.height, p, max_fov_deg=self.camera.max_fov_deg
-        )
-
-
-def _rays(camera: Camera, pairs: list[_PairData]) -> list[tuple[np.ndarray, np.ndarray]]:
-    uv = np.concatenate([np.concatenate([p.uv_i, p.uv_j]) for p in pairs])
-    rays, _ = unproject_pixels(camera, uv)
-    out, start = [], 0
-    for p in pairs:
-        m = len(p.uv_i)
-        out.append((rays[start : start + m], rays[start + m : start + 2 * m]))
-        start += 2 * m
-    return out
-
-
-def _robust(res: np.ndarray, scale: float) -> float:
-    return float(np.sum(np.log1p((res / scale) ** 2)))
-
-
-# --------------------------------------------------------------------------------------------
 # Refinement
 # --------------------------------------------------------------------------------------------
 
@@ -275,27 +192,8 @@ def refine_intrinsics(
             (``pinhole``: refine ``("focal",)``), fewer than ``min_pairs`` usable pairs, or
             bad settings.
     """
-    names = [str(p) for p in params]
     dist_name = distortion_term(camera)
-    want_focal = "focal" in names
-    want_dist = False
-    for name in names:
-        if name == "focal":
-            continue
-        if name == "k1" or name == dist_name:
-            if dist_name is None:
-                raise InputError(
-                    f"camera model {camera.model!r} has no distortion term to refine; "
-                    "use params=('focal',)"
-                )
-            want_dist = True
-            continue
-        raise InputError(
-            f"refine_intrinsics: unknown parameter {name!r}; expected 'focal' and/or 'k1' "
-            f"(this model's first distortion term is {dist_name!r})"
-        )
-    if not (want_focal or want_dist):
-        raise InputError("refine_intrinsics: params is empty")
+    want_focal, want_dist = _parse_params(camera, params)
     for label, ok in (
         ("robust_px", robust_px > 0),
         ("max_iterations", max_iterations >= 1),
@@ -316,220 +214,152 @@ def refine_intrinsics(
     dist_index = (
         list(camera.param_names).index(dist_name) if want_dist and dist_name is not None else None
     )
-    model = _Intrinsics(camera, dist_index)
-    free = np.array([want_focal, want_dist])
     focal0 = camera_focal_px(camera)
-    scale = robust_px / focal0  # radians
+    problem = JointIntrinsicsProblem(
+        _Intrinsics(camera, dist_index),
+        pairs,
+        np.array([want_focal, want_dist]),
+        robust_px / focal0,  # the Cauchy scale, radians
+    )
+    start = problem.start()
+    system = problem.normal_equations(start)
+    std0 = problem.std_of(system)
+    report = _Reporter(
+        camera,
+        refined_names,
+        dist_name,
+        start,
+        std0,
+        focal0,
+        pairs,
+        {
+            "robust_px": robust_px,
+            "max_iterations": max_iterations,
+            "max_matches_per_pair": max_matches_per_pair,
+            "min_pairs": min_pairs,
+            "max_focal_std": max_focal_std,
+        },
+    )
+    if want_focal and not std0[0] <= max_focal_std:
+        return camera, report(
+            camera,
+            start,
+            system,
+            std0,
+            0,
+            False,
+            reason=f"the matches do not determine the focal: estimated standard deviation "
+            f"{std0[0]:.3g} > max_focal_std {max_focal_std:g} ({report.rotating} of "
+            f"{len(pairs)} pairs rotate by more than 1 degree; pure forward translation "
+            "constrains neither focal nor radial distortion)",
+        )
+    state, system, iterations, converged = problem.solve(start, system, max_iterations, tolerance)
+    std = problem.std_of(system)
+    if want_focal and not std[0] <= max_focal_std:
+        return camera, report(
+            camera,
+            start,
+            system,
+            std,
+            iterations,
+            converged,
+            reason=f"the fit does not determine the focal: estimated standard deviation "
+            f"{std[0]:.3g} > max_focal_std {max_focal_std:g}",
+        )
+    refined = problem.intrinsics.make(state.x)
+    return refined, report(refined, state, system, std, iterations, converged)
 
-    def values(cam: Camera) -> dict[str, float]:
-        out = {"fx": float(cam.params[0]), "fy": float(cam.params[1])}
-        if dist_name is not None:
-            out[dist_name] = float(cam.params[list(cam.param_names).index(dist_name)])
+
+def _parse_params(camera: Camera, params: tuple[str, ...] | list[str]) -> tuple[bool, bool]:
+    """``(refine the focal, refine the distortion term)`` from ``params``; refuses the rest."""
+    dist_name = distortion_term(camera)
+    want_focal, want_dist = False, False
+    for name in (str(p) for p in params):
+        if name == "focal":
+            want_focal = True
+        elif name == "k1" or name == dist_name:
+            if dist_name is None:
+                raise InputError(
+                    f"camera model {camera.model!r} has no distortion term to refine; "
+                    "use params=('focal',)"
+                )
+            want_dist = True
+        else:
+            raise InputError(
+                f"refine_intrinsics: unknown parameter {name!r}; expected 'focal' and/or 'k1' "
+                f"(this model's first distortion term is {dist_name!r})"
+            )
+    if not (want_focal or want_dist):
+        raise InputError("refine_intrinsics: params is empty")
+    return want_focal, want_dist
+
+
+class _Reporter:
+    """Builds the :class:`IntrinsicsReport` of a refinement from its start and its end."""
+
+    def __init__(
+        self,
+        camera: Camera,
+        refined_names: list[str],
+        dist_name: str | None,
+        start: LMState,
+        std0: np.ndarray,
+        focal0: float,
+        pairs: list[_PairData],
+        settings: dict[str, Any],
+    ) -> None:
+        self.camera, self.names, self.dist_name = camera, refined_names, dist_name
+        self.start, self.std0, self.focal0 = start, std0, focal0
+        self.pairs, self.settings = pairs, settings
+        self.rotating = sum(1 for p in pairs if _rotation_deg(p.R) > 1.0)
+
+    def values(self, camera: Camera) -> dict[str, float]:
+        out = {"fx": float(camera.params[0]), "fy": float(camera.params[1])}
+        if self.dist_name is not None:
+            out[self.dist_name] = float(
+                camera.params[list(camera.param_names).index(self.dist_name)]
+            )
         return out
 
-    x = model.start()
-    poses = [(p.R.copy(), p.t.copy()) for p in pairs]
-    rays = _rays(camera, pairs)
-
-    def residuals(
-        ray_list: list[tuple[np.ndarray, np.ndarray]],
-        pose_list: list[tuple[np.ndarray, np.ndarray]],
-    ) -> list[np.ndarray]:
-        return [
-            np.nan_to_num(tangent_sampson_error(R, t, f1, f2), nan=1.0, posinf=1.0, neginf=-1.0)
-            for (f1, f2), (R, t) in zip(ray_list, pose_list, strict=True)
-        ]
-
-    def normal_equations(
-        x: np.ndarray,
-        ray_list: list[tuple[np.ndarray, np.ndarray]],
-        pose_list: list[tuple[np.ndarray, np.ndarray]],
-        res: list[np.ndarray],
-    ) -> tuple[list, np.ndarray, np.ndarray, float, int]:
-        """Per pair (H_pp, H_pc, g_p), the intrinsic H_cc, g_c, and sum(w r^2), count."""
-        # Intrinsic Jacobian: central differences through unproject (every pair at once).
-        jac_c = [np.zeros((len(r), 2)) for r in res]
-        for k, eps in ((0, _EPS_FOCAL), (1, _EPS_DIST)):
-            if not free[k]:
-                continue
-            step = np.eye(2)[k] * eps
-            plus = residuals(_rays(model.make(x + step), pairs), pose_list)
-            minus = residuals(_rays(model.make(x - step), pairs), pose_list)
-            for j, (a, b) in enumerate(zip(plus, minus, strict=True)):
-                jac_c[j][:, k] = (a - b) / (2 * eps)
-        blocks = []
-        H_cc, g_c = np.zeros((2, 2)), np.zeros(2)
-        wr2, count = 0.0, 0
-        for (f1, f2), (R, t), r, Jc in zip(ray_list, pose_list, res, jac_c, strict=True):
-            B = _tangent_basis(t)
-            cols = []
-            for k in range(5):
-                if k < 3:
-                    R2, t2 = _so3_exp(_EPS_POSE * np.eye(3)[k]) @ R, t
-                else:
-                    R2, t2 = R, t + _EPS_POSE * B[:, k - 3]
-                    t2 = t2 / np.linalg.norm(t2)
-                cols.append((tangent_sampson_error(R2, t2, f1, f2) - r) / _EPS_POSE)
-            Jp = np.stack(cols, axis=1)
-            w = 1.0 / (1.0 + (r / scale) ** 2)  # IRLS weights of the Cauchy loss
-            Jpw, Jcw = Jp * w[:, None], Jc * w[:, None]
-            blocks.append((Jp.T @ Jpw, Jpw.T @ Jc, Jp.T @ (w * r)))
-            H_cc += Jc.T @ Jcw
-            g_c += Jcw.T @ r
-            wr2 += float(np.sum(w * r**2))
-            count += len(r)
-        return blocks, H_cc, g_c, wr2, count
-
-    def reduced(blocks: list, H_cc: np.ndarray, lam: float = 0.0) -> np.ndarray:
-        S = H_cc.copy()
-        for H_pp, H_pc, _ in blocks:
-            A = H_pp + lam * np.diag(np.diag(H_pp) + 1e-12)
-            S -= H_pc.T @ np.linalg.solve(A, H_pc)
-        return S
-
-    def std_of(blocks: list, H_cc: np.ndarray, wr2: float, count: int) -> np.ndarray:
-        """Standard deviations of (s, d) from the reduced undamped Hessian."""
-        S = reduced(blocks, H_cc)[np.ix_(free, free)]
-        dof = max(1, count - 5 * len(blocks) - int(free.sum()))
-        sigma2 = wr2 / dof
-        try:
-            cov = sigma2 * np.linalg.inv(S)
-            diag = np.diag(cov)
-        except np.linalg.LinAlgError:
-            diag = np.full(int(free.sum()), np.inf)
-        out = np.full(2, np.nan)
-        out[free] = np.sqrt(np.where(diag > 0, diag, np.inf))
-        return out
-
-    def rms_px(res: list[np.ndarray]) -> float:
+    def rms_px(self, res: list[np.ndarray]) -> float:
         flat = np.concatenate(res)
-        return float(np.sqrt(np.mean(flat**2)) * focal0)
+        return float(np.sqrt(np.mean(flat**2)) * self.focal0)
 
-    res = residuals(rays, poses)
-    cost0 = sum(_robust(r, scale) for r in res)
-    error0 = rms_px(res)
-    blocks, H_cc, g_c, wr2, count = normal_equations(x, rays, poses, res)
-    std0 = std_of(blocks, H_cc, wr2, count)
-    n_rot = sum(1 for p in pairs if _rotation_deg(p.R) > 1.0)
-    settings = {
-        "robust_px": robust_px,
-        "max_iterations": max_iterations,
-        "max_matches_per_pair": max_matches_per_pair,
-        "min_pairs": min_pairs,
-        "max_focal_std": max_focal_std,
-    }
-
-    def report(
-        cam: Camera,
-        refined: bool,
-        reason: str,
-        err: float,
-        cost: float,
+    def __call__(
+        self,
+        camera: Camera,
+        state: LMState,
+        system: NormalEquations,
         std: np.ndarray,
-        it: int,
-        conv: bool,
+        iterations: int,
+        converged: bool,
+        reason: str = "",
     ) -> IntrinsicsReport:
-        initial, final = values(camera), values(cam)
+        """The report; ``reason`` non-empty: the camera was left unchanged (errors and costs
+        are then the start's)."""
+        refined = not reason
+        end = state if refined else self.start
+        initial, final = self.values(self.camera), self.values(camera)
+        want_focal, want_dist = "focal" in self.names, len(self.names) > int("focal" in self.names)
         return IntrinsicsReport(
-            model=str(camera.model),
-            params=refined_names,
+            model=str(self.camera.model),
+            params=self.names,
             refined=refined,
             reason=reason,
             initial=initial,
             final=final,
             focal_change=final["fx"] / initial["fx"] - 1.0,
-            error_before_px=error0,
-            error_after_px=err,
-            cost_before=cost0,
-            cost_after=cost,
-            focal_std_before=float(std0[0]) if want_focal else float("nan"),
+            error_before_px=self.rms_px(self.start.res),
+            error_after_px=self.rms_px(end.res),
+            cost_before=self.start.cost,
+            cost_after=end.cost,
+            focal_std_before=float(self.std0[0]) if want_focal else float("nan"),
             focal_std=float(std[0]) if want_focal else float("nan"),
             distortion_std=float(std[1]) if want_dist else None,
-            pairs_used=len(pairs),
-            matches_used=count,
-            pairs_rotating=n_rot,
-            iterations=it,
-            converged=conv,
-            settings=settings,
+            pairs_used=len(self.pairs),
+            matches_used=system.count,
+            pairs_rotating=self.rotating,
+            iterations=iterations,
+            converged=converged,
+            settings=self.settings,
         )
-
-    if want_focal and not std0[0] <= max_focal_std:
-        return camera, report(
-            camera,
-            False,
-            f"the matches do not determine the focal: estimated standard deviation "
-            f"{std0[0]:.3g} > max_focal_std {max_focal_std:g} ({n_rot} of {len(pairs)} pairs "
-            "rotate by more than 1 degree; pure forward translation constrains neither focal "
-            "nor radial distortion)",
-            error0,
-            cost0,
-            std0,
-            0,
-            False,
-        )
-
-    lam, cost, converged, iterations = 1e-3, cost0, False, 0
-    for _ in range(max_iterations):
-        iterations += 1
-        improved = False
-        for _attempt in range(10):
-            try:
-                S = reduced(blocks, H_cc, lam)
-                b = g_c.copy()
-                sols = []
-                for H_pp, H_pc, g_p in blocks:
-                    A = H_pp + lam * np.diag(np.diag(H_pp) + 1e-12)
-                    sol = np.linalg.solve(A, np.stack([g_p, *H_pc.T], axis=1))
-                    sols.append(sol)
-                    b -= H_pc.T @ sol[:, 0]
-                S = S + lam * np.diag(np.diag(S) + 1e-12)
-                dx = np.zeros(2)
-                dx[free] = -np.linalg.solve(S[np.ix_(free, free)], b[free])
-            except np.linalg.LinAlgError:
-                lam *= 10.0
-                continue
-            new_poses = []
-            for (R, t), sol in zip(poses, sols, strict=True):
-                # dp = -A^-1 (g_p + H_pc dx)
-                dp = -(sol[:, 0] + sol[:, 1:] @ dx)
-                t_new = t + _tangent_basis(t) @ dp[3:]
-                new_poses.append((_so3_exp(dp[:3]) @ R, t_new / np.linalg.norm(t_new)))
-            x_new = x + dx
-            try:
-                new_rays = _rays(model.make(x_new), pairs)
-            except CameraError:  # the step left the model's domain: damp more
-                lam *= 10.0
-                continue
-            new_res = residuals(new_rays, new_poses)
-            new_cost = sum(_robust(r, scale) for r in new_res)
-            if new_cost < cost:
-                converged = cost - new_cost < tolerance * max(cost, 1e-30)
-                x, poses, rays, res, cost = x_new, new_poses, new_rays, new_res, new_cost
-                lam = max(lam / 10.0, 1e-12)
-                improved = True
-                break
-            lam *= 10.0
-        if not improved:
-            converged = True  # no damped step lowers the cost: a (local) minimum
-            break
-        blocks, H_cc, g_c, wr2, count = normal_equations(x, rays, poses, res)
-        if converged:
-            break
-
-    refined_camera = model.make(x)
-    std = std_of(blocks, H_cc, wr2, count)
-    if want_focal and not std[0] <= max_focal_std:
-        return camera, report(
-            camera,
-            False,
-            f"the fit does not determine the focal: estimated standard deviation {std[0]:.3g} "
-            f"> max_focal_std {max_focal_std:g}",
-            error0,
-            cost0,
-            std,
-            iterations,
-            converged,
-        )
-    return refined_camera, report(
-        refined_camera, True, "", rms_px(res), cost, std, iterations, converged
-    )

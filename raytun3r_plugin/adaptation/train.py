@@ -21,8 +21,7 @@ Determinism: the window of step ``k`` and the match subset it uses are functions
 ``(seed, k)`` only, so the same seed gives identical tables, and a resumed run continues exactly
 where the interrupted one stopped.
 
-The run is split at its seams (each module re-exported here, so ``from
-raytun3r_plugin.adaptation.train import X`` keeps working for every name it ever offered):
+The run is split at its seams; each name lives in one module and is imported from there:
 
 * :mod:`~raytun3r_plugin.adaptation.config`: :class:`AdaptConfig` and the default loss weights;
 * :mod:`~raytun3r_plugin.adaptation.problem`: :func:`prepare_problem` (frames, masks, pairs,
@@ -31,7 +30,9 @@ raytun3r_plugin.adaptation.train import X`` keeps working for every name it ever
   :func:`objective_value`;
 * :mod:`~raytun3r_plugin.adaptation.checkpoint`: artefact paths, loss log, checkpoint;
 * :mod:`~raytun3r_plugin.adaptation.guard`: the collapse guard and :func:`fit_verdict`;
-* this module: :func:`adapt`, the loop that ties them together.
+* :mod:`~raytun3r_plugin.adaptation.loop`: the optimisation loop :func:`adapt` and
+  :func:`~raytun3r_plugin.adaptation.rig.adapt_rig` share;
+* this module: :func:`adapt`, which prepares a camera's fit and runs it on that loop.
 """
 
 from __future__ import annotations
@@ -41,7 +42,6 @@ import json
 import math
 import os
 import sys
-import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -49,23 +49,13 @@ import torch
 from torch import nn
 
 from raytun3r_plugin.adaptation.checkpoint import (
-    CHECKPOINT_FORMAT,
-    CHECKPOINT_VERSION,
     _restore_checkpoint,
-    _rewrite_log,
     _save_checkpoint,
     artifact_paths,
-    load_checkpoint,
     read_loss_log,
     write_loss_artifacts,
 )
 from raytun3r_plugin.adaptation.config import (
-    PE_REGULARISERS,
-    POSE_SOURCES,
-    SCALES,
-    SELF_SUPERVISED_WEIGHTS,
-    SUPERVISED_WEIGHTS,
-    TEACHER_WEIGHTS,
     TERMS,
     AdaptConfig,
 )
@@ -73,121 +63,29 @@ from raytun3r_plugin.adaptation.guard import (
     GUARD_MIN_CORRELATION,
     GUARD_SPREAD_RANGE,
     _CollapseGuard,
-    depth_health,
     fit_verdict,
 )
-from raytun3r_plugin.adaptation.losses import LossWeights
+from raytun3r_plugin.adaptation.loop import run_fit_loop
 from raytun3r_plugin.adaptation.problem import (
-    MAX_DEPTH_SAMPLES,
     AdaptationProblem,
     prepare_problem,
-    scene_mask,
     split_segments,
     with_pose_targets,
 )
 from raytun3r_plugin.adaptation.step import (
-    _frozen,
     adaptation_step,
-    objective_value,
     regulariser_scale,
-    window_of_step,
     window_parallax,
-    window_terms,
 )
 from raytun3r_plugin.adaptation.teacher import teacher_coverage, teacher_targets
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
 from raytun3r_plugin.patching import apply, handle_of
-from raytun3r_plugin.preprocess import InputLayout, input_layout
 
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
 
-__all__ = [
-    "CHECKPOINT_FORMAT",
-    "CHECKPOINT_VERSION",
-    "GUARD_MIN_CORRELATION",
-    "GUARD_SPREAD_RANGE",
-    "MAX_DEPTH_SAMPLES",
-    "PE_REGULARISERS",
-    "POSE_SOURCES",
-    "SCALES",
-    "SELF_SUPERVISED_WEIGHTS",
-    "SUPERVISED_WEIGHTS",
-    "TEACHER_WEIGHTS",
-    "TERMS",
-    "AdaptConfig",
-    "AdaptationProblem",
-    "InputLayout",
-    "LossWeights",
-    "adapt",
-    "adaptation_step",
-    "artifact_paths",
-    "depth_health",
-    "fit_verdict",
-    "input_layout",
-    "load_checkpoint",
-    "objective_value",
-    "prepare_problem",
-    "read_loss_log",
-    "scene_mask",
-    "window_of_step",
-    "window_terms",
-    "write_loss_artifacts",
-]
-
-
-# --------------------------------------------------------------------------------------------
-# Progress
-# --------------------------------------------------------------------------------------------
-
-
-class _Progress:
-    """A tqdm bar on a terminal; off a terminal (a log file, a pipe, a notebook's captured
-    stream) one line to stderr every :attr:`every_s` seconds and at the end, so a log holds
-    lines, not one carriage-return line of thousands of characters."""
-
-    every_s = 5.0
-
-    def __init__(self, total: int, initial: int, enabled: bool) -> None:
-        self.enabled = enabled
-        self.total = total
-        self.bar = None
-        self.last = time.monotonic()
-        if enabled and _is_terminal(sys.stderr):
-            try:
-                from tqdm.auto import tqdm
-
-                self.bar = tqdm(
-                    total=total, initial=initial, desc="adapt", unit="step", dynamic_ncols=True
-                )
-            except ImportError:
-                self.bar = None
-
-    def update(self, step: int, loss: float) -> None:
-        if not self.enabled:
-            return
-        if self.bar is not None:
-            self.bar.update(1)
-            self.bar.set_postfix(loss=f"{loss:.4g}", refresh=False)
-            return
-        now = time.monotonic()
-        if now - self.last >= self.every_s or step + 1 == self.total:
-            self.last = now
-            print(
-                f"adapt: step {step + 1}/{self.total} loss {loss:.4g}", file=sys.stderr, flush=True
-            )
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-
-def _is_terminal(stream: Any) -> bool:
-    try:
-        return bool(stream.isatty())
-    except (AttributeError, ValueError):
-        return False
+__all__ = ["adapt"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -373,78 +271,45 @@ def adapt(
     start = 0
     if paths is not None and resume and tune is None and paths["checkpoint"].is_file():
         start = _restore_checkpoint(paths["checkpoint"], adapter, optimizer, identity)
-    if paths is not None:
-        paths["log"].parent.mkdir(parents=True, exist_ok=True)
-        if start == 0:
-            paths["log"].write_text("", encoding="utf-8")
-        else:
-            _rewrite_log(paths["log"], start)
     metadata = {
         **identity,
         "config_json": json.dumps(config.to_dict(), sort_keys=True, default=str),
     }
-
-    history: list[dict[str, Any]] = []
     # The thresholds are read here, at call time, so patching this module's constants takes effect.
     guard = (
         _CollapseGuard(problem, GUARD_MIN_CORRELATION, GUARD_SPREAD_RANGE)
         if config.guard and problem.windows
         else None
     )
-    # What the guard keeps and restores: the adapter's tables, or what tune mode fits instead.
-    guarded = adapter if tune is None else tune
-    completed, interrupted, began = start, False, time.perf_counter()
-    bar = _Progress(config.steps, start, progress)
-    log = open(paths["log"], "a", encoding="utf-8") if paths is not None else None  # noqa: SIM115
-    try:
-        with _frozen(model), torch.random.fork_rng(devices=[]):
-            torch.manual_seed(config.seed)
-            handle = apply(
-                model,
-                problem.layout.native_camera,
-                adapter,
-                components=config.components,
-                strict=False,
-                mask=problem.mask,
-            )
-            try:
-                if guard is not None:
-                    guard.check(model, guarded, start)
-                for step in range(start, config.steps if problem.windows else start):
-                    record = adaptation_step(model, adapter, optimizer, problem, config, step)
-                    completed = step + 1
-                    history.append(record)
-                    if log is not None:
-                        log.write(json.dumps(record) + "\n")
-                        log.flush()
-                    bar.update(step, record["loss"])
-                    if (
-                        guard is not None
-                        and (completed % config.guard_every == 0 or completed == config.steps)
-                        and not guard.check(model, guarded, completed)
-                    ):
-                        break
-                    if (
-                        paths is not None
-                        and tune is None
-                        and config.checkpoint_every
-                        and completed % config.checkpoint_every == 0
-                        and completed < config.steps
-                    ):
-                        _save_checkpoint(
-                            paths["checkpoint"], adapter, optimizer, completed, metadata
-                        )
-            except KeyboardInterrupt:
-                interrupted = True
-            finally:
-                handle.remove()
-    finally:
-        bar.close()
-        if log is not None:
-            log.close()
+    outcome = run_fit_loop(
+        model,
+        lambda: apply(
+            model,
+            problem.layout.native_camera,
+            adapter,
+            components=config.components,
+            strict=False,
+            mask=problem.mask,
+        ),
+        lambda step: adaptation_step(model, adapter, optimizer, problem, config, step),
+        steps=config.steps if problem.windows else start,
+        start=start,
+        seed=config.seed,
+        log_path=None if paths is None else paths["log"],
+        progress=progress,
+        guard=guard,
+        # What the guard keeps and restores: the adapter's tables, or what tune mode fits.
+        guarded=adapter if tune is None else tune,
+        guard_every=config.guard_every,
+        checkpoint=None
+        if paths is None or tune is not None
+        else lambda done: _save_checkpoint(paths["checkpoint"], adapter, optimizer, done, metadata),
+        checkpoint_every=config.checkpoint_every,
+    )
+    completed, history = outcome.completed, outcome.history
 
     adapter.training_info = _training_info(
-        config, problem, completed, history, interrupted, time.perf_counter() - began, start
+        config, problem, completed, history, outcome.interrupted, outcome.seconds, start
     )
     adapter.training_info["recipe"] = config.recipe_record(model)
     if intrinsics is not None:

@@ -16,7 +16,7 @@ import torch
 from raytun3r_plugin.adapter import FORMAT, FORMAT_VERSION, Adapter
 from raytun3r_plugin.errors import AdapterError
 
-__all__ = ["describe_file", "describe_record", "write_pe_picture"]
+__all__ = ["describe_file", "describe_record", "pe_correction_field", "write_pe_picture"]
 
 
 def describe_record(path: str | os.PathLike) -> dict[str, Any]:
@@ -210,21 +210,19 @@ def describe_file(path: str | os.PathLike) -> str:
     return "\n".join(lines)
 
 
-def write_pe_picture(adapter: Adapter, path: str | os.PathLike, long_side: int = 504) -> None:
-    """Write a PNG of the adapter's PE correction: its size ``||t_r(rho) + rho d_theta(theta)||``
-    per token (PE units) over the network input the adapter was fitted at (or ``long_side``
-    px), black outside the lens. A fresh adapter is flat zero; a fitted one shows where the
-    correction acts (typically growing towards the rim).
+def pe_correction_field(adapter: Adapter, long_side: int = 504):
+    """The adapter's PE correction size ``||t_r(rho) + rho d_theta(theta)||`` (PE units) per
+    pixel of the network input it was fitted at (or ``long_side`` px), each token's value over its
+    patch: ``(values (H, W) float64, lens (H, W) bool, title)``. A fresh adapter is flat zero; a
+    fitted one shows where the correction acts (typically growing towards the rim).
 
     Raises:
         AdapterError: the adapter carries no camera.
     """
-    import cv2
     import numpy as np
 
     from raytun3r_plugin.adaptation.losses import pe_correction_grid
     from raytun3r_plugin.geometry import GeometryCache
-    from raytun3r_plugin.plots import heatmap
     from raytun3r_plugin.preprocess import fitted_source_camera, input_layout
 
     if adapter.camera is None:
@@ -251,5 +249,29 @@ def write_pe_picture(adapter: Adapter, path: str | os.PathLike, long_side: int =
         size = pe_correction_grid(adapter, geometry).norm(dim=-1).cpu().numpy()
     pixels = np.kron(size, np.ones((adapter.patch_size, adapter.patch_size)))
     lens = layout.camera.valid_mask().cpu().numpy().astype(bool)
-    title = f"PE correction size per token ({adapter.backbone}, {layout.width}x{layout.height} px)"
-    cv2.imwrite(str(path), heatmap(pixels, title, "PE units", valid=lens))
+    title = f"PE correction per token ({layout.width}x{layout.height} px input)"
+    return pixels, lens, title
+
+
+def write_pe_picture(adapter: Adapter, path: str | os.PathLike, long_side: int = 504) -> None:
+    """Write a PNG of the adapter's PE correction (:func:`pe_correction_field`) with a colour
+    bar in PE units: drawn with matplotlib (the ``viz`` extra), or with OpenCV's
+    :func:`~raytun3r_plugin.plots.heatmap` where matplotlib is not installed.
+
+    Raises:
+        AdapterError: the adapter carries no camera.
+    """
+    from pathlib import Path
+
+    from raytun3r_plugin.errors import MissingDependencyError
+    from raytun3r_plugin.figures import field_figure
+
+    pixels, lens, title = pe_correction_field(adapter, long_side)
+    try:
+        Path(path).write_bytes(field_figure(pixels, title, "PE units", valid=lens))
+    except MissingDependencyError:
+        import cv2
+
+        from raytun3r_plugin.plots import heatmap
+
+        cv2.imwrite(str(path), heatmap(pixels, title, "PE units", valid=lens))

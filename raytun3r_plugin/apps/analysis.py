@@ -78,10 +78,10 @@ def jacobian_report(
 
 
 def _picture(rows: list[dict], names: list[str], reference: bool, path: Path, side: int) -> None:
-    import cv2
-    import numpy as np
-
-    from raytun3r_plugin.plots import line_chart
+    """The two panels (sigma_1 and the area element over rho) side by side, 1280 px wide: with
+    matplotlib (the ``viz`` extra), else with OpenCV's :func:`~raytun3r_plugin.plots.line_chart`."""
+    from raytun3r_plugin.errors import MissingDependencyError
+    from raytun3r_plugin.figures import curves_figure
 
     rho = [row["rho"] for row in rows]
     panels = []
@@ -91,13 +91,17 @@ def _picture(rows: list[dict], names: list[str], reference: bool, path: Path, si
             series["camera reference"] = [row[f"reference_{quantity}"] for row in rows]
         series["pinhole (flat)"] = [1.0] * len(rows)
         label = "sigma_1" if quantity == "sigma1" else "area element"
-        panels.append(
-            line_chart(
-                series,
-                f"PE Jacobian {label} / centre, {side} px input",
-                x=rho,
-                x_label="rho",
-                size=(640, 400),
-            )
-        )
-    cv2.imwrite(str(path), np.concatenate(panels, axis=1))
+        panels.append((f"PE Jacobian {label} / centre, {side} px input", series))
+    try:
+        path.write_bytes(curves_figure(panels, rho, x_label="rho", size_px=(1280, 400)))
+    except MissingDependencyError:
+        import cv2
+        import numpy as np
+
+        from raytun3r_plugin.plots import line_chart
+
+        drawn = [
+            line_chart(series, title, x=rho, x_label="rho", size=(640, 400))
+            for title, series in panels
+        ]
+        cv2.imwrite(str(path), np.concatenate(drawn, axis=1))

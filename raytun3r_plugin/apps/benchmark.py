@@ -23,6 +23,14 @@ from typing import Any
 
 from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
 from raytun3r_plugin.apps.fits import adapt_config, fit_description, supervised_config
+from raytun3r_plugin.apps.sequence_methods import (  # noqa: F401 - also imported from here
+    METHOD_KEYS,
+    SUPERVISED,
+    ZERO_ADAPTER,
+    ground_truth_depth,
+    method_rows,
+    timed_row,
+)
 from raytun3r_plugin.errors import InputError
 
 HELD_OUT_SEED = 90_000  # training of the default network uses seeds far below this
@@ -54,8 +62,6 @@ NEW_LENSES = (
     BenchCamera("EUCM 210", "eucm", 210.0, (("alpha", 0.62), ("beta", 1.2))),
 )
 SCENES = ("indoor", "outdoor")
-ZERO_ADAPTER = "raytun3r, no adapter"
-SUPERVISED = "raytun3r, supervised"
 #: Held-out sequences per (camera, scene): with one, the sign of a small difference is the draw of
 #: that sequence (on 30 development sequences the no-adapter patch lost to vanilla in d_reproj on
 #: 2 and in AbsRel on 2; docs/results.md, component table).
@@ -80,18 +86,6 @@ COLUMNS = [
     "ms_per_frame",
     "x_vanilla",
 ]
-
-
-def ground_truth_depth(seq, frames: int):
-    """Ground-truth range of the first ``frames`` frames as a user would pass it to ``adapt``:
-    0 (no value) on the sky, which has no depth."""
-    import numpy as np
-
-    sky = seq.meta.get("per_frame", {}).get("sky")
-    depth = np.asarray(seq.depth[:frames], dtype=np.float32).copy()
-    if sky is not None:
-        depth[np.asarray(sky[:frames], dtype=bool)] = 0.0
-    return depth
 
 
 def gap_closed(
@@ -195,16 +189,6 @@ def check_baselines(baselines: Iterable[str]) -> tuple[str, ...]:
     return tuple(name for name in BASELINES if name in names)
 
 
-def timed_row(model, seq, method: str, frames: list[int], adapter=None) -> dict:
-    """:func:`headline` scores of ``method`` on ``frames`` plus ``ms_per_frame``: wall time of
-    :func:`run_method` (the forward passes, with Multi-PH's resampling and fusion and the
-    patch's apply/remove; not the scoring) per scored frame, in milliseconds."""
-    start = time.perf_counter()
-    output = run_method(model, seq, method, adapter=adapter, frames=frames)
-    seconds = time.perf_counter() - start
-    return {**headline(score(seq, output)), "ms_per_frame": 1000.0 * seconds / len(frames)}
-
-
 @contextmanager
 def fitted_baseline(
     model, camera, frames, name: str, config, *, out_path=None, progress: bool = False
@@ -304,71 +288,22 @@ def sequence_rows(
     ``ms_per_frame`` (:func:`timed_row`) and ``x_vanilla`` (its ``ms_per_frame`` over vanilla's
     on this sequence)."""
     from raytun3r_plugin import synthetic
-    from raytun3r_plugin.adaptation.train import adapt
 
     baselines = check_baselines(baselines)
     seq = synthetic.render_sequence(scene, camera, n_frames=n_adapt + n_eval, seed=seed)
     held_out = list(range(n_adapt, len(seq)))
     cell = {"camera": label, "scene": scene, "seed": seed}
-    # One untimed window first: the first forward of a process pays one-off set-up costs that
-    # would otherwise make vanilla, the time reference, look slow.
-    run_method(model, seq, "vanilla", frames=held_out[:3])
-    rows = []
-    for method in ("vanilla", "center-ph", "multi-ph"):
-        rows.append(
-            {
-                **cell,
-                "method": method,
-                **timed_row(model, seq, method, held_out),
-                "adapt_s": math.nan,
-                "params": 0,
-            }
-        )
-    # The patch with a zero adapter: the parameter-free corrections alone, so the table shows
-    # what the fitted tables add on top of them.
-    zero = timed_row(model, seq, "raytun3r", held_out)
-    rows.append({**cell, "method": ZERO_ADAPTER, **zero, "adapt_s": math.nan, "params": 0})
-    start = time.perf_counter()
     path = out / f"{label.replace(' ', '_')}_{scene}_{seed}.safetensors"
-    adapter = adapt(
+    rows = method_rows(
         model,
-        camera,
-        seq.first_images(n_adapt),
-        adapt_config(size, steps, seed=0, recipe=recipe, **(fit_changes or {})),
-        out_path=path,
-        resume=False,
+        seq,
+        cell,
+        n_adapt,
+        METHOD_KEYS,
+        fit=adapt_config(size, steps, seed=0, recipe=recipe, **(fit_changes or {})),
+        supervised_fit=supervised_config(size, steps),
+        adapter_path=path,
         progress=progress,
-    )
-    seconds = time.perf_counter() - start
-    rows.append(
-        {
-            **cell,
-            "method": "raytun3r",
-            **timed_row(model, seq, "raytun3r", held_out, adapter=adapter),
-            "adapt_s": seconds,
-            "params": adapter.num_parameters()["total"],
-        }
-    )
-    start = time.perf_counter()
-    supervised = adapt(
-        model,
-        camera,
-        seq.first_images(n_adapt),
-        supervised_config(size, steps),
-        out_path=path.with_name(path.stem + "_supervised.safetensors"),
-        resume=False,
-        progress=progress,
-        depth=ground_truth_depth(seq, n_adapt),
-    )
-    seconds = time.perf_counter() - start
-    rows.append(
-        {
-            **cell,
-            "method": SUPERVISED,
-            **timed_row(model, seq, "raytun3r", held_out, adapter=supervised),
-            "adapt_s": seconds,
-            "params": supervised.num_parameters()["total"],
-        }
     )
     for name in baselines:
         with fitted_baseline(
@@ -470,6 +405,7 @@ def run_benchmark(
     recipe: str = "default",
     fit_changes: dict[str, Any] | None = None,
     jobs: int = 1,
+    address: str | None = None,
 ) -> str:
     """Run every (camera, scene) on ``sequences`` held-out sequences; return the markdown table.
 
@@ -477,12 +413,13 @@ def run_benchmark(
     row (``results.json``) and the table (``results.md``). ``first_sequence``: index ``k`` of
     each cell's first sequence (its seed is that of the full run's ``k``-th). ``baselines``: keys of
     :data:`BASELINES` (``("lora", "caltok")``) whose rows are added, each a fit per sequence;
-    they enter neither ``gap_closed`` nor the targets. ``jobs`` > 1 scores the sequences in that
-    many one-thread worker processes (:func:`~raytun3r_plugin.apps.workers.map_in_workers`,
-    ``model`` pickled to each); the table is the same up to the order of float sums, and its
-    timing columns are then those of one thread beside the other workers (the header says so).
+    they enter neither ``gap_closed`` nor the targets. ``jobs`` > 1 scores the sequences as
+    tasks on that many one-thread workers of an embedded Ray cluster, or on the cluster at
+    ``address`` (:func:`~raytun3r_plugin.cluster.map_tasks`, ``model`` sent once through the
+    object store); the table is the same up to the order of float sums, and its timing columns
+    are then those of one thread beside the other workers (the header says so).
     """
-    from raytun3r_plugin.apps.workers import map_in_workers
+    from raytun3r_plugin.cluster import ClusterSpec, map_tasks
 
     baselines = check_baselines(baselines)
     if jobs < 1:
@@ -497,7 +434,7 @@ def run_benchmark(
         "n_eval": n_eval,
         "steps": steps,
         "out": out,
-        "progress": progress and jobs == 1,
+        "progress": progress and jobs == 1 and address is None,
         "baselines": baselines,
         "recipe": recipe,
         "fit_changes": fit_changes,
@@ -515,8 +452,9 @@ def run_benchmark(
                 seed = sequence_seed(camera_index, scene_index, k, base_seed)
                 tasks.append((camera, spec.label, scene, seed, settings))
     results, began = {}, time.perf_counter()
-    for index, result in map_in_workers(
-        _sequence_rows_job, tasks, jobs, initializer=_same, initargs=(model,)
+    spec = ClusterSpec(address=address, workers=jobs)
+    for index, result in map_tasks(
+        _sequence_rows_job, tasks, spec, initializer=_same, initargs=(model,)
     ):
         results[index] = result
         _, label, scene, seed, _ = tasks[index]
@@ -561,8 +499,8 @@ def run_benchmark(
         f"(seeds {base_seed} + 100 k + 10 camera + scene); per sequence {n_adapt} adaptation frames "
         f"(30 windows, {fit_description(fit)}) and {n_eval} scored frames"
         + (
-            f"; {jobs} worker processes of one thread each (timings are one thread's beside the other workers)"
-            if jobs > 1
+            f"; {jobs} Ray workers of one thread each (timings are one thread's beside the other workers)"
+            if not spec.in_process
             else ""
         )
         + (

@@ -1,4 +1,5 @@
-"""``raytun3r`` command line: adapt, recipes, infer, eval, inspect, weights, demo, bench."""
+"""``raytun3r`` command line: adapt, recipes, infer, eval, inspect, weights, demo, bench, report,
+fleet."""
 
 from __future__ import annotations
 
@@ -12,6 +13,9 @@ from raytun3r_plugin.apps.cli_adapt import (  # the fitting commands
     add_fit_commands,
     parse_named_numbers,
 )
+from raytun3r_plugin.apps.cli_deploy import add_deploy_command  # export a model graph
+from raytun3r_plugin.apps.cli_fleet import add_fleet_commands
+from raytun3r_plugin.apps.cli_report import add_report_command
 from raytun3r_plugin.errors import InputError, Raytun3rError
 
 
@@ -99,11 +103,13 @@ def cmd_weights(args: argparse.Namespace) -> int:
 
 def cmd_infer(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adapter import Adapter
-    from raytun3r_plugin.apps.inference import predict_with_camera, write_outputs
+    from raytun3r_plugin.apps.cli_exports import export_options, write_infer_outputs
+    from raytun3r_plugin.apps.inference import predict_with_camera
     from raytun3r_plugin.cameras import load as load_camera
     from raytun3r_plugin.images import read_frames, read_mask
     from raytun3r_plugin.preprocess import layout_for_inference
 
+    options = export_options(args)  # the output options, checked before anything runs
     adapter = Adapter.load(args.adapter) if args.adapter else None
     if args.camera:
         camera = load_camera(args.camera, camera=args.camera_id)
@@ -123,21 +129,15 @@ def cmd_infer(args: argparse.Namespace) -> int:
         long_side=args.size or _default_long_side(adapter, model),
         strict=not args.no_strict,
     )
-    mask = (
-        layout.native_mask(read_mask(args.mask, frames.shape[2], frames.shape[1]))
-        if args.mask
-        else None
-    )
+    raw_mask = read_mask(args.mask, frames.shape[2], frames.shape[1]) if args.mask else None
+    native_mask = None if raw_mask is None else layout.native_mask(raw_mask)
     images = layout.frames(frames)[None]
     # Patched with the (cropped) native camera, as adapt patched the model: the adapter's camera
     # check compares like with like, and the patch rescales it to the input as during the fit.
     prediction = predict_with_camera(
-        model, layout.native_camera, adapter, images, strict=not args.no_strict, mask=mask
+        model, layout.native_camera, adapter, images, strict=not args.no_strict, mask=native_mask
     )
-    summary = write_outputs(args.out, prediction, images, layout.camera, names)
-    print(
-        f"wrote depth for {summary['frames']} frames, trajectory.txt and points.ply ({summary['points']:,} points) to {args.out}"
-    )
+    write_infer_outputs(args, options, prediction, images, layout, frames, names, raw_mask)
     return 0
 
 
@@ -156,8 +156,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     adapter = Adapter.load(args.adapter) if args.adapter else None
     # Scored at the long side the adapter was fitted at unless --size says otherwise.
     long_side = args.size or _default_long_side(adapter, model)
+    reader_options = {"camera": args.camera} if args.camera else {}
     seq = fit_sequence(
-        load_sequence(args.dataset, kind=args.kind), long_side, max_frames=args.max_frames
+        load_sequence(args.dataset, kind=args.kind, **reader_options),
+        long_side,
+        max_frames=args.max_frames,
     )
     if seq.cam_from_world is None:
         raise InputError(f"{args.dataset}: the sequence has no ground-truth poses to score against")
@@ -268,6 +271,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             network=description,
             baselines=baselines,
             jobs=args.jobs,
+            address=args.address,
         )
     else:
         table = run_benchmark(
@@ -278,6 +282,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             progress=True,
             baselines=baselines,
             jobs=args.jobs,
+            address=args.address,
         )
     print(table)
     return 0
@@ -309,7 +314,8 @@ def build_parser() -> argparse.ArgumentParser:
     rule = "each side rounded to multiples of the patch size, centre-cropped only beyond a 1%% aspect change (raytun3r_plugin.preprocess)"
     p = sub.add_parser(
         "infer",
-        help="apply an adapter and write depth (.npy, .png), poses (TUM) and a point cloud (.ply)",
+        help="apply an adapter and write depth (.npy, .png), poses (TUM), a point cloud (.ply) "
+        "and exports (COLMAP, nerfstudio, GLB, Rerun)",
     )
     _add_model_arguments(p)
     _add_frame_arguments(
@@ -332,9 +338,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="apply an adapter fitted on other weights or another camera",
     )
     p.add_argument("--out", required=True)
+    from raytun3r_plugin.apps.cli_exports import add_output_arguments
+
+    add_output_arguments(p)
     p.set_defaults(func=cmd_infer)
 
     add_fit_commands(sub, rule)
+    add_fleet_commands(sub)
+    add_deploy_command(sub)
 
     p = sub.add_parser(
         "eval", help="run a method on a dataset sequence and print the metrics table"
@@ -343,9 +354,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--dataset",
         required=True,
-        help="sequence folder or file (synthetic, colmap, scannetpp, tumvi, kitti360)",
+        help="sequence folder or file (synthetic, colmap, scannetpp, tumvi, kitti360, "
+        "eth3d_rig, adt, fiord)",
     )
     p.add_argument("--kind", default=None, help="reader to use (default: detect)")
+    p.add_argument(
+        "--camera",
+        default=None,
+        help="passed to the reader as camera=: the calibration file of a FIORD scene (required "
+        "there), the camera name of an ETH3D rig",
+    )
     p.add_argument(
         "--method",
         default="vanilla,center-ph,raytun3r",
@@ -420,8 +438,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--jobs",
         type=int,
         default=1,
-        help="worker processes of one thread each (default 1: the timing columns are then one "
-        "process's; more makes the run shorter and the timings one thread's beside the others)",
+        help="sequences scored at once, as Ray tasks of one thread each on an embedded cluster "
+        "(default 1: in this process, and the timing columns are one process's; more makes the "
+        "run shorter and the timings one thread's beside the others; docs/fleet.md)",
+    )
+    p.add_argument(
+        "--address",
+        default=None,
+        help="score the sequences on this Ray cluster instead ('auto', HOST:PORT, ray://HOST:PORT)",
     )
     p.set_defaults(func=cmd_bench)
 
@@ -445,6 +469,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bins", type=int, default=20, help="radius bins over rho in [0, 1]")
     p.add_argument("--out", default="jacobian", help="folder for jacobian.csv and jacobian.png")
     p.set_defaults(func=cmd_analyze_jacobian)
+
+    add_report_command(sub)
 
     p = sub.add_parser("backbones", help="list the backbone names load_backbone accepts")
     p.set_defaults(

@@ -105,7 +105,7 @@ def _adapt_config(args: argparse.Namespace, settings: dict, supervised: bool):
     """The ``AdaptConfig`` of ``raytun3r adapt``: the recipe (``--recipe``; ``supervised`` with
     ``--depth``, ``teacher-only`` with ``--teacher-only``, else ``default``), changed by the
     options given."""
-    from raytun3r_plugin.adaptation.train import AdaptConfig
+    from raytun3r_plugin.adaptation.config import AdaptConfig
 
     teacher = {
         key: value
@@ -158,7 +158,8 @@ def _held_out_frames(args: argparse.Namespace, segments: list, depths: list):
 
 def cmd_adapt(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adaptation.check import held_out_reprojection
-    from raytun3r_plugin.adaptation.train import adapt, artifact_paths
+    from raytun3r_plugin.adaptation.checkpoint import artifact_paths
+    from raytun3r_plugin.adaptation.train import adapt
     from raytun3r_plugin.cameras import load as load_camera
     from raytun3r_plugin.images import read_depth_maps, read_frames, read_mask
 
@@ -246,8 +247,8 @@ def _check_line(result: dict) -> str:
 
 
 def cmd_adapt_rig(args: argparse.Namespace) -> int:
+    from raytun3r_plugin.adaptation.config import AdaptConfig
     from raytun3r_plugin.adaptation.rig import adapt_rig, rig_artifact_paths
-    from raytun3r_plugin.adaptation.train import AdaptConfig
     from raytun3r_plugin.datasets.rig import load_eth3d_rig_set, load_tumvi_rig
 
     rig = (
@@ -259,7 +260,14 @@ def cmd_adapt_rig(args: argparse.Namespace) -> int:
     rig = rig.subset(list(instants))
     model = _load_model(args.backbone, args.weights)
     config = AdaptConfig.from_recipe(args.recipe or "rig", **_adapt_settings(args))
-    adapters = adapt_rig(model, rig, config, out_dir=args.out, cross_camera=args.cross_camera)
+    adapters = adapt_rig(
+        model,
+        rig,
+        config,
+        out_dir=args.out,
+        resume=not args.restart,
+        cross_camera=args.cross_camera,
+    )
     paths = rig_artifact_paths(args.out, rig.names)
     for name in rig.names:
         verdict = adapters[name].training_info["verdict"]["summary"]
@@ -467,5 +475,11 @@ def add_fit_commands(sub, rule: str) -> None:
         help="add reprojection terms between the cameras at each instant (docs/rigs.md)",
     )
     p.add_argument("--out", required=True, help="output folder: <camera>.safetensors per camera")
+    p.add_argument(
+        "--restart",
+        action="store_true",
+        help="start over even if a checkpoint of another run is in --out (default: an "
+        "interrupted run with the same settings resumes)",
+    )
     _add_fit_arguments(p)
     p.set_defaults(func=cmd_adapt_rig)

@@ -22,7 +22,7 @@ def adapt_config(
     (``weights={"pose": ...}``); ``changes`` change any other field. Everything not given is the
     recipe's, whatever the network.
     """
-    from raytun3r_plugin.adaptation.train import AdaptConfig
+    from raytun3r_plugin.adaptation.config import AdaptConfig
     from raytun3r_plugin.errors import InputError
 
     terms = {

@@ -1,4 +1,10 @@
-"""Independent jobs of the demo and the benchmark in one-thread worker processes.
+"""Independent jobs of ``raytun3r demo`` in one-thread worker processes.
+
+Kept for the demo only; everything else that loops over independent tasks (``raytun3r bench``,
+``raytun3r fleet``, the experiments) runs them with :mod:`raytun3r_plugin.cluster` (Ray). The
+demo is the first command a user runs, on the core install: Ray is an optional extra, and its
+start-up (``ray.init``, 6-12 s here) would add a fifth to a demo that takes about a minute on
+two cores (benchmarks/fleet_scaling.py measures the start-up; docs/fleet.md).
 
 The built-in network is small (112 px, a few hundred tokens per frame): its operators are too
 short for a second intra-op thread to pay much, while a second process scoring another sequence

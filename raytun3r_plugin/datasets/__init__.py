@@ -1,7 +1,8 @@
 """Image sequences with ground truth: one :class:`Sequence` type and readers for raytun3r's own
 folder format (synthetic data), COLMAP text models (ETH3D, ScanNet++ DSLR), nerfstudio
 ``transforms.json`` (ScanNet++), TUM-VI (ASL/EuRoC layout), KITTI-360 fisheye cameras, ETH3D
-multi-camera-rig scenes and Aria Digital Twin (Project Aria calibration JSON).
+multi-camera-rig scenes, Aria Digital Twin (Project Aria calibration JSON) and FIORD scenes (in
+the layout Wid3R's evaluation reads).
 
 Every reader returns a :class:`Sequence` and raises :class:`~raytun3r_plugin.errors.DatasetError`
 naming the file (and the line) on missing or malformed input. See
@@ -14,8 +15,9 @@ from pathlib import Path
 from typing import Any
 
 from raytun3r_plugin.datasets.aria import load_adt, read_aria_calibration, read_aria_trajectory
-from raytun3r_plugin.datasets.colmap import load_colmap, read_images_txt
+from raytun3r_plugin.datasets.colmap import load_colmap, read_images_bin, read_images_txt
 from raytun3r_plugin.datasets.eth3d import eth3d_rig_cameras, load_eth3d_rig, load_eth3d_rig_all
+from raytun3r_plugin.datasets.fiord import is_fiord_scene, load_fiord
 from raytun3r_plugin.datasets.folder import load_synthetic, write_sequence
 from raytun3r_plugin.datasets.kitti360 import load_kitti360
 from raytun3r_plugin.datasets.rig import Rig, load_eth3d_rig_set, load_tumvi_rig, rig_from_sequences
@@ -35,6 +37,7 @@ __all__ = [
     "load_eth3d_rig",
     "load_eth3d_rig_all",
     "load_eth3d_rig_set",
+    "load_fiord",
     "load_kitti360",
     "load_scannetpp_transforms",
     "load_sequence",
@@ -45,11 +48,12 @@ __all__ = [
     "rig_from_sequences",
     "read_aria_trajectory",
     "read_image",
+    "read_images_bin",
     "read_images_txt",
     "write_sequence",
 ]
 
-KINDS = ("synthetic", "colmap", "scannetpp", "tumvi", "kitti360", "eth3d_rig", "adt")
+KINDS = ("synthetic", "colmap", "scannetpp", "tumvi", "kitti360", "eth3d_rig", "adt", "fiord")
 
 
 def detect_kind(path: str | Path) -> str:
@@ -75,13 +79,15 @@ def detect_kind(path: str | Path) -> str:
         return "eth3d_rig"
     if (p / "aria_trajectory.csv").is_file():
         return "adt"
+    if is_fiord_scene(p):
+        return "fiord"
     for sub in (p, p / "sparse" / "0", p / "sparse", p / "colmap", p / "dslr_calibration_jpg"):
         if (sub / "images.txt").is_file() and (sub / "cameras.txt").is_file():
             return "colmap"
     raise DatasetError(
         f"{p}: cannot tell the dataset kind (no meta.json, transforms.json, mav0/, "
-        "calibration/ + data_poses/, rig_calibration/, aria_trajectory.csv, or "
-        "cameras.txt + images.txt)"
+        "calibration/ + data_poses/, rig_calibration/, aria_trajectory.csv, images_180/ + "
+        "colmap/model/ (FIORD), or cameras.txt + images.txt)"
     )
 
 
@@ -94,7 +100,7 @@ def load_sequence(path: str | Path, kind: str | None = None, **kw: Any) -> Seque
         **kw: passed to the reader (``load_kitti360`` needs ``sequence=`` unless ``data_poses``
             holds a single sequence; ``load_eth3d_rig`` needs ``camera=`` when the rig has
             several cameras, and reads ``rig_calibration_undistorted`` with ``undistorted=True``
-            or when only that one exists).
+            or when only that one exists; ``load_fiord`` needs ``camera=``).
     """
     p = Path(path)
     kind = kind or detect_kind(p)
@@ -123,4 +129,6 @@ def load_sequence(path: str | Path, kind: str | None = None, **kw: Any) -> Seque
         return load_eth3d_rig(p, **kw)
     if kind == "adt":
         return load_adt(p, **kw)
+    if kind == "fiord":
+        return load_fiord(p, **kw)
     raise DatasetError(f"unknown dataset kind {kind!r}; expected one of {KINDS}")

@@ -1,4 +1,5 @@
-"""COLMAP text models (``cameras.txt`` + ``images.txt``), as shipped by ETH3D and ScanNet++ DSLR.
+"""COLMAP models (``cameras.txt`` + ``images.txt``, as shipped by ETH3D and ScanNet++ DSLR; and
+the binary ``images.bin``, as FIORD ships it).
 
 ``images.txt`` holds two lines per image::
 
@@ -12,6 +13,7 @@ principal point by -0.5 px to raytun3r's pixel-centre convention).
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +21,7 @@ import numpy as np
 from raytun3r_plugin.datasets._common import fail, load_camera, parse_floats, quat_to_rot
 from raytun3r_plugin.datasets.sequence import Sequence
 
-__all__ = ["load_colmap", "read_images_txt"]
+__all__ = ["load_colmap", "read_images_bin", "read_images_txt"]
 
 
 def read_images_txt(path: str | Path) -> list[dict]:
@@ -87,6 +89,75 @@ def read_images_txt(path: str | Path) -> list[dict]:
                     f"expected the POINTS2D line of image {image_id} (X Y POINT3D_ID triples), got {len(pts)} fields",
                 )
             k += 1
+    return out
+
+
+def read_images_bin(path: str | Path) -> list[dict]:
+    """Parse a COLMAP binary ``images.bin`` (little-endian: uint64 image count; per image int32
+    IMAGE_ID, 4 float64 QW QX QY QZ, 3 float64 TX TY TZ, int32 CAMERA_ID, NUL-terminated NAME,
+    uint64 point count, then (float64 X, float64 Y, int64 POINT3D_ID) per point).
+
+    Returns the same records as :func:`read_images_txt`
+    (``image_id``, ``camera_id``, ``name``, ``cam_from_world`` (4, 4) float64), in file order,
+    with ``"line"`` the image's index in the file.
+
+    Raises:
+        DatasetError: missing file, truncated or malformed record, zero or non-unit quaternion,
+            duplicate image id.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise fail(p, None, "file not found")
+    data = p.read_bytes()
+    offset = 0
+
+    def take(fmt: str, what: str) -> tuple:
+        nonlocal offset
+        size = struct.calcsize(fmt)
+        if offset + size > len(data):
+            raise fail(p, None, f"truncated at byte {offset} while reading {what}")
+        values = struct.unpack_from(fmt, data, offset)
+        offset += size
+        return values
+
+    (count,) = take("<Q", "the image count")
+    out: list[dict] = []
+    ids: set[int] = set()
+    for index in range(count):
+        image_id, *vals = take("<i7d", f"image {index}")
+        (camera_id,) = take("<i", f"the camera id of image {image_id}")
+        end = data.find(b"\0", offset)
+        if end < 0:
+            raise fail(p, None, f"truncated in the name of image {image_id}")
+        try:
+            name = data[offset:end].decode("utf-8")
+        except UnicodeDecodeError:
+            raise fail(p, None, f"the name of image {image_id} is not UTF-8") from None
+        offset = end + 1
+        (points,) = take("<Q", f"the point count of image {image_id}")
+        if offset + 24 * points > len(data):
+            raise fail(p, None, f"truncated in the {points} points of image {image_id}")
+        offset += 24 * points
+        q = np.asarray(vals[:4], dtype=np.float64)
+        if not np.all(np.isfinite(vals)) or abs(np.linalg.norm(q) - 1.0) > 1e-2:
+            raise fail(p, None, f"image {image_id}: quaternion {q.tolist()} is not a unit vector")
+        if image_id in ids:
+            raise fail(p, None, f"IMAGE_ID {image_id} appears twice")
+        ids.add(image_id)
+        pose = np.eye(4)
+        pose[:3, :3] = quat_to_rot(q)
+        pose[:3, 3] = vals[4:]
+        out.append(
+            {
+                "image_id": image_id,
+                "camera_id": camera_id,
+                "name": name,
+                "cam_from_world": pose,
+                "line": index,
+            }
+        )
+    if offset != len(data):
+        raise fail(p, None, f"{len(data) - offset} bytes after the last of {count} images")
     return out
 
 

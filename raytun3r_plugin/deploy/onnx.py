@@ -1,0 +1,106 @@
+"""Write a frozen model as an ONNX graph and run one with ONNX Runtime (the ``deploy`` extra).
+
+The graph has one input, ``images`` (batch, views, 3, H, W) float32 in [0, 1], and three
+outputs, ``depth`` (batch, views, H, W), ``confidence`` (same shape) and ``cam_from_world``
+(batch, views, 4, 4), all of the shape it was frozen for. It needs neither raytun3r nor
+PyTorch to run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import warnings
+from pathlib import Path
+
+import torch
+
+from raytun3r_plugin._io import atomic_path
+from raytun3r_plugin.deploy.freeze import FrozenModel
+from raytun3r_plugin.errors import MissingDependencyError, UnsupportedUpstreamError
+
+INPUT_NAME = "images"
+OUTPUT_NAMES = ("depth", "confidence", "cam_from_world")
+_EXTRA_HINT = "pip install 'raytun3r[deploy]'"
+#: Families whose frozen model has no ONNX graph, and why (checked before anything is written).
+ONNX_BLOCKERS = {
+    "pi3": "Pi3's camera head orthogonalises every rotation with torch.linalg.svd, for which "
+    "ONNX has no operator",
+    "da3nested": "upstream's metric alignment (NestedDepthAnything3Net.forward) selects the "
+    "non-sky pixels with a boolean mask and takes quantiles over them, sizes that depend on the "
+    "data and that torch.export cannot trace; the frozen model (deploy.freeze) runs in PyTorch",
+}
+
+
+def _require(module: str):
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as error:
+        raise MissingDependencyError(
+            f"exporting to ONNX needs {module!r} ({error}); install it with: {_EXTRA_HINT}"
+        ) from error
+
+
+def export_onnx(frozen: FrozenModel, path: str | os.PathLike, opset: int = 18) -> Path:
+    """Write ``frozen`` as an ONNX file at ``path`` (atomically); returns the path.
+
+    Uses ``torch.onnx.export(dynamo=True)`` (torch.export, then onnxscript), with the shapes
+    ``frozen`` was frozen for; the weights are stored in the one file.
+    """
+    family = frozen.info.get("family")
+    if family in ONNX_BLOCKERS:
+        raise UnsupportedUpstreamError(
+            f"{family} cannot be exported to ONNX: {ONNX_BLOCKERS[family]}"
+        )
+    for module in ("onnx", "onnxscript"):
+        _require(module)
+    example = torch.zeros(frozen.shape, device=next(frozen.parameters()).device)
+    with (
+        atomic_path(path) as temporary,
+        warnings.catch_warnings(),
+        contextlib.redirect_stdout(io.StringIO()),
+    ):  # the exporter prints its progress and warns about deprecations of its own
+        warnings.simplefilter("ignore")
+        try:
+            program = torch.onnx.export(
+                frozen,
+                (example,),
+                dynamo=True,
+                input_names=[INPUT_NAME],
+                output_names=list(OUTPUT_NAMES),
+                opset_version=opset,
+                verbose=False,
+            )
+        except Exception as error:  # the exporter's own errors carry pages of context
+            summary = str(error).strip().splitlines()
+            raise UnsupportedUpstreamError(
+                f"{family}: torch.onnx.export failed ({type(error).__name__}: {summary[0] if summary else ''}); "
+                "the frozen model still runs in PyTorch"
+            ) from error
+        program.save(str(temporary), external_data=False)
+    return Path(path)
+
+
+def run_onnx(
+    path: str | os.PathLike, images: torch.Tensor, threads: int = 1
+) -> dict[str, torch.Tensor]:
+    """Run the ONNX graph at ``path`` with ONNX Runtime on the CPU: outputs by name.
+
+    images: (batch, views, 3, H, W) in [0, 1], the shape the graph was frozen for.
+    """
+    session = onnx_session(path, threads)
+    outputs = session.run(None, {INPUT_NAME: images.detach().cpu().float().numpy()})
+    names = [output.name for output in session.get_outputs()]
+    return {name: torch.from_numpy(value) for name, value in zip(names, outputs, strict=True)}
+
+
+def onnx_session(path: str | os.PathLike, threads: int = 1):
+    """An ONNX Runtime CPU session of the graph at ``path`` with ``threads`` intra-op threads."""
+    ort = _require("onnxruntime")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])

@@ -1,0 +1,316 @@
+"""Deployment for one camera and input size: the frozen model, the ONNX graph, ``raytun3r export``
+(docs/deployment.md).
+
+The default suite freezes every supported backbone in eager mode (fast) and writes one ONNX
+graph, of the built-in network through the command line, checked with ONNX Runtime against
+the eager patched model; the other graphs (da3-small with random weights, VGGT's stub, three
+views) are ``-m slow``: each export traces the whole model (about a minute here).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import pytest
+import torch
+
+import raytun3r_plugin as rt
+from raytun3r_plugin.deploy import SUPPORTED, freeze
+from raytun3r_plugin.deploy.frozen import BUFFER_PREFIX, fixed_size_rope
+from raytun3r_plugin.errors import InputError, UnsupportedUpstreamError
+from tests.backbones import CASE, make
+from tests.helpers import fisheye, max_relative_difference, outputs, randomise_
+
+#: ONNX Runtime against the eager patched model (issue 41).
+DEPTH_TOLERANCE = 1e-4  # max relative depth difference
+POSE_TOLERANCE_RAD = 1e-4
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _tiny(family: str):
+    if family == "da3nested":
+        pytest.importorskip("depth_anything_3")
+        from raytun3r_plugin.patches.da3 import build_tiny_nested_network
+
+        return build_tiny_nested_network(), (70, 84)
+    case = CASE[family]
+    pytest.importorskip(case.package)
+    return make(family), case.size
+
+
+def _patched(family: str):
+    net, (height, width) = _tiny(family)
+    camera = fisheye(width, height)
+    rt.apply(net, camera, randomise_(rt.Adapter.for_model(net, camera)))
+    return net, (height, width)
+
+
+def _images(size, views=2, seed=5):
+    return torch.rand(1, views, 3, *size, generator=torch.Generator().manual_seed(seed))
+
+
+def _frozen_outputs(frozen, images) -> dict:
+    with torch.no_grad():
+        depth, confidence, pose = frozen(images)
+    return {"depth": depth, "pose": pose}
+
+
+def rotation_angle(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Largest angle (rad) between the rotations of two (..., 4, 4) pose stacks."""
+    difference = torch.linalg.matrix_norm((a - b)[..., :3, :3].double())
+    return float((2 * torch.asin((difference / (2 * math.sqrt(2))).clamp(max=1))).max())
+
+
+# ---------------------------------------------------------------------------------------------
+# The fixed-size RoPE: upstream's, bit for bit
+# ---------------------------------------------------------------------------------------------
+
+
+def test_fixed_size_rope_is_upstream_rope_bit_for_bit():
+    """DA3's RoPE sizes its tables by ``int(positions.max()) + 1`` (data-dependent); the frozen
+    one uses constant tables of upstream's own method for the largest position of the size."""
+    net, (height, width) = _tiny("da3")
+    vit = net.backbone.pretrained
+    rope = vit.rope
+    pos, pos_nodiff = vit._prepare_rope(1, 2, height, width, "cpu")
+    pos, pos_nodiff = pos.flatten(0, 1), pos_nodiff.flatten(0, 1)
+    tokens = torch.randn(2, 2, pos.shape[1], 32, generator=torch.Generator().manual_seed(0))
+    count = int(pos.max()) + 1
+    cos, sin = rope._compute_frequency_components(16, count, tokens.device, tokens.dtype)
+    rope.register_buffer("c", cos.clone(), persistent=False)
+    rope.register_buffer("s", sin.clone(), persistent=False)
+    for positions in (pos, pos_nodiff):
+        frozen = fixed_size_rope(
+            rope,
+            tokens,
+            positions,
+            cos="c",
+            sin="s",
+            apply_1d="_apply_1d_rope",
+            base=rope.base_frequency,
+            displacement=None,
+            columns=width // 14,
+        )
+        assert torch.equal(frozen, rope(tokens, positions))
+
+
+# ---------------------------------------------------------------------------------------------
+# The frozen model
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("family", SUPPORTED)
+def test_frozen_model_is_the_patched_model(family, monkeypatch):
+    net, size = _patched(family)
+    images = _images(size)
+    expected = outputs(net, images)
+    frozen = freeze(net, size, views=2)
+    # The model it was frozen from keeps its patch and its outputs.
+    assert rt.handle_of(net) is not None
+    assert max_relative_difference(expected, outputs(net, images)) == 0.0
+    # No raytun3r wrapper, handle or patch state in the frozen copy; constants are buffers.
+    for module in frozen.modules():
+        assert not any(hasattr(v, "__raytun3r_wrapper__") for v in vars(module).values())
+    assert rt.handle_of(frozen.network) is None
+    names = [name for name, _ in frozen.named_buffers() if BUFFER_PREFIX in name]
+    assert any("interpolate_pos_encoding" in name for name in names)
+    assert any("resample_grid" in name for name in names)
+    # It runs without the camera model, the geometry cache or the adapter.
+    from raytun3r_plugin import adapter, geometry
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the frozen model called raytun3r's camera code")
+
+    monkeypatch.setattr(geometry.GeometryCache, "at", refuse)
+    monkeypatch.setattr(adapter.Adapter, "pe_correction", refuse)
+    got = _frozen_outputs(frozen, images)
+    assert max_relative_difference({k: expected[k] for k in got}, got) < 1e-6
+
+
+def test_unpatched_freeze_is_upstream():
+    """The baseline of the cost comparison: the same freeze of a plain model is upstream's."""
+    net, size = _tiny("da3")
+    images = _images(size)
+    expected = outputs(net, images)
+    frozen = freeze(net, size, views=2)
+    got = _frozen_outputs(frozen, images)
+    assert max_relative_difference({k: expected[k] for k in got}, got) == 0.0
+    assert not frozen.info["patched"]
+
+
+def test_frozen_model_refuses_another_shape():
+    net, size = _patched("da3")
+    frozen = freeze(net, size, views=2)
+    with pytest.raises(InputError, match="frozen for images of shape"):
+        frozen(_images(size, views=3))
+
+
+@pytest.mark.parametrize("family", ["pi3x", "vggt_omega"])
+def test_backbones_without_a_frozen_form_are_refused(family):
+    net, size = _patched(family)
+    with pytest.raises(UnsupportedUpstreamError, match=f"{family} cannot be frozen for export: "):
+        freeze(net, size, views=2)
+
+
+def test_rig_and_bad_size_are_refused_before_any_copy():
+    net, (height, width) = _tiny("da3")
+    cameras = [fisheye(width, height), fisheye(width, height, 150.0)]
+    with rt.apply(net, cameras):
+        with pytest.raises(InputError, match="rig"):
+            freeze(net, (height, width), views=2)
+    with pytest.raises(InputError, match="multiple of the patch size 14"):
+        freeze(net, (height + 1, width), views=2)
+
+
+@pytest.mark.parametrize("family", ["pi3", "da3nested"])
+def test_onnx_export_of_a_blocked_backbone_is_refused_with_the_reason(family, tmp_path):
+    pytest.importorskip("onnx")
+    from raytun3r_plugin.deploy import export_onnx
+
+    net, size = _patched(family)
+    frozen = freeze(net, size, views=2)
+    with pytest.raises(UnsupportedUpstreamError, match="cannot be exported to ONNX: "):
+        export_onnx(frozen, tmp_path / "model.onnx")
+    assert not list(tmp_path.iterdir())
+
+
+# ---------------------------------------------------------------------------------------------
+# ONNX Runtime against the eager patched model
+# ---------------------------------------------------------------------------------------------
+
+
+def _assert_onnx_parity(path, net, size, views=2):
+    from raytun3r_plugin.deploy import run_onnx
+
+    images = _images(size, views=views, seed=9)
+    with torch.no_grad():
+        expected = rt.predict(net, images)
+    got = run_onnx(path, images)
+    relative = (got["depth"] - expected.depth).abs() / expected.depth.abs().clamp(min=1e-6)
+    assert float(relative.max()) < DEPTH_TOLERANCE
+    assert rotation_angle(got["cam_from_world"], expected.cam_from_world) < POSE_TOLERANCE_RAD
+    translation = (got["cam_from_world"] - expected.cam_from_world)[..., :3, 3].abs().max()
+    assert float(translation) < 1e-4 * max(1.0, float(expected.cam_from_world.abs().max()))
+    return got
+
+
+def test_cli_export_of_the_built_in_network_matches_eager_in_onnx_runtime(tmp_path, capsys):
+    """``raytun3r export`` end to end, then ONNX Runtime (CPU) against the eager patched model."""
+    pytest.importorskip("onnxruntime")
+    from raytun3r_plugin.apps.cli import main
+
+    net = rt.load_backbone("raytun3r-da3-tiny-v3")
+    size = (112, 112)
+    camera = fisheye(112, 112)
+    adapter = randomise_(rt.Adapter.for_model(net, camera))
+    path = adapter.save(tmp_path / "cam0.safetensors")
+    out = tmp_path / "cam0.onnx"
+    code = main(
+        [
+            "export",
+            "--backbone",
+            "raytun3r-da3-tiny-v3",
+            "--adapter",
+            str(path),
+            "--size",
+            "112",
+            "112",
+            "--views",
+            "2",
+            "--format",
+            "onnx",
+            "--out",
+            str(out),
+        ]
+    )
+    assert code == 0 and out.is_file()
+    assert "wrote" in capsys.readouterr().out
+    rt.apply(net, None, rt.Adapter.load(path))
+    _assert_onnx_parity(out, net, size)
+    # The graph holds the corrections: the unpatched model gives other depths.
+    plain = rt.load_backbone("raytun3r-da3-tiny-v3")
+    images = _images(size, seed=9)
+    with torch.no_grad():
+        unpatched = rt.predict(plain, images).depth
+    from raytun3r_plugin.deploy import run_onnx
+
+    assert float((run_onnx(out, images)["depth"] - unpatched).abs().max()) > 1e-3
+
+
+def test_cli_export_needs_a_camera(tmp_path, capsys):
+    from raytun3r_plugin.apps.cli import main
+
+    code = main(
+        [
+            "export",
+            "--backbone",
+            "raytun3r-da3-tiny-v3",
+            "--size",
+            "112",
+            "112",
+            "--out",
+            str(tmp_path / "x.onnx"),
+        ]
+    )
+    assert code == 2 and "needs --adapter" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family", ["da3", "vggt"])
+def test_onnx_export_of_a_tiny_patched_model(family, tmp_path):
+    pytest.importorskip("onnxruntime")
+    from raytun3r_plugin.deploy import export_onnx
+
+    net, size = _patched(family)
+    path = export_onnx(freeze(net, size, views=2), tmp_path / f"{family}.onnx")
+    _assert_onnx_parity(path, net, size)
+
+
+@pytest.mark.slow
+def test_onnx_export_with_three_views_and_reference_view_selection(tmp_path):
+    """From 3 views DA3 picks a reference view from the tokens (a data-dependent reorder)."""
+    pytest.importorskip("onnxruntime")
+    from raytun3r_plugin.deploy import export_onnx
+
+    net, size = _patched("da3")
+    path = export_onnx(freeze(net, size, views=3), tmp_path / "three.onnx")
+    _assert_onnx_parity(path, net, size, views=3)
+
+
+@pytest.mark.slow
+def test_onnx_export_of_da3_small_with_random_weights(tmp_path):
+    pytest.importorskip("onnxruntime")
+    from raytun3r_plugin.deploy import export_onnx
+    from raytun3r_plugin.patches.da3 import build_network
+
+    torch.manual_seed(0)
+    net = build_network("da3-small").eval()
+    with torch.no_grad():  # DA3 leaves its PE table at zero: give the PE hook something to act on
+        torch.nn.init.trunc_normal_(net.backbone.pretrained.pos_embed, std=0.02)
+    size = (280, 280)
+    camera = fisheye(*size)
+    rt.apply(net, camera, randomise_(rt.Adapter.for_model(net, camera)))
+    path = export_onnx(freeze(net, size, views=2), tmp_path / "small.onnx")
+    _assert_onnx_parity(path, net, size)
+
+
+def test_deepcopy_of_a_frozen_model_runs_its_own_buffers():
+    net, size = _patched("da3")
+    frozen = freeze(net, size, views=2)
+    twin = copy.deepcopy(frozen)
+    images = _images(size)
+    assert (
+        max_relative_difference(_frozen_outputs(frozen, images), _frozen_outputs(twin, images))
+        == 0.0
+    )
+    method = vars(twin.network.backbone.pretrained)["interpolate_pos_encoding"]
+    assert method.owner is twin.network.backbone.pretrained
