@@ -6,6 +6,8 @@ row with its trainable parameters and time per frame relative to vanilla.
     python benchmarks/fisheye_synthetic.py [--out runs/bench] [--results docs/results.md]
     python benchmarks/fisheye_synthetic.py --sequences 1 --baselines lora,caltok
     python benchmarks/fisheye_synthetic.py --development --out runs/dev   # seeds 80000+, for choosing settings
+    PYTHONPATH=tests/stubs python benchmarks/fisheye_synthetic.py --development \
+        --weights runs/vggt_tiny/raytun3r-vggt-small.safetensors   # a network trained with --arch vggt
 
 With --results the table replaces the block between the file's bench markers, so the results
 page shows what this script produced, not typed numbers.
@@ -88,9 +90,31 @@ def main() -> None:
     )
     parser.add_argument(
         "--network",
-        default=DEFAULT_NETWORK,
+        default=None,
         choices=BUILT_IN_NETWORKS,
-        help="built-in network (v2 = raytun3r-da3-tiny measured the older tables of docs/results.md)",
+        help=f"built-in network (default {DEFAULT_NETWORK}; v2 = raytun3r-da3-tiny measured the "
+        "older tables of docs/results.md)",
+    )
+    parser.add_argument(
+        "--first-sequence",
+        type=int,
+        default=0,
+        help="start each cell at its K-th sequence (the seeds of a run with more sequences)",
+    )
+    parser.add_argument(
+        "--cameras",
+        nargs="+",
+        default=None,
+        metavar="LABEL",
+        help="only these lenses of the run's set, by label (e.g. 'KB4 185' 'DS 195'); each "
+        "sequence keeps the seed it has in the full run",
+    )
+    parser.add_argument(
+        "--weights",
+        default=None,
+        metavar="FILE",
+        help="instead of a built-in network, one exported by scripts/train_default_network.py "
+        "(its JSON sidecar names the architecture; a VGGT one needs PYTHONPATH=tests/stubs)",
     )
     parser.add_argument(
         "--recipe",
@@ -143,13 +167,27 @@ def main() -> None:
         parser.error(
             "--development tables are for choosing settings; the results page shows held-out seeds"
         )
-    model, description = default_network(args.network)
+    lenses = NEW_LENSES if args.new_lenses else CAMERAS
+    if args.cameras:
+        unknown = sorted(set(args.cameras) - {spec.label for spec in lenses})
+        if unknown:
+            parser.error(f"--cameras: unknown {unknown}; this run's: {[s.label for s in lenses]}")
+        lenses = tuple(spec for spec in lenses if spec.label in args.cameras)
+    if args.weights and args.network:
+        parser.error("--weights names the network: no --network with it")
+    if args.weights:
+        from raytun3r_plugin.apps.trained_networks import load_trained_network
+
+        model, description = load_trained_network(args.weights)
+    else:
+        model, description = default_network(args.network or DEFAULT_NETWORK)
     table = run_benchmark(
         model,
         args.out,
         size=args.size,
         steps=args.steps,
         sequences=args.sequences,
+        first_sequence=args.first_sequence,
         network=description,
         progress=False,
         base_seed=DEVELOPMENT_SEED if args.development else HELD_OUT_SEED,
@@ -157,7 +195,7 @@ def main() -> None:
         recipe=args.recipe,
         fit_changes=fit_changes(args),
         jobs=args.jobs,
-        cameras=NEW_LENSES if args.new_lenses else CAMERAS,
+        cameras=lenses,
     )
     print(table)
     if args.results:

@@ -57,8 +57,13 @@ def save_checkpoint(out: Path, model, opt, step: int, args: dict, aux=None) -> N
 
 
 def load_checkpoint(out: Path, model, opt, aux=None) -> int:
-    from raytun3r_plugin.patches.da3 import load_weights
+    from default_network_vggt import is_vggt
     from safetensors.torch import load_file
+
+    if is_vggt(model):
+        from raytun3r_plugin.patches.vggt import load_weights
+    else:
+        from raytun3r_plugin.patches.da3 import load_weights
 
     meta = json.loads((out / "checkpoint.json").read_text())
     load_weights(model, out / "checkpoint.safetensors")
@@ -106,7 +111,7 @@ def validate(model, val: dict, pose_only: bool, device: str, chunk: int = 16) ->
     rotation error over the error of predicting no rotation (``val_rot_ratio``), mean signed
     translation-direction error (degrees) and, unless ``pose_only``, median-aligned depth AbsRel.
     """
-    from depth_anything_3.model.utils.transform import pose_encoding_to_extri_intri
+    from default_network_vggt import cam_from_world
 
     from raytun3r_plugin.metrics import abs_rel, relative_pose_errors
 
@@ -120,12 +125,9 @@ def validate(model, val: dict, pose_only: bool, device: str, chunk: int = 16) ->
         imgs = np.stack([val["images"][s, [k, k + VAL_GAP]] for s, k in part])
         x = torch.from_numpy(imgs.astype(np.float32) / 255.0).permute(0, 1, 4, 2, 3).to(device)
         out, pose_enc, _ = forward_train(model, x, pose_only=pose_only)
-        c2w, _ = pose_encoding_to_extri_intri(pose_enc, x.shape[-2:])
-        c2w = c2w.double().cpu().numpy()
+        T_all = cam_from_world(model, pose_enc, x.shape[-2:]).cpu().numpy()
         for j, (s, k) in enumerate(part):
-            T_pred = np.stack([np.eye(4), np.eye(4)])
-            T_pred[:, :3, :] = c2w[j]
-            T_pred = np.linalg.inv(T_pred)  # cam_from_world
+            T_pred = T_all[j]
             T_gt = val["poses"][s, [k, k + VAL_GAP]]
             e = relative_pose_errors(T_pred, T_gt, pairs=[(0, 1)])
             e0 = relative_pose_errors(np.stack([np.eye(4), np.eye(4)]), T_gt, pairs=[(0, 1)])

@@ -18,8 +18,12 @@ def relative_c2w(cam_from_world: torch.Tensor) -> torch.Tensor:
     return cam_from_world[:, :1] @ inv
 
 
-def targets(batch: dict) -> dict:
-    """Normalised depth, c2w poses (first view = identity) and ray maps for a batch."""
+def targets(batch: dict, arch: str = "da3") -> dict:
+    """Normalised depth, c2w poses (first view = identity) and ray maps for a batch.
+
+    ``pose`` is what the network's pose encoding describes: ``c2w`` for DA3, its inverse
+    (camera-from-world, world = the first view) for VGGT; ``arch`` says which.
+    """
     depth = batch["depth"].float()
     B, S, H, W = depth.shape
     valid = depth > 0
@@ -33,10 +37,13 @@ def targets(batch: dict) -> dict:
     c2w[..., :3, 3] /= scale.double()[:, None, None]
     fov = torch.deg2rad(batch["fov"])
     focal = (W / 2.0) / torch.tan(fov / 2.0)
+    pose = c2w if arch == "da3" else torch.linalg.inv(c2w)
     return {
         "depth": depth / scale[:, None, None, None],
         "valid": valid,
         "c2w": c2w.float(),
+        "pose": pose.float(),
+        "arch": arch,
         "fov": fov.float(),
         "focal": focal.float(),
         "scale": scale,
@@ -255,8 +262,12 @@ def forward_train(
     Returns the head's outputs (None with ``pose_only``: the DPT head is skipped), the raw pose
     encoding (B, S, 9) and the backbone's per-layer (tokens (B, S, N, 2C), camera token).
     """
+    from default_network_vggt import forward_train_vggt, is_vggt
+
     from raytun3r_plugin.prediction import imagenet_normalise
 
+    if is_vggt(model):
+        return forward_train_vggt(model, images, pose_only)
     H, W = images.shape[-2:]
     feats, _ = model.backbone(imagenet_normalise(images), cam_token=None, export_feat_layers=[])
     out = None if pose_only else model.head(feats, H, W, patch_start_idx=0)
@@ -296,9 +307,12 @@ def losses(out: dict | None, pose_enc: torch.Tensor, tg: dict, weights: dict) ->
         / n
     ).mean()
 
-    ray = out["ray"]  # B,S,h,w,6
-    ray_gt = ray_targets(tg, ray.shape[2], ray.shape[3], H, W)
-    l_ray = (ray - ray_gt).abs().mean()
+    if "ray" in out:  # DA3's DualDPT; VGGT has no ray head
+        ray = out["ray"]  # B,S,h,w,6
+        ray_gt = ray_targets(tg, ray.shape[2], ray.shape[3], H, W)
+        l_ray = (ray - ray_gt).abs().mean()
+    else:
+        l_ray = pred.new_zeros(())
     ls = pose_losses(pose_enc, tg, weights, zero=pred.new_zeros(()))
     # summed in the order of earlier versions, so default runs stay bit-identical to them
     ls["loss"] = (
@@ -315,13 +329,20 @@ def losses(out: dict | None, pose_enc: torch.Tensor, tg: dict, weights: dict) ->
 
 
 def pose_losses(pose_enc: torch.Tensor, tg: dict, weights: dict, zero: torch.Tensor) -> dict:
-    """Pose + quaternion terms of the camera decoder; depth/ray entries are ``zero``."""
-    from depth_anything_3.model.utils.transform import pose_encoding_to_extri_intri
+    """Pose + quaternion terms of the camera decoder; depth/ray entries are ``zero``.
+
+    The pose is compared in the network's own convention (``tg["pose"]``: DA3 world_from_cam,
+    VGGT cam_from_world); both decode the same absT_quaR_FoV encoding, each with its own code.
+    """
+    if tg.get("arch", "da3") == "vggt":
+        from vggt.utils.pose_enc import pose_encoding_to_extri_intri
+    else:
+        from depth_anything_3.model.utils.transform import pose_encoding_to_extri_intri
 
     H, W = tg["depth"].shape[-2:]
-    c2w_pred, _ = pose_encoding_to_extri_intri(pose_enc, (H, W))  # B,S,3,4 world_from_cam
-    R_p, t_p = c2w_pred[..., :3, :3], c2w_pred[..., :3, 3]
-    R_g, t_g = tg["c2w"][..., :3, :3], tg["c2w"][..., :3, 3]
+    pose_pred, _ = pose_encoding_to_extri_intri(pose_enc, (H, W))  # B,S,3,4
+    R_p, t_p = pose_pred[..., :3, :3], pose_pred[..., :3, 3]
+    R_g, t_g = tg["pose"][..., :3, :3], tg["pose"][..., :3, 3]
     l_rot = (R_p - R_g).pow(2).sum(dim=(-1, -2)).add(1e-8).sqrt().mean()
     l_trans = (t_p - t_g).abs().sum(-1).mean()
     l_fov = (pose_enc[..., 7:9] - tg["fov"][:, None, None]).abs().mean()

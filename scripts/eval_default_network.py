@@ -46,6 +46,8 @@ TARGETS = {"abs_rel_ratio": 0.6, "rotation_ratio": 0.5}
 CAMERAS = ("pinhole", "kb4_120", "kb4_190")
 GAP = 2
 
+PACKAGED_METRICS = ROOT / "raytun3r_plugin" / "data" / "raytun3r-da3-tiny.metrics.json"
+
 
 def log(msg: str) -> None:
     print(time.strftime("%H:%M:%S"), msg, flush=True)
@@ -221,15 +223,18 @@ def card_block(metrics: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="held-out evaluation of raytun3r-da3-tiny")
-    ap.add_argument("--weights", default=None, help="weight file (default: the packaged one)")
+    ap.add_argument(
+        "--weights",
+        default=None,
+        help="weight file (default: the packaged one); a VGGT exported by train_default_network.py "
+        "--arch vggt is recognised by its sidecar (needs PYTHONPATH=tests/stubs and --out)",
+    )
     ap.add_argument("--seed-base", type=int, default=500)
     ap.add_argument("--n-seq", type=int, default=24)
     ap.add_argument("--n-frames", type=int, default=5)
     ap.add_argument("--size", type=int, default=112)
     ap.add_argument("--cache", default=None, help="npz cache of the rendered held-out set")
-    ap.add_argument(
-        "--out", default=str(ROOT / "raytun3r_plugin" / "data" / "raytun3r-da3-tiny.metrics.json")
-    )
+    ap.add_argument("--out", default=str(PACKAGED_METRICS))
     ap.add_argument("--card", default=None, help="model card whose metrics block to rewrite")
     ap.add_argument("--render-only", action="store_true")
     ap.add_argument(
@@ -259,9 +264,24 @@ def main(argv=None) -> int:
     data = load_or_render(Path(args.cache) if args.cache else None, seeds, args.size, args.n_frames)
     if args.render_only:
         return 0
-    from raytun3r_plugin.patches.da3_default import BUILDERS
+    network = "raytun3r-da3-tiny"
+    side = Path(args.weights).with_suffix(".json") if args.weights else None
+    if side is not None and side.is_file() and json.loads(side.read_text()).get("arch") == "vggt":
+        # a small VGGT from train_default_network.py --arch vggt (PYTHONPATH=tests/stubs); it
+        # has no ray map, so no ray-map pose path, and its metrics never go into the DA3 card
+        from raytun3r_plugin.apps.trained_networks import load_trained_network
 
-    model = BUILDERS["raytun3r-da3-tiny"](args.weights)
+        if args.card or Path(args.out).resolve() == PACKAGED_METRICS:
+            raise SystemExit(
+                "a VGGT network's metrics go to an --out of their own, never to the DA3 "
+                "network's packaged metrics or model card"
+            )
+        model, _ = load_trained_network(args.weights)
+        network, args.no_ray_pose = Path(args.weights).stem, True
+    else:
+        from raytun3r_plugin.patches.da3_default import BUILDERS
+
+        model = BUILDERS["raytun3r-da3-tiny"](args.weights)
     results = {}
     for name in [c for c in CAMERAS if c in args.cameras]:
         results[name] = evaluate_camera(
@@ -274,7 +294,7 @@ def main(argv=None) -> int:
         log(f"{name}: {results[name]}")
     p = results.get("pinhole", {})
     metrics = {
-        "network": "raytun3r-da3-tiny",
+        "network": network,
         "held_out_seeds": [seeds[0], seeds[-1]],
         "size": args.size,
         "frame_gap": GAP,

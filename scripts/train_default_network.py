@@ -44,6 +44,14 @@ Optional training-only auxiliaries and recipes (issue 13; all off by default):
   ``--val-every`` steps in ``log.csv``;
 * ``--device``: torch device (``cpu`` default).
 
+``--arch vggt`` (issue 37) trains a small VGGT-architecture network instead (the ``vggt``
+package's classes, importable from ``tests/stubs``: run with ``PYTHONPATH=tests/stubs``; sizes in
+``default_network_vggt.VGGT_KWARGS``) on the same renders with the same depth and pose losses,
+mapped onto VGGT's conventions (``default_network_vggt``: camera-from-world pose encoding, no
+ray head). The flow and attention auxiliaries are DA3-specific and refused with it. Its export
+is not a built-in network: ``raytun3r_plugin.apps.trained_networks.load_trained_network``
+loads the file (``benchmarks/fisheye_synthetic.py --weights FILE``).
+
 ``--pe-std`` starts the absolute PE table as a low-frequency 2D sin-cos map instead of DA3's
 zeros (or the builder's tiny random init): a network trained from scratch otherwise learns to
 ignore absolute position, and then the PE adapter has nothing to act on
@@ -115,6 +123,7 @@ from default_network_losses import (  # noqa: E402
     targets,
     token_grid,
 )
+from default_network_vggt import build_vggt, pe_table  # noqa: E402
 
 __all__ = [
     "jittered",
@@ -126,6 +135,8 @@ __all__ = [
     "sincos_table",
 ]
 
+#: ``metadata["format"]`` of an exported file, per ``--arch``.
+FORMATS = {"da3": "raytun3r-da3-tiny", "vggt": "raytun3r-vggt-small"}
 TRAIN_SEED_BASE = (
     10_000  # training scenes use seeds TRAIN_SEED_BASE + k; held-out ones are below 10_000
 )
@@ -164,6 +175,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument(
         "--out", required=True, help="run directory (checkpoints, log.csv, cached data)"
+    )
+    ap.add_argument(
+        "--arch",
+        default="da3",
+        choices=("da3", "vggt"),
+        help="network architecture: da3 (the built-in networks) or vggt (needs PYTHONPATH=tests/stubs)",
     )
     ap.add_argument("--steps", type=int, default=900)
     ap.add_argument("--batch", type=int, default=4, help="samples (sequences) per step")
@@ -285,6 +302,10 @@ def main(argv=None) -> int:
     warnings.filterwarnings("ignore")
     from raytun3r_plugin.patches.da3 import build_tiny_network
 
+    if args.arch == "vggt" and (args.aux_flow > 0 or args.aux_attn > 0):
+        raise SystemExit(
+            "--aux-flow/--aux-attn read DA3's backbone: not available with --arch vggt"
+        )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     kwargs = dict(TINY_KWARGS if args.tiny else MODEL_KWARGS)
@@ -305,6 +326,7 @@ def main(argv=None) -> int:
         "rot_aug_deg": 0.0,
         "rot_aug_frac": 0.5,
         "val_every": None,
+        "arch": "da3",
     }
     record = {
         k: v
@@ -331,19 +353,22 @@ def main(argv=None) -> int:
         else None
     )
     device = torch.device(args.device)
-    model = build_tiny_network(
-        **{k: (tuple(v) if isinstance(v, list) else v) for k, v in kwargs.items()}
-    ).train()
+    if args.arch == "vggt":
+        model, kwargs = build_vggt(args.tiny, args.seed)
+    else:
+        model = build_tiny_network(
+            **{k: (tuple(v) if isinstance(v, list) else v) for k, v in kwargs.items()}
+        ).train()
     if args.pe_std > 0:
         with torch.no_grad():
-            table = model.backbone.pretrained.pos_embed
+            table = pe_table(model)
             table[0, 1:] = sincos_table(
                 int(round(math.sqrt(table.shape[1] - 1))), table.shape[2], args.pe_std
             )
             table[0, :1] = 0.0
     n_params = sum(p.numel() for p in model.parameters())
     aux = None
-    flow_layers = global_layer_positions(model)
+    flow_layers = global_layer_positions(model) if args.arch == "da3" else []
     if args.aux_flow > 0 or args.aux_attn > 0:
         if not flow_layers:
             raise SystemExit("--aux-flow/--aux-attn need global-attention blocks among the outputs")
@@ -374,7 +399,10 @@ def main(argv=None) -> int:
     )
     step = 0
     if args.init and not (out / "checkpoint.json").is_file():
-        from raytun3r_plugin.patches.da3 import load_weights
+        if args.arch == "vggt":
+            from raytun3r_plugin.patches.vggt import load_weights
+        else:
+            from raytun3r_plugin.patches.da3 import load_weights
 
         load_weights(model, args.init)
         model.to(device)
@@ -448,7 +476,7 @@ def main(argv=None) -> int:
             args.rot_aug_deg,
             args.rot_aug_frac,
         )
-        tg = targets(batch)
+        tg = targets(batch, args.arch)
         tg = {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in tg.items()}
         out_d, pose_enc, feats = forward_train(
             model, batch["images"].to(device), pose_only=args.pose_only
@@ -522,12 +550,15 @@ def main(argv=None) -> int:
             save_checkpoint(out, model, opt, step, record, aux)
     if args.export and step >= args.steps:
         # only the network: the flow head (aux) is training-only and never exported
-        export(model.cpu(), kwargs, Path(args.export), {"steps": step, "args": record})
+        export(model.cpu(), kwargs, Path(args.export), {"steps": step, "args": record}, args.arch)
     return 0
 
 
-def export(model, kwargs: dict, path: Path, training: dict) -> None:
+def export(model, kwargs: dict, path: Path, training: dict, arch: str = "da3") -> None:
     """Write the shipped weights and the build-kwargs JSON next to them.
+
+    ``arch`` "vggt" writes the small VGGT's file (format ``raytun3r-vggt-small``), with
+    ``"arch": "vggt"`` in the JSON, for ``apps.trained_networks.load_trained_network``.
 
     The weights are stored as float16 (half the size; the loader casts them back to the float32
     parameters), which keeps the packaged file under 5 MB.
@@ -547,11 +578,14 @@ def export(model, kwargs: dict, path: Path, training: dict) -> None:
         save_file(
             state,
             str(tmp),
-            metadata={"format": "raytun3r-da3-tiny", "build_kwargs": json.dumps(kwargs)},
+            metadata={"format": FORMATS[arch], "build_kwargs": json.dumps(kwargs)},
         )
         os.chmod(tmp, 0o644)  # a package data file: world-readable
     side = path.with_suffix(".json")
-    side.write_text(json.dumps({"build_kwargs": kwargs, "training": training}, indent=1) + "\n")
+    record = {"build_kwargs": kwargs, "training": training}
+    if arch != "da3":  # the built-ins' records stay as they were
+        record = {"arch": arch, **record}
+    side.write_text(json.dumps(record, indent=1) + "\n")
     log(f"exported {path} ({path.stat().st_size / 1e6:.2f} MB) and {side}")
 
 

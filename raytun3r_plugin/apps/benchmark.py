@@ -395,6 +395,7 @@ def run_benchmark(
     n_eval: int = 12,
     steps: int = 300,
     sequences: int = SEQUENCES_PER_CELL,
+    first_sequence: int = 0,
     cameras=CAMERAS,
     scenes=SCENES,
     network: str = "",
@@ -409,7 +410,8 @@ def run_benchmark(
     """Run every (camera, scene) on ``sequences`` held-out sequences; return the markdown table.
 
     The table shows means over each cell's sequences; ``out_dir`` also gets every per-sequence
-    row (``results.json``) and the table (``results.md``). ``baselines``: keys of
+    row (``results.json``) and the table (``results.md``). ``first_sequence``: index ``k`` of
+    each cell's first sequence (its seed is that of the full run's ``k``-th). ``baselines``: keys of
     :data:`BASELINES` (``("lora", "caltok")``) whose rows are added, each a fit per sequence;
     they enter neither ``gap_closed`` nor the targets. ``jobs`` > 1 scores the sequences as
     tasks on that many one-thread workers of an embedded Ray cluster, or on the cluster at
@@ -422,6 +424,8 @@ def run_benchmark(
     baselines = check_baselines(baselines)
     if jobs < 1:
         raise InputError(f"run_benchmark: jobs must be at least 1, got {jobs}")
+    if first_sequence < 0:
+        raise InputError(f"run_benchmark: first_sequence must be >= 0, got {first_sequence}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     settings = {
@@ -444,7 +448,7 @@ def run_benchmark(
         camera_index = known.index(spec) if spec in known else position
         for place, scene in enumerate(scenes):
             scene_index = SCENES.index(scene) if scene in SCENES else place
-            for k in range(sequences):
+            for k in range(first_sequence, first_sequence + sequences):
                 seed = sequence_seed(camera_index, scene_index, k, base_seed)
                 tasks.append((camera, spec.label, scene, seed, settings))
     results, began = {}, time.perf_counter()
