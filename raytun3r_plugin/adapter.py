@@ -260,8 +260,8 @@ class Adapter(nn.Module):
         }
 
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the adapter atomically (:func:`raytun3r_plugin._io.atomic_save_safetensors`)."""
-        from raytun3r_plugin._io import atomic_save_safetensors
+        """Write the adapter atomically (:func:`raytun3r_plugin.atomic_files.atomic_save_safetensors`)."""
+        from raytun3r_plugin.atomic_files import atomic_save_safetensors
 
         return atomic_save_safetensors(path, self.tensors(), self.metadata())
 

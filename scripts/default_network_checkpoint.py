@@ -30,7 +30,7 @@ def named_trainables(model, aux) -> dict:
 def save_checkpoint(out: Path, model, opt, step: int, args: dict, aux=None) -> None:
     from safetensors.torch import save_model
 
-    from raytun3r_plugin._io import atomic_path, atomic_save_safetensors, atomic_write_text
+    from raytun3r_plugin.atomic_files import atomic_path, atomic_save_safetensors, atomic_write_text
 
     with atomic_path(out / "checkpoint.safetensors") as tmp:
         save_model(model, str(tmp))

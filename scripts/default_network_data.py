@@ -148,7 +148,7 @@ def build_dataset(
         images[k], depth[k], poses[k], fov[k] = r["images"], r["depth"], r["poses"], r["fov"]
         if (k + 1) % 50 == 0:
             log(f"  rendered {k + 1}/{n_seq} ({time.time() - t0:.0f} s)")
-    from raytun3r_plugin._io import atomic_path
+    from raytun3r_plugin.atomic_files import atomic_path
 
     # A file handle, not a name: np.savez appends ".npz" to a name that lacks it.
     with atomic_path(path) as tmp, open(tmp, "wb") as handle:

@@ -100,7 +100,7 @@ def load_or_render(cache: Path | None, seeds: list[int], size: int, n_frames: in
             out[f"{name}/{field}"] = np.stack([q[field] for q in seqs])
         log(f"rendered {len(seeds)} held-out {name} sequences ({time.time() - t0:.0f} s)")
     if cache is not None:
-        from raytun3r_plugin._io import atomic_path
+        from raytun3r_plugin.atomic_files import atomic_path
 
         # A file handle, not a name: np.savez appends ".npz" to a name that lacks it.
         with atomic_path(cache) as tmp, open(tmp, "wb") as handle:

@@ -565,7 +565,7 @@ def export(model, kwargs: dict, path: Path, training: dict, arch: str = "da3") -
     """
     from safetensors.torch import save_file
 
-    from raytun3r_plugin._io import atomic_path
+    from raytun3r_plugin.atomic_files import atomic_path
     from raytun3r_plugin.weights import alias_keys
 
     aliases = alias_keys(model)  # tensors shared with an earlier key are stored once

@@ -289,8 +289,9 @@ def test_onnx_export_with_three_views_and_reference_view_selection(tmp_path):
 @pytest.mark.slow
 def test_onnx_export_of_da3_small_with_random_weights(tmp_path):
     pytest.importorskip("onnxruntime")
-    from raytun3r_plugin.deploy import export_onnx
     from raytun3r_plugin.patches.da3 import build_network
+
+    from raytun3r_plugin.deploy import export_onnx
 
     torch.manual_seed(0)
     net = build_network("da3-small").eval()

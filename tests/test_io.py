@@ -1,11 +1,11 @@
-"""raytun3r_plugin._io: the one atomic write (temporary file, fsync, rename)."""
+"""raytun3r_plugin.atomic_files: the one atomic write (temporary file, fsync, rename)."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from raytun3r_plugin._io import (
+from raytun3r_plugin.atomic_files import (
     atomic_path,
     atomic_save_safetensors,
     atomic_write_bytes,
@@ -53,7 +53,7 @@ def test_a_write_uses_one_recognisable_temporary_and_removes_only_stale_ones(tmp
     import os
     import time
 
-    from raytun3r_plugin._io import STALE_SECONDS, remove_stale, temporary_name
+    from raytun3r_plugin.atomic_files import STALE_SECONDS, remove_stale, temporary_name
 
     target = tmp_path / "file.txt"
     name = temporary_name(target)

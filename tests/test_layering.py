@@ -21,7 +21,15 @@ METHOD = f"{PACKAGE}.adaptation"
 BASELINES = f"{PACKAGE}.baselines"
 #: The adapter file format sits below the method and the applications: it may import only these
 #: (the camera it carries, the registry for the backbone's description, the safe readers).
-ADAPTER_ALLOWED = {"errors", "_io", "_strict", "_version", "registry", "cameras", "adapter"}
+ADAPTER_ALLOWED = {
+    "errors",
+    "atomic_files",
+    "_strict",
+    "_version",
+    "registry",
+    "cameras",
+    "adapter",
+}
 
 #: What a backbone patch may import from the package (docs/adding_a_backbone.md): the hook and
 #: registry machinery, the prediction type, weight loading, errors and RoPE, plus ``poses`` (leaf

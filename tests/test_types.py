@@ -17,6 +17,7 @@ ROOT = Path(__file__).parent.parent
 
 CHECKED = [
     "raytun3r_plugin/errors.py",
+    "raytun3r_plugin/atomic_files.py",
     "raytun3r_plugin/poses.py",
     "raytun3r_plugin/preprocess.py",
     "raytun3r_plugin/registry.py",

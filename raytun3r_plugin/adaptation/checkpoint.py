@@ -15,8 +15,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from raytun3r_plugin._io import atomic_save_safetensors
 from raytun3r_plugin.adaptation.config import TERMS
+from raytun3r_plugin.atomic_files import atomic_save_safetensors
 from raytun3r_plugin.errors import AdapterError
 
 __all__ = [

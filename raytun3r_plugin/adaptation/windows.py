@@ -37,9 +37,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from raytun3r_plugin._io import atomic_path
 from raytun3r_plugin.adaptation.matchers import Matcher, Matches
 from raytun3r_plugin.adaptation.pose_targets import PoseTarget, estimate_relative_pose
+from raytun3r_plugin.atomic_files import atomic_path
 from raytun3r_plugin.errors import InputError
 
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models

@@ -288,13 +288,37 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+#: How the input-size options round a size (their help text ends with it).
+RULE = (
+    "each side rounded to multiples of the patch size, centre-cropped only beyond a 1%% aspect "
+    "change (raytun3r_plugin.preprocess)"
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
+    """The ``raytun3r`` parser: each subcommand's options are added by its own function."""
     parser = argparse.ArgumentParser(
         prog="raytun3r",
         description="Run frozen pinhole-trained 3D foundation models on fisheye cameras.",
     )
     sub = parser.add_subparsers(dest="command", required=True)
+    _add_inspect(sub)
+    _add_infer(sub, RULE)
+    add_fit_commands(sub, RULE)
+    add_fleet_commands(sub)
+    add_deploy_command(sub)
+    _add_eval(sub, RULE)
+    _add_demo(sub)
+    _add_bench(sub)
+    _add_weights(sub)
+    _add_analyze(sub)
+    add_report_command(sub)
+    _add_backbones(sub)
+    return parser
 
+
+def _add_inspect(sub: argparse._SubParsersAction) -> None:
+    """``raytun3r inspect``: an adapter file's metadata, camera and parameter count."""
     p = sub.add_parser(
         "inspect", help="print an adapter file's metadata, camera and parameter count"
     )
@@ -311,7 +335,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_inspect)
 
-    rule = "each side rounded to multiples of the patch size, centre-cropped only beyond a 1%% aspect change (raytun3r_plugin.preprocess)"
+
+def _add_infer(sub: argparse._SubParsersAction, rule: str) -> None:
+    """``raytun3r infer``: apply an adapter and write depth, poses, points and exports."""
     p = sub.add_parser(
         "infer",
         help="apply an adapter and write depth (.npy, .png), poses (TUM), a point cloud (.ply) "
@@ -343,10 +369,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_output_arguments(p)
     p.set_defaults(func=cmd_infer)
 
-    add_fit_commands(sub, rule)
-    add_fleet_commands(sub)
-    add_deploy_command(sub)
 
+def _add_eval(sub: argparse._SubParsersAction, rule: str) -> None:
+    """``raytun3r eval``: methods on a dataset sequence, one metrics table."""
     p = sub.add_parser(
         "eval", help="run a method on a dataset sequence and print the metrics table"
     )
@@ -395,6 +420,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_eval)
 
+
+def _add_demo(sub: argparse._SubParsersAction) -> None:
+    """``raytun3r demo``: the main job on the built-in default network."""
     p = sub.add_parser(
         "demo",
         help="the main job on a built-in default: synthetic fisheye, adapt, metrics before/after",
@@ -414,6 +442,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_demo)
 
+
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    """``raytun3r bench``: the synthetic fisheye benchmark."""
     p = sub.add_parser(
         "bench",
         help="the synthetic fisheye benchmark (vanilla vs Center-PH vs Multi-PH vs raytun3r)",
@@ -449,6 +480,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_bench)
 
+
+def _add_weights(sub: argparse._SubParsersAction) -> None:
+    """``raytun3r weights``: what a checkpoint is and how to load it."""
     p = sub.add_parser(
         "weights",
         help="say what a checkpoint (file or folder) is, without building it, and how to load it",
@@ -457,6 +491,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the record as JSON")
     p.set_defaults(func=cmd_weights)
 
+
+def _add_analyze(sub: argparse._SubParsersAction) -> None:
+    """``raytun3r analyze``: analyses of a model."""
     p = sub.add_parser("analyze", help="analyses of a model (docs/analysis.md)")
     analyses = p.add_subparsers(dest="analysis", required=True)
     p = analyses.add_parser(
@@ -470,13 +507,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="jacobian", help="folder for jacobian.csv and jacobian.png")
     p.set_defaults(func=cmd_analyze_jacobian)
 
-    add_report_command(sub)
 
+def _add_backbones(sub: argparse._SubParsersAction) -> None:
+    """``raytun3r backbones``: the names ``load_backbone`` accepts."""
     p = sub.add_parser("backbones", help="list the backbone names load_backbone accepts")
     p.set_defaults(
         func=lambda args: print("\n".join(__import__("raytun3r_plugin").available_backbones())) or 0
     )
-    return parser
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -30,7 +30,6 @@ def run_fleet(
     :class:`InputError` (listing every problem) before any task starts when the manifest or a
     file it names is wrong.
     """
-    from raytun3r_plugin._io import atomic_write_text
     from raytun3r_plugin.apps.fleet import (
         build_tables,
         finished,
@@ -41,6 +40,7 @@ def run_fleet(
     )
     from raytun3r_plugin.apps.fleet_manifest import read_manifest
     from raytun3r_plugin.apps.workers import cpu_jobs
+    from raytun3r_plugin.atomic_files import atomic_write_text
     from raytun3r_plugin.cluster import ClusterSpec, run_tasks
 
     if kind not in ("adapt", "eval"):

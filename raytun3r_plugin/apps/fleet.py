@@ -180,7 +180,7 @@ def load_network(backbone: str, weights: dict | None, blob: bytes | None):
 
     import torch
 
-    from raytun3r_plugin._io import atomic_write_bytes
+    from raytun3r_plugin.atomic_files import atomic_write_bytes
     from raytun3r_plugin.weights import load_backbone
 
     path = None
@@ -314,7 +314,7 @@ def _evaluate(model, record: dict, staging: Path) -> dict:
 def run_fleet_task(model, record: dict, key: str, folder: str, out: str) -> dict:
     """Run one task and publish its folder ``out/tasks/<folder>`` atomically; returns its
     ``result.json`` record. A second attempt that finds the folder published keeps that one."""
-    from raytun3r_plugin._io import atomic_write_text
+    from raytun3r_plugin.atomic_files import atomic_write_text
     from raytun3r_plugin.cluster import node_of_this_process
 
     root = Path(out)
@@ -372,8 +372,8 @@ def _write_table(out: Path, stem: str, rows: list[dict], columns: list[str], hea
     import csv
     import io
 
-    from raytun3r_plugin._io import atomic_write_text
     from raytun3r_plugin.apps.evaluation import format_table
+    from raytun3r_plugin.atomic_files import atomic_write_text
 
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, columns, extrasaction="ignore", lineterminator="\n")
@@ -393,8 +393,8 @@ def _csv_cell(value: Any) -> Any:
 def build_tables(out: Path, kind: str, tasks: list[FleetTask], manifest: Manifest) -> list[dict]:
     """Write ``adapters.*`` or ``results.*`` (and ``results.json``) under ``out`` from the
     finished tasks of ``tasks``; returns the table's rows."""
-    from raytun3r_plugin._io import atomic_write_text
     from raytun3r_plugin.apps.benchmark import COLUMNS, summarise
+    from raytun3r_plugin.atomic_files import atomic_write_text
 
     results = [(task, finished(out, task)) for task in tasks]
     done = [(task, result) for task, result in results if result is not None]

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from raytun3r_plugin._io import atomic_path, atomic_write_bytes, atomic_write_text
+from raytun3r_plugin.atomic_files import atomic_path, atomic_write_bytes, atomic_write_text
 from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.exports import ExportOptions, ExportScene, plan_exports
 from raytun3r_plugin.exports.files import depth_panel, write_ply, write_tum

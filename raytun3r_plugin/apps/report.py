@@ -473,6 +473,6 @@ def write_report(
 ) -> Path:
     """Build the page for ``path`` (:func:`build_report`) and write it to ``out`` atomically;
     returns ``out``. Nothing is written when building fails."""
-    from raytun3r_plugin._io import atomic_write_text
+    from raytun3r_plugin.atomic_files import atomic_write_text
 
     return atomic_write_text(out, build_report(path, depth))

@@ -94,8 +94,8 @@ class CalibrationTokens(nn.Module):
 
     def save(self, path: str | os.PathLike) -> Path:
         """One ``.safetensors`` file: the ``tokens`` tensor and what it is for, in the metadata."""
-        from raytun3r_plugin._io import atomic_save_safetensors
         from raytun3r_plugin._version import __version__
+        from raytun3r_plugin.atomic_files import atomic_save_safetensors
 
         metadata = {
             "format": FORMAT,

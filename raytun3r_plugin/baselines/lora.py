@@ -160,8 +160,8 @@ class LoraWeights(nn.Module):
 
     def save(self, folder: str | os.PathLike) -> Path:
         """Write ``folder/adapter_model.safetensors`` and ``folder/adapter_config.json``."""
-        from raytun3r_plugin._io import atomic_save_safetensors, atomic_write_text
         from raytun3r_plugin._version import __version__
+        from raytun3r_plugin.atomic_files import atomic_save_safetensors, atomic_write_text
 
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from raytun3r_plugin._io import atomic_path
+from raytun3r_plugin.atomic_files import atomic_path
 from raytun3r_plugin.deploy.freeze import FrozenModel
 from raytun3r_plugin.errors import MissingDependencyError, UnsupportedUpstreamError
 

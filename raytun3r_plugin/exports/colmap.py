@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from raytun3r_plugin._io import atomic_write_bytes, atomic_write_text
+from raytun3r_plugin.atomic_files import atomic_write_bytes, atomic_write_text
 from raytun3r_plugin.exports import ExportOptions, ExportPlan
 from raytun3r_plugin.exports.files import write_frames
 from raytun3r_plugin.exports.lens import COLMAP_MODEL_IDS, WrittenLens, colmap_lens

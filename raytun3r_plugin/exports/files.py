@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from raytun3r_plugin._io import atomic_write_bytes, atomic_write_text
+from raytun3r_plugin.atomic_files import atomic_write_bytes, atomic_write_text
 from raytun3r_plugin.poses import invert_rigid, rotation_to_quaternion
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from raytun3r_plugin._io import atomic_write_bytes
+from raytun3r_plugin.atomic_files import atomic_write_bytes
 from raytun3r_plugin.exports import ExportOptions, ExportPlan, require
 from raytun3r_plugin.exports.scene import ExportScene
 

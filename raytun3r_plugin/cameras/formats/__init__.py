@@ -27,8 +27,8 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from raytun3r_plugin._io import atomic_write_text
 from raytun3r_plugin._strict import quote
+from raytun3r_plugin.atomic_files import atomic_write_text
 from raytun3r_plugin.cameras.base import Camera
 from raytun3r_plugin.cameras.formats._fields import (
     _SHORT,

@@ -79,7 +79,7 @@ def remove_stale(destination: str | os.PathLike) -> list[Path]:
     # Any destination's in that folder: a temporary file whose writer was killed while saving
     # another file of the folder is as stale as one of this destination.
     pattern = re.compile(r"\..+" + re.escape(TEMPORARY_MARK) + r"(\d+)-[0-9a-f]+")
-    removed = []
+    removed: list[Path] = []
     try:
         entries = list(os.scandir(folder))
     except OSError:
