@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Siblings in scripts/ (the folder of a script run directly is on sys.path already).
 from default_network_data import pinhole_camera, sequence_spec  # noqa: E402
 from train_default_network import TRAIN_SEED_BASE  # noqa: E402
 
