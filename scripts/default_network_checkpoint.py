@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 import torch
+from default_network_data import log  # noqa: E402  (beside this script)
 from default_network_losses import forward_train  # noqa: E402  (beside this script)
 
 VAL_GAP = 2  # pairs (k, k + VAL_GAP), as in the held-out evaluation
@@ -151,3 +153,42 @@ def lr_at(step: int, total: int, base: float, warmup: int) -> float:
         return base * (step + 1) / warmup
     p = (step - warmup) / max(1, total - warmup)
     return base * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * min(1.0, p))))
+
+
+#: ``metadata["format"]`` of an exported file, per ``--arch``.
+FORMATS = {"da3": "raytun3r-da3-tiny", "vggt": "raytun3r-vggt-small"}
+
+
+def export(model, kwargs: dict, path: Path, training: dict, arch: str = "da3") -> None:
+    """Write the shipped weights and the build-kwargs JSON next to them.
+
+    ``arch`` "vggt" writes the small VGGT's file (format ``raytun3r-vggt-small``), with
+    ``"arch": "vggt"`` in the JSON, for ``apps.trained_networks.load_trained_network``.
+
+    The weights are stored as float16 (half the size; the loader casts them back to the float32
+    parameters), which keeps the packaged file under 5 MB.
+    """
+    from safetensors.torch import save_file
+
+    from raytun3r_plugin.atomic_files import atomic_path
+    from raytun3r_plugin.weights import alias_keys
+
+    aliases = alias_keys(model)  # tensors shared with an earlier key are stored once
+    state = {
+        name: tensor.detach().to(torch.float16).contiguous()
+        for name, tensor in model.eval().state_dict().items()
+        if name not in aliases
+    }
+    with atomic_path(path) as tmp:
+        save_file(
+            state,
+            str(tmp),
+            metadata={"format": FORMATS[arch], "build_kwargs": json.dumps(kwargs)},
+        )
+        os.chmod(tmp, 0o644)  # a package data file: world-readable
+    side = path.with_suffix(".json")
+    record = {"build_kwargs": kwargs, "training": training}
+    if arch != "da3":  # the built-ins' records stay as they were
+        record = {"arch": arch, **record}
+    side.write_text(json.dumps(record, indent=1) + "\n")
+    log(f"exported {path} ({path.stat().st_size / 1e6:.2f} MB) and {side}")

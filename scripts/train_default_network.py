@@ -82,7 +82,6 @@ import argparse
 import csv
 import json
 import math
-import os
 import sys
 import time
 import warnings
@@ -90,6 +89,7 @@ from pathlib import Path
 
 import torch
 from default_network_checkpoint import (  # noqa: E402
+    export,
     load_checkpoint,
     lr_at,
     named_trainables,
@@ -135,8 +135,6 @@ __all__ = [
     "sincos_table",
 ]
 
-#: ``metadata["format"]`` of an exported file, per ``--arch``.
-FORMATS = {"da3": "raytun3r-da3-tiny", "vggt": "raytun3r-vggt-small"}
 TRAIN_SEED_BASE = (
     10_000  # training scenes use seeds TRAIN_SEED_BASE + k; held-out ones are below 10_000
 )
@@ -296,48 +294,65 @@ def parse_args(argv=None) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
+#: Arguments that do not change the result (where it runs, how often it reports) stay out of the
+#: run's record, so a run may resume on another device.
+NOT_RECORDED = ("out", "stop_after", "export", "threads", "device")
+#: Options added after the first runs, with their defaults: they enter the record only when set,
+#: so checkpoints of runs made before they existed still resume.
+NEW_OPTIONS = {
+    "w_tdir": 0.0,
+    "aux_flow": 0.0,
+    "aux_flow_kind": "regress",
+    "aux_attn": 0.0,
+    "aux_attn_heads": 2,
+    "pose_only": False,
+    "jitter_frac": 0.0,
+    "jitter_deg": 0.0,
+    "val_seqs": 0,
+    "rot_aug_deg": 0.0,
+    "rot_aug_frac": 0.5,
+    "val_every": None,
+    "arch": "da3",
+}
+#: log.csv columns: step, time_s, lr, the batch's loss terms, then 3 val_* columns filled on
+#: validation steps only.
+LOG_FIELDS = [
+    "step",
+    "time_s",
+    "lr",
+    "loss",
+    "depth_si",
+    "depth_abs",
+    "conf",
+    "ray",
+    "rot",
+    "trans",
+    "fov",
+    "quat",
+    "tdir",
+    "rot_deg",
+    "rot_gt_deg",
+    "trans_deg",
+    "flow",
+    "attn",
+    "val_rot_ratio",
+    "val_trans_deg",
+    "val_abs_rel",
+]
+N_BATCH_FIELDS = len(LOG_FIELDS) - 6
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
     warnings.filterwarnings("ignore")
-    from raytun3r_plugin.patches.da3 import build_tiny_network
-
     if args.arch == "vggt" and (args.aux_flow > 0 or args.aux_attn > 0):
         raise SystemExit(
             "--aux-flow/--aux-attn read DA3's backbone: not available with --arch vggt"
         )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    kwargs = dict(TINY_KWARGS if args.tiny else MODEL_KWARGS)
-    kwargs["seed"] = args.seed
-    # Arguments that do not change the result (where it runs, how often it reports) stay out
-    # of the record, so a run may resume on another device. New options enter the record only
-    # when set, so checkpoints of runs made before they existed still resume.
-    new_opts = {
-        "w_tdir": 0.0,
-        "aux_flow": 0.0,
-        "aux_flow_kind": "regress",
-        "aux_attn": 0.0,
-        "aux_attn_heads": 2,
-        "pose_only": False,
-        "jitter_frac": 0.0,
-        "jitter_deg": 0.0,
-        "val_seqs": 0,
-        "rot_aug_deg": 0.0,
-        "rot_aug_frac": 0.5,
-        "val_every": None,
-        "arch": "da3",
-    }
-    record = {
-        k: v
-        for k, v in vars(args).items()
-        if k not in ("out", "stop_after", "export", "threads", "device")
-        and not (k in new_opts and v == new_opts[k])
-    }
-    if (out / "checkpoint.json").is_file():
-        saved = json.loads((out / "checkpoint.json").read_text())["args"]
-        if saved != record:
-            raise SystemExit(f"{out} holds a run with other arguments: {saved} != {record}")
+    record = run_record(args, out)
     data = build_dataset(
         out / "train_data.npz",
         args.n_seq,
@@ -353,6 +368,80 @@ def main(argv=None) -> int:
         else None
     )
     device = torch.device(args.device)
+    model, kwargs, aux, flow_layers = build_model(args)
+    n_params = sum(p.numel() for p in model.parameters())
+    model.to(device)
+    if aux is not None:
+        aux.to(device)
+    named = named_trainables(model, aux)
+    opt = make_optimizer(args, named)
+    step = initialise(args, out, model, opt, aux, device)
+    log(f"network: {n_params / 1e6:.3f} M parameters, kwargs {kwargs}")
+    log_path = out / "log.csv"
+    if not log_path.is_file():
+        with log_path.open("w", newline="") as fh:
+            csv.writer(fh).writerow(LOG_FIELDS)
+    val_every = args.val_every or args.ckpt_every
+    stop = args.steps if args.stop_after is None else min(args.steps, args.stop_after)
+    t0 = time.time()
+    acc: dict[str, float] = {}
+    n_acc = 0
+    while step < stop:
+        lr = lr_at(step, args.steps, args.lr, args.warmup)
+        for g in opt.param_groups:
+            g["lr"] = lr
+        ls = step_losses(args, model, aux, flow_layers, data, step, device)
+        opt.zero_grad(set_to_none=True)
+        ls["loss"].backward()
+        torch.nn.utils.clip_grad_norm_(list(named.values()), 1.0)
+        opt.step()
+        step += 1
+        for k, v in ls.items():
+            acc[k] = acc.get(k, 0.0) + float(v)
+        n_acc += 1
+        if step % args.log_every == 0 or step == stop:
+            validating = val is not None and (step % val_every == 0 or step == stop)
+            write_log_row(
+                args,
+                log_path,
+                step,
+                lr,
+                acc,
+                n_acc,
+                time.time() - t0,
+                validate(model, val, args.pose_only, device) if validating else None,
+            )
+            acc, n_acc = {}, 0
+            t0 = time.time()
+        if step % args.ckpt_every == 0 or step == stop:
+            save_checkpoint(out, model, opt, step, record, aux)
+    if args.export and step >= args.steps:
+        # only the network: the flow head (aux) is training-only and never exported
+        export(model.cpu(), kwargs, Path(args.export), {"steps": step, "args": record}, args.arch)
+    return 0
+
+
+def run_record(args, out: Path) -> dict:
+    """The arguments that define the run; refuses an output folder holding another run."""
+    record = {
+        k: v
+        for k, v in vars(args).items()
+        if k not in NOT_RECORDED and not (k in NEW_OPTIONS and v == NEW_OPTIONS[k])
+    }
+    if (out / "checkpoint.json").is_file():
+        saved = json.loads((out / "checkpoint.json").read_text())["args"]
+        if saved != record:
+            raise SystemExit(f"{out} holds a run with other arguments: {saved} != {record}")
+    return record
+
+
+def build_model(args):
+    """``(network, its build kwargs, the flow head or None, the global-attention layers)``,
+    the absolute PE table started as a sin-cos map with ``--pe-std``."""
+    from raytun3r_plugin.patches.da3 import build_tiny_network
+
+    kwargs = dict(TINY_KWARGS if args.tiny else MODEL_KWARGS)
+    kwargs["seed"] = args.seed
     if args.arch == "vggt":
         model, kwargs = build_vggt(args.tiny, args.seed)
     else:
@@ -366,37 +455,40 @@ def main(argv=None) -> int:
                 int(round(math.sqrt(table.shape[1] - 1))), table.shape[2], args.pe_std
             )
             table[0, :1] = 0.0
-    n_params = sum(p.numel() for p in model.parameters())
-    aux = None
     flow_layers = global_layer_positions(model) if args.arch == "da3" else []
-    if args.aux_flow > 0 or args.aux_attn > 0:
-        if not flow_layers:
-            raise SystemExit("--aux-flow/--aux-attn need global-attention blocks among the outputs")
+    if (args.aux_flow > 0 or args.aux_attn > 0) and not flow_layers:
+        raise SystemExit("--aux-flow/--aux-attn need global-attention blocks among the outputs")
+    aux = None
     if args.aux_flow > 0:
         torch.manual_seed(args.seed + 7919)  # built after the network: its init is unchanged
         aux = FlowAux(
             model.backbone.pretrained.embed_dim, len(flow_layers), args.aux_flow_kind
         ).train()
-    model.to(device)
-    if aux is not None:
-        aux.to(device)
-    named = named_trainables(model, aux)
-    decay = [
-        p for n, p in named.items() if p.ndim >= 2 and "pos_embed" not in n and "token" not in n
-    ]
-    no_decay = [
-        p
-        for n, p in named.items()
-        if not (p.ndim >= 2 and "pos_embed" not in n and "token" not in n)
-    ]
-    opt = torch.optim.AdamW(
+    return model, kwargs, aux, flow_layers
+
+
+def make_optimizer(args, named: dict) -> torch.optim.AdamW:
+    """AdamW with weight decay on matrices except position tables and tokens."""
+
+    def decays(n: str, p: torch.Tensor) -> bool:
+        return p.ndim >= 2 and "pos_embed" not in n and "token" not in n
+
+    return torch.optim.AdamW(
         [
-            {"params": decay, "weight_decay": args.weight_decay},
-            {"params": no_decay, "weight_decay": 0.0},
+            {
+                "params": [p for n, p in named.items() if decays(n, p)],
+                "weight_decay": args.weight_decay,
+            },
+            {"params": [p for n, p in named.items() if not decays(n, p)], "weight_decay": 0.0},
         ],
         lr=args.lr,
         betas=(0.9, 0.99),
     )
+
+
+def initialise(args, out: Path, model, opt, aux, device) -> int:
+    """Start from ``--init`` (a fresh run only) and resume from the checkpoint in ``out``;
+    returns the step to continue from."""
     step = 0
     if args.init and not (out / "checkpoint.json").is_file():
         if args.arch == "vggt":
@@ -416,7 +508,11 @@ def main(argv=None) -> int:
     if (out / "checkpoint.json").is_file():
         step = load_checkpoint(out, model, opt, aux)
         log(f"resumed from step {step}")
-    log(f"network: {n_params / 1e6:.3f} M parameters, kwargs {kwargs}")
+    return step
+
+
+def step_losses(args, model, aux, flow_layers, data, step: int, device) -> dict:
+    """The loss terms of step ``step``'s batch (a pure function of seed and step)."""
     weights = {
         "depth": args.w_depth,
         "conf": args.w_conf,
@@ -425,67 +521,31 @@ def main(argv=None) -> int:
         "quat": args.w_quat,
         "tdir": args.w_tdir,
     }
-    log_path = out / "log.csv"
-    fields = [
-        "step",
-        "time_s",
-        "lr",
-        "loss",
-        "depth_si",
-        "depth_abs",
-        "conf",
-        "ray",
-        "rot",
-        "trans",
-        "fov",
-        "quat",
-        "tdir",
-        "rot_deg",
-        "rot_gt_deg",
-        "trans_deg",
-        "flow",
-        "attn",
-        "val_rot_ratio",
-        "val_trans_deg",
-        "val_abs_rel",
-    ]
-    n_batch_fields = (
-        len(fields) - 6
-    )  # step, time_s, lr first; the 3 val_* columns are filled on validation steps only
-    val_every = args.val_every or args.ckpt_every
-    if not log_path.is_file():
-        with log_path.open("w", newline="") as fh:
-            csv.writer(fh).writerow(fields)
-    stop = args.steps if args.stop_after is None else min(args.steps, args.stop_after)
-    t0 = time.time()
-    acc: dict[str, float] = {}
-    n_acc = 0
-    while step < stop:
-        lr = lr_at(step, args.steps, args.lr, args.warmup)
-        for g in opt.param_groups:
-            g["lr"] = lr
-        # A fixed batch must be fitted by any network that can represent its targets: if it is
-        # not, the targets or the losses are wrong rather than the data too hard.
-        batch = make_batch(
-            data,
-            args.seed,
-            0 if args.fixed_batch else step,
-            args.batch,
-            args.views,
-            args.max_gap,
-            args.rot_aug_deg,
-            args.rot_aug_frac,
-        )
-        tg = targets(batch, args.arch)
-        tg = {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in tg.items()}
-        out_d, pose_enc, feats = forward_train(
-            model, batch["images"].to(device), pose_only=args.pose_only
-        )
-        ls = losses(out_d, pose_enc, tg, weights)
+    # A fixed batch must be fitted by any network that can represent its targets: if it is
+    # not, the targets or the losses are wrong rather than the data too hard.
+    batch = make_batch(
+        data,
+        args.seed,
+        0 if args.fixed_batch else step,
+        args.batch,
+        args.views,
+        args.max_gap,
+        args.rot_aug_deg,
+        args.rot_aug_frac,
+    )
+    tg = targets(batch, args.arch)
+    tg = {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in tg.items()}
+    out_d, pose_enc, feats = forward_train(
+        model, batch["images"].to(device), pose_only=args.pose_only
+    )
+    ls = losses(out_d, pose_enc, tg, weights)
+    ls["flow"] = pose_enc.new_zeros(())
+    ls["attn"] = pose_enc.new_zeros(())
+    if aux is not None or args.aux_attn > 0:
+        flow, flow_ok = flow_targets(batch)
+        H, W = batch["images"].shape[-2:]
+        grid = token_grid(H, W).to(device)
         if aux is not None:
-            flow, flow_ok = flow_targets(batch)
-            H, W = batch["images"].shape[-2:]
-            grid = token_grid(H, W).to(device)
             ls["flow"] = flow_loss(
                 aux([feats[k][0] for k in flow_layers], grid),
                 flow.to(device),
@@ -494,99 +554,41 @@ def main(argv=None) -> int:
                 W // 14,
             )
             ls["loss"] = ls["loss"] + args.aux_flow * ls["flow"]
-        else:
-            ls["flow"] = pose_enc.new_zeros(())
         if args.aux_attn > 0:
-            flow, flow_ok = flow_targets(batch)
-            H, W = batch["images"].shape[-2:]
             ls["attn"] = attention_match_loss(
-                model,
-                feats,
-                flow.to(device),
-                flow_ok.to(device),
-                token_grid(H, W).to(device),
-                args.aux_attn_heads,
+                model, feats, flow.to(device), flow_ok.to(device), grid, args.aux_attn_heads
             )
             ls["loss"] = ls["loss"] + args.aux_attn * ls["attn"]
-        else:
-            ls["attn"] = pose_enc.new_zeros(())
-        if not torch.isfinite(ls["loss"]):
-            raise SystemExit(
-                f"non-finite loss at step {step}: { {k: float(v) for k, v in ls.items()} }"
-            )
-        opt.zero_grad(set_to_none=True)
-        ls["loss"].backward()
-        torch.nn.utils.clip_grad_norm_(list(named.values()), 1.0)
-        opt.step()
-        step += 1
-        for k, v in ls.items():
-            acc[k] = acc.get(k, 0.0) + float(v)
-        n_acc += 1
-        if step % args.log_every == 0 or step == stop:
-            row = {k: acc[k] / n_acc for k in acc}
-            vals = ["", "", ""]
-            if val is not None and (step % val_every == 0 or step == stop):
-                vm = validate(model, val, args.pose_only, device)
-                vals = [f"{vm[k]:.5f}" for k in fields[3 + n_batch_fields :]]
-                log(
-                    f"  validation ({args.val_seqs} seqs): rot ratio {vm['val_rot_ratio']:.4f} "
-                    f"trans {vm['val_trans_deg']:.2f} deg abs_rel {vm['val_abs_rel']:.4f}"
-                )
-            with log_path.open("a", newline="") as fh:
-                csv.writer(fh).writerow(
-                    [step, f"{time.time() - t0:.1f}", f"{lr:.3g}"]
-                    + [f"{row[k]:.5f}" for k in fields[3 : 3 + n_batch_fields]]
-                    + vals
-                )
-            log(
-                f"step {step}/{args.steps} loss {row['loss']:.4f} si {row['depth_si']:.4f} ray {row['ray']:.4f} "
-                f"rot {row['rot_deg']:.2f}/{row['rot_gt_deg']:.2f} deg trans {row['trans']:.3f} "
-                f"({row['trans_deg']:.1f} deg) flow {row['flow']:.4f} "
-                f"({(time.time() - t0) / max(1, n_acc):.2f} s/step)"
-            )
-            acc, n_acc = {}, 0
-            t0 = time.time()
-        if step % args.ckpt_every == 0 or step == stop:
-            save_checkpoint(out, model, opt, step, record, aux)
-    if args.export and step >= args.steps:
-        # only the network: the flow head (aux) is training-only and never exported
-        export(model.cpu(), kwargs, Path(args.export), {"steps": step, "args": record}, args.arch)
-    return 0
-
-
-def export(model, kwargs: dict, path: Path, training: dict, arch: str = "da3") -> None:
-    """Write the shipped weights and the build-kwargs JSON next to them.
-
-    ``arch`` "vggt" writes the small VGGT's file (format ``raytun3r-vggt-small``), with
-    ``"arch": "vggt"`` in the JSON, for ``apps.trained_networks.load_trained_network``.
-
-    The weights are stored as float16 (half the size; the loader casts them back to the float32
-    parameters), which keeps the packaged file under 5 MB.
-    """
-    from safetensors.torch import save_file
-
-    from raytun3r_plugin.atomic_files import atomic_path
-    from raytun3r_plugin.weights import alias_keys
-
-    aliases = alias_keys(model)  # tensors shared with an earlier key are stored once
-    state = {
-        name: tensor.detach().to(torch.float16).contiguous()
-        for name, tensor in model.eval().state_dict().items()
-        if name not in aliases
-    }
-    with atomic_path(path) as tmp:
-        save_file(
-            state,
-            str(tmp),
-            metadata={"format": FORMATS[arch], "build_kwargs": json.dumps(kwargs)},
+    if not torch.isfinite(ls["loss"]):
+        raise SystemExit(
+            f"non-finite loss at step {step}: { {k: float(v) for k, v in ls.items()} }"
         )
-        os.chmod(tmp, 0o644)  # a package data file: world-readable
-    side = path.with_suffix(".json")
-    record = {"build_kwargs": kwargs, "training": training}
-    if arch != "da3":  # the built-ins' records stay as they were
-        record = {"arch": arch, **record}
-    side.write_text(json.dumps(record, indent=1) + "\n")
-    log(f"exported {path} ({path.stat().st_size / 1e6:.2f} MB) and {side}")
+    return ls
+
+
+def write_log_row(args, log_path: Path, step, lr, acc, n_acc, seconds, vm) -> None:
+    """One log.csv row of the mean terms since the last row (and validation ``vm``), and the
+    progress line."""
+    row = {k: acc[k] / n_acc for k in acc}
+    vals = ["", "", ""]
+    if vm is not None:
+        vals = [f"{vm[k]:.5f}" for k in LOG_FIELDS[3 + N_BATCH_FIELDS :]]
+        log(
+            f"  validation ({args.val_seqs} seqs): rot ratio {vm['val_rot_ratio']:.4f} "
+            f"trans {vm['val_trans_deg']:.2f} deg abs_rel {vm['val_abs_rel']:.4f}"
+        )
+    with log_path.open("a", newline="") as fh:
+        csv.writer(fh).writerow(
+            [step, f"{seconds:.1f}", f"{lr:.3g}"]
+            + [f"{row[k]:.5f}" for k in LOG_FIELDS[3 : 3 + N_BATCH_FIELDS]]
+            + vals
+        )
+    log(
+        f"step {step}/{args.steps} loss {row['loss']:.4f} si {row['depth_si']:.4f} "
+        f"ray {row['ray']:.4f} rot {row['rot_deg']:.2f}/{row['rot_gt_deg']:.2f} deg "
+        f"trans {row['trans']:.3f} ({row['trans_deg']:.1f} deg) flow {row['flow']:.4f} "
+        f"({seconds / max(1, n_acc):.2f} s/step)"
+    )
 
 
 if __name__ == "__main__":
