@@ -25,21 +25,19 @@ from __future__ import annotations
 import argparse
 import copy
 import platform
-import re
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
 import torch
+from docs_block import write_block
 
 import raytun3r_plugin as rt
 from raytun3r_plugin.cameras import fisheye
 from raytun3r_plugin.deploy import export_onnx, freeze
 from raytun3r_plugin.deploy.onnx import INPUT_NAME, onnx_session
 from raytun3r_plugin.registry import quiet_upstream
-
-START, END = "<!-- deploy-cost:start -->", "<!-- deploy-cost:end -->"
 
 
 def build(name: str) -> torch.nn.Module:
@@ -161,16 +159,6 @@ def table(rows: list[dict], args) -> str:
     return "\n".join(lines)
 
 
-def write_docs(path: Path, text: str) -> None:
-    page = path.read_text()
-    if START not in page or END not in page:
-        raise SystemExit(f"{path} has no {START} ... {END} block")
-    block = f"{START}\n{text}\n{END}"
-    path.write_text(
-        re.sub(re.escape(START) + ".*?" + re.escape(END), lambda _: block, page, flags=re.S)
-    )
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--model", default="da3-small", help="da3-small (random) or built-in")
@@ -196,7 +184,7 @@ def main() -> None:
     text = table(rows, args)
     print(text)
     if args.docs is not None:
-        write_docs(args.docs, text)
+        write_block(args.docs, "deploy-cost", text)
         print(f"wrote the table into {args.docs}")
 
 

@@ -64,10 +64,19 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=112, help="network input, px")
     parser.add_argument("--frames", type=int, default=24, help="frames per segment")
     parser.add_argument("--noops", type=int, default=50, help="no-op tasks for the overhead")
+    parser.add_argument(
+        "--docs", default=None, help="write the result into this page's fleet-scaling block"
+    )
     args = parser.parse_args()
+    lines: list[str] = []
+
+    def say(text: str) -> None:
+        print(text, flush=True)
+        lines.append(text)
+
     torch.set_num_threads(1)
     tasks = [(95_000 + k, args.size, args.steps, args.frames) for k in range(FITS)]
-    print(
+    say(
         f"{FITS} fits: built-in network, {args.size} px, {args.frames} frames, "
         f"{args.steps} steps; CPUs {len(os.sched_getaffinity(0))}; OMP_NUM_THREADS="
         f"{os.environ.get('OMP_NUM_THREADS')}"
@@ -80,7 +89,7 @@ def main() -> None:
     with quiet_upstream():  # as in a Ray worker (raytun3r_plugin.cluster)
         plain_fits = [fit_one(model, *task) for task in tasks]
     plain = time.perf_counter() - start
-    print(
+    say(
         f"plain process:   {plain:7.1f} s ({sum(plain_fits) / FITS:.1f} s per fit, "
         "network loaded once)"
     )
@@ -102,16 +111,25 @@ def main() -> None:
                 noop_start = time.perf_counter()
                 list(run_tasks(nothing, [(k,) for k in range(args.noops)], ClusterSpec(workers=2)))
                 overhead = (time.perf_counter() - noop_start) / args.noops
-        print(
+        say(
             f"Ray, {workers} worker{'s' if workers > 1 else ' '}:   {walls[workers]:7.1f} s "
             f"({sum(fits) / FITS:.1f} s per fit inside the task); ray.init {startup:.1f} s"
             + (f"; no-op task {1000 * overhead:.0f} ms each" if overhead is not None else "")
         )
-    print(f"throughput, 2 workers over 1: {walls[1] / walls[2]:.2f}x")
-    print(
+    say(f"throughput, 2 workers over 1: {walls[1] / walls[2]:.2f}x")
+    say(
         f"1 Ray worker over the plain process: {walls[1] / plain:.3f}x "
         f"({(walls[1] - plain) / FITS:+.2f} s per fit)"
     )
+    if args.docs:
+        from docs_block import write_block
+
+        command = "OMP_NUM_THREADS=1 python benchmarks/fleet_scaling.py " + " ".join(
+            f"--{k} {v}" for k, v in vars(args).items() if k != "docs"
+        )
+        write_block(
+            args.docs, "fleet-scaling", f"`{command}`:\n\n```\n" + "\n".join(lines) + "\n```"
+        )
 
 
 if __name__ == "__main__":

@@ -19,13 +19,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
 import torch
+from docs_block import write_block
 
 from raytun3r_plugin import synthetic
 from raytun3r_plugin.adaptation.checkpoint import read_loss_log
@@ -36,7 +36,6 @@ from raytun3r_plugin.apps.demo import BUILT_IN_NETWORKS, default_network
 from raytun3r_plugin.cameras import fisheye
 from raytun3r_plugin.registry import quiet_upstream
 
-START, END = "<!-- recipe-cost:start -->", "<!-- recipe-cost:end -->"
 FRAMES = 24
 
 
@@ -115,12 +114,7 @@ def main() -> None:
     )
     print("\n" + table)
     if args.docs:
-        path = Path(args.docs)
-        text = path.read_text()
-        block = f"{START}\n{table}\n{END}"
-        pattern = re.escape(START) + ".*?" + re.escape(END)
-        text = re.sub(pattern, lambda _: block, text, flags=re.S) if START in text else text
-        path.write_text(text)
+        write_block(args.docs, "recipe-cost", table)
 
 
 if __name__ == "__main__":
