@@ -334,3 +334,20 @@ def test_the_example_fleet_runs_its_eval_with_the_benchmark_columns(ray_cluster,
     again = run_fleet(ROOT / "examples" / "fleet.yaml", out, "eval", progress=False)
     assert (again["skipped"], again["ran"]) == (3, 0)
     assert list(csv.DictReader((out / "results.csv").open())) == rows
+
+
+def test_a_task_asks_for_one_gpu_exactly_where_the_cluster_has_gpus():
+    """The resource request of every Ray task (raytun3r_plugin.cluster._resources): one GPU
+    and its CPU threads where the cluster declares GPUs, CPU threads only elsewhere, and what
+    the spec forces either way."""
+    from types import SimpleNamespace
+
+    from raytun3r_plugin.cluster import ClusterSpec, _resources
+
+    with_gpus = SimpleNamespace(cluster_resources=lambda: {"CPU": 16.0, "GPU": 2.0})
+    cpu_only = SimpleNamespace(cluster_resources=lambda: {"CPU": 16.0})
+    spec = ClusterSpec(threads=3)
+    assert _resources(with_gpus, spec) == {"num_cpus": 3, "num_gpus": 1}
+    assert _resources(cpu_only, spec) == {"num_cpus": 3, "num_gpus": 0}
+    assert _resources(with_gpus, ClusterSpec(threads=3, gpus=False))["num_gpus"] == 0
+    assert _resources(cpu_only, ClusterSpec(gpus=True))["num_gpus"] == 1
