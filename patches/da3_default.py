@@ -41,11 +41,18 @@ def _build_record(name: str) -> dict:
             f"{name}: the packaged build record {path} is missing; reinstall raytun3r or train the "
             "network with scripts/train_default_network.py --export <path>"
         )
+    return read_build_record(path, f"{name}: {path}")
+
+
+def read_build_record(path: Path, label: str) -> dict:
+    """The JSON the training script writes beside exported weights (``build_kwargs``,
+    ``training``, and for other architectures ``arch``), parsed and checked; ``label`` names it
+    in the :class:`WeightsError` a malformed record raises."""
     try:
         record = json.loads(path.read_text())
         record["build_kwargs"].items()
     except (ValueError, KeyError, TypeError, AttributeError) as error:
-        raise WeightsError(f"{name}: {path} is not a valid build record ({error})") from error
+        raise WeightsError(f"{label} is not a valid build record ({error})") from error
     return record
 
 

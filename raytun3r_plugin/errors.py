@@ -72,3 +72,17 @@ class TaskError(Raytun3rError, RuntimeError):
 class BrowserError(Raytun3rError, RuntimeError):
     """Headless Chromium did not render a page: it did not start, answer or load it in time, or
     refused a DevTools request (``raytun3r report --png``, the report's browser test)."""
+
+
+def require_module(module: str, extra: str, purpose: str):
+    """Import the optional package ``module``, or raise :class:`MissingDependencyError` saying
+    that ``purpose`` (e.g. "this export") needs it and which extra installs it."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as error:
+        raise MissingDependencyError(
+            f"{purpose} needs the optional package {module!r} ({error}); install it with: "
+            f"pip install 'raytun3r[{extra}]'"
+        ) from error

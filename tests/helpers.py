@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import importlib.util
+import sys
+from pathlib import Path
+
 import torch
 
 
@@ -100,3 +104,37 @@ def outputs_from_threads(models: dict, images, repeats: int = 1) -> dict:
     for thread in threads:
         thread.join()
     return results
+
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def load_script(name: str):
+    """``scripts/<name>.py`` as a module (its siblings in scripts/ importable while it loads)."""
+    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(SCRIPTS))
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(SCRIPTS))
+    return module
+
+
+def tiny_training_args(**changes: str) -> list[str]:
+    """Arguments of a seconds-long ``scripts/train_default_network.py --tiny`` run at 28 px;
+    ``changes`` maps options (``"--steps"``) to other values or adds options."""
+    args = {
+        "--size": "28",
+        "--n-seq": "2",
+        "--n-frames": "3",
+        "--max-gap": "1",
+        "--batch": "1",
+        "--steps": "2",
+        "--warmup": "1",
+        "--log-every": "1",
+        "--ckpt-every": "1",
+        "--threads": "1",
+        **changes,
+    }
+    return ["--tiny", *[x for kv in args.items() for x in kv]]

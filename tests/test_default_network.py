@@ -8,17 +8,17 @@ import json
 import math
 import re
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from tests.helpers import load_script, tiny_training_args
+
 pytest.importorskip("depth_anything_3")
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPTS = ROOT / "scripts"
 CARD = ROOT / "docs" / "model_card_raytun3r_da3_tiny.md"
 NAME = "raytun3r-da3-tiny"
 
@@ -36,17 +36,6 @@ def _weights() -> Path:
             f"packaged weights {path} are missing (run scripts/train_default_network.py --export)"
         )
     return path
-
-
-def _script(name: str):
-    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.path.insert(0, str(SCRIPTS))
-    try:
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(SCRIPTS))
-    return module
 
 
 def test_builder_loads_packaged_weights_without_path():
@@ -128,7 +117,7 @@ def test_model_card_numbers_match_metrics_sidecar():
 
 def test_beats_constant_depth_on_a_held_out_pinhole_frame():
     _weights()
-    train = _script("train_default_network")
+    train = load_script("train_default_network")
     from raytun3r_plugin import predict
     from raytun3r_plugin.metrics import abs_rel
     from raytun3r_plugin.synthetic import render_sequence
@@ -149,30 +138,8 @@ def test_beats_constant_depth_on_a_held_out_pinhole_frame():
 
 
 def test_training_smoke_run_resumes_exactly(tmp_path):
-    train = _script("train_default_network")
-    common = [
-        "--tiny",
-        "--size",
-        "28",
-        "--n-seq",
-        "1",
-        "--n-frames",
-        "2",
-        "--max-gap",
-        "1",
-        "--batch",
-        "1",
-        "--steps",
-        "2",
-        "--warmup",
-        "1",
-        "--log-every",
-        "1",
-        "--ckpt-every",
-        "1",
-        "--threads",
-        "1",
-    ]
+    train = load_script("train_default_network")
+    common = tiny_training_args(**{"--n-seq": "1", "--n-frames": "2"})
     a, b = tmp_path / "a", tmp_path / "b"
     assert train.main(["--out", str(a), "--stop-after", "1", *common]) == 0
     assert json.loads((a / "checkpoint.json").read_text())["step"] == 1
@@ -194,7 +161,7 @@ def test_training_smoke_run_resumes_exactly(tmp_path):
 
 
 def test_quaternion_target_is_da3s_encoding_of_the_rotation():
-    train = _script("train_default_network")
+    train = load_script("train_default_network")
     from depth_anything_3.model.utils.transform import quat_to_mat
 
     angles = torch.tensor(
@@ -217,7 +184,7 @@ def test_quaternion_target_is_da3s_encoding_of_the_rotation():
 
 
 def test_sincos_pe_init_has_the_requested_std_and_is_resolved_by_the_token_grid():
-    train = _script("train_default_network")
+    train = load_script("train_default_network")
     table = train.sincos_table(37, 128, 0.5)
     assert table.shape == (37 * 37, 128)
     assert float(table.std()) == pytest.approx(0.5, rel=1e-4)
@@ -232,36 +199,17 @@ def test_sincos_pe_init_has_the_requested_std_and_is_resolved_by_the_token_grid(
 
 
 def test_training_with_pe_init_and_quaternion_loss_starts_from_the_sincos_table(tmp_path):
-    train = _script("train_default_network")
-    common = [
-        "--tiny",
-        "--size",
-        "28",
-        "--n-seq",
-        "1",
-        "--n-frames",
-        "2",
-        "--max-gap",
-        "1",
-        "--batch",
-        "1",
-        "--steps",
-        "1",
-        "--warmup",
-        "1",
-        "--log-every",
-        "1",
-        "--ckpt-every",
-        "1",
-        "--threads",
-        "1",
-        "--pe-std",
-        "0.5",
-        "--w-quat",
-        "10",
-        "--lr",
-        "0",
-    ]
+    train = load_script("train_default_network")
+    common = tiny_training_args(
+        **{
+            "--n-seq": "1",
+            "--n-frames": "2",
+            "--steps": "1",
+            "--pe-std": "0.5",
+            "--w-quat": "10",
+            "--lr": "0",
+        }
+    )
     assert train.main(["--out", str(tmp_path), *common]) == 0
     from safetensors.torch import load_file
 
@@ -279,7 +227,7 @@ def test_training_with_pe_init_and_quaternion_loss_starts_from_the_sincos_table(
 
 
 def test_fixed_batch_trains_on_the_first_batch_every_step(tmp_path, monkeypatch):
-    train = _script("train_default_network")
+    train = load_script("train_default_network")
     requested = []
     original = train.make_batch
 
@@ -288,29 +236,7 @@ def test_fixed_batch_trains_on_the_first_batch_every_step(tmp_path, monkeypatch)
         return original(data, seed, step, *args)
 
     monkeypatch.setattr(train, "make_batch", recording)
-    common = [
-        "--tiny",
-        "--size",
-        "28",
-        "--n-seq",
-        "1",
-        "--n-frames",
-        "3",
-        "--max-gap",
-        "1",
-        "--batch",
-        "1",
-        "--steps",
-        "3",
-        "--warmup",
-        "1",
-        "--log-every",
-        "1",
-        "--ckpt-every",
-        "3",
-        "--threads",
-        "1",
-    ]
+    common = tiny_training_args(**{"--n-seq": "1", "--steps": "3", "--ckpt-every": "3"})
     assert train.main(["--out", str(tmp_path / "fixed"), "--fixed-batch", *common]) == 0
     assert requested == [0, 0, 0]
     requested.clear()
@@ -318,26 +244,8 @@ def test_fixed_batch_trains_on_the_first_batch_every_step(tmp_path, monkeypatch)
     assert requested == [0, 1, 2]
 
 
-def _tiny_args(**extra: str) -> list[str]:
-    """A 28 px, 1-sequence smoke configuration (seconds per run)."""
-    args = {
-        "--size": "28",
-        "--n-seq": "2",
-        "--n-frames": "3",
-        "--max-gap": "1",
-        "--batch": "1",
-        "--steps": "2",
-        "--warmup": "1",
-        "--log-every": "1",
-        "--ckpt-every": "1",
-        "--threads": "1",
-        **extra,
-    }
-    return ["--tiny", *[x for kv in args.items() for x in kv]]
-
-
 def test_flow_targets_match_a_known_translation():
-    train = _script("train_default_network")
+    train = load_script("train_default_network")
     H = W = 28
     depth = torch.full((1, 2, H, W), 2.0)
     depth[0, 0, :14, :14] = 0.0  # the first token has no depth: invalid
@@ -355,8 +263,8 @@ def test_flow_targets_match_a_known_translation():
 
 
 def test_flow_aux_pose_only_jitter_run_resumes_exactly_and_exports_no_aux_head(tmp_path):
-    train = _script("train_default_network")
-    common = _tiny_args(
+    train = load_script("train_default_network")
+    common = tiny_training_args(
         **{
             "--aux-flow": "1",
             "--aux-flow-kind": "both",
@@ -390,7 +298,7 @@ def test_flow_aux_pose_only_jitter_run_resumes_exactly_and_exports_no_aux_head(t
     c = tmp_path / "c"
     c.mkdir()
     shutil.copy(a / "train_data.npz", c / "train_data.npz")
-    plain = _tiny_args(**{"--jitter-frac": "0.5", "--jitter-deg": "5", "--steps": "1"})
+    plain = tiny_training_args(**{"--jitter-frac": "0.5", "--jitter-deg": "5", "--steps": "1"})
     assert train.main(["--out", str(c), *plain, "--export", str(c / "net.safetensors")]) == 0
     assert exported.keys() == load_file(str(c / "net.safetensors")).keys()
     header, *rows = (a / "log.csv").read_text().strip().splitlines()
@@ -403,7 +311,7 @@ def test_flow_aux_pose_only_jitter_run_resumes_exactly_and_exports_no_aux_head(t
 
 
 def test_jitter_rotates_cameras_about_their_centres():
-    train = _script("train_default_network")
+    train = load_script("train_default_network")
     plain = train.render_one(10_001, 28, 2)
     jit = train.render_one(10_001, 28, 2, jitter_deg=5.0)
     from raytun3r_plugin.synthetic.generate import camera_centres
@@ -414,7 +322,7 @@ def test_jitter_rotates_cameras_about_their_centres():
 
 
 def test_rotate_views_is_an_exact_pinhole_rotation():
-    train = _script("train_default_network")
+    train = load_script("train_default_network")
     from raytun3r_plugin.poses import rotations_from_rotvecs
 
     rng = np.random.default_rng(0)

@@ -14,49 +14,17 @@ import numpy as np
 import pytest
 import torch
 
+from tests.helpers import load_script, tiny_training_args
+
 pytest.importorskip("depth_anything_3")
 pytest.importorskip("vggt")  # the stub package (tests/conftest.py puts tests/stubs on the path)
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPTS = ROOT / "scripts"
 SMOKE = [
     "--arch",
     "vggt",
-    "--tiny",
-    "--size",
-    "28",
-    "--n-seq",
-    "1",
-    "--n-frames",
-    "2",
-    "--max-gap",
-    "1",
-    "--batch",
-    "1",
-    "--steps",
-    "2",
-    "--warmup",
-    "1",
-    "--log-every",
-    "1",
-    "--ckpt-every",
-    "1",
-    "--threads",
-    "1",
-    "--pe-std",
-    "0.5",
+    *tiny_training_args(**{"--n-seq": "1", "--n-frames": "2", "--pe-std": "0.5"}),
 ]
-
-
-def _script(name: str):
-    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.path.insert(0, str(SCRIPTS))
-    try:
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(SCRIPTS))
-    return module
 
 
 def _rotation(axis_angle) -> np.ndarray:
@@ -84,7 +52,7 @@ def _batch() -> dict:
 
 
 def test_vggt_pose_targets_are_camera_from_world_relative_to_the_first_view():
-    losses = _script("default_network_losses")
+    losses = load_script("default_network_losses")
     batch = _batch()
     tg = losses.targets(batch, "vggt")
     poses = batch["cam_from_world"].numpy()
@@ -102,7 +70,7 @@ def test_vggt_pose_targets_are_camera_from_world_relative_to_the_first_view():
 def test_vggt_pose_loss_vanishes_on_vggts_own_encoding_of_the_targets():
     from vggt.utils.pose_enc import extri_intri_to_pose_encoding
 
-    losses = _script("default_network_losses")
+    losses = load_script("default_network_losses")
     tg = losses.targets(_batch(), "vggt")
     H = W = 28
     focal = tg["focal"][:, None].expand(2, 3)
@@ -120,7 +88,7 @@ def test_vggt_pose_loss_vanishes_on_vggts_own_encoding_of_the_targets():
 
 
 def test_vggt_smoke_run_resumes_exactly_and_exports_a_loadable_network(tmp_path):
-    train = _script("train_default_network")
+    train = load_script("train_default_network")
     a, b = tmp_path / "a", tmp_path / "b"
     assert train.main(["--out", str(a), "--stop-after", "1", *SMOKE]) == 0
     assert train.main(["--out", str(a), *SMOKE, "--export", str(a / "net.safetensors")]) == 0
@@ -162,14 +130,14 @@ def test_vggt_smoke_run_resumes_exactly_and_exports_a_loadable_network(tmp_path)
 
 
 def test_vggt_arch_refuses_the_da3_only_auxiliaries(tmp_path):
-    train = _script("train_default_network")
+    train = load_script("train_default_network")
     with pytest.raises(SystemExit, match="not available with --arch vggt"):
         train.main(["--out", str(tmp_path / "x"), *SMOKE, "--aux-flow", "1"])
     assert not (tmp_path / "x").exists()
 
 
 def test_vggt_arch_without_the_stub_names_pythonpath(monkeypatch):
-    vggt = _script("default_network_vggt")
+    vggt = load_script("default_network_vggt")
     monkeypatch.setitem(sys.modules, "vggt", None)  # import vggt now raises ImportError
     monkeypatch.setitem(sys.modules, "vggt.models.vggt", None)
     with pytest.raises(SystemExit, match="PYTHONPATH=tests/stubs"):
@@ -192,7 +160,7 @@ def test_load_trained_network_refuses_a_file_without_its_record(tmp_path):
 def test_the_benchmark_fits_and_scores_a_trained_vggt_network(tmp_path):
     """The synthetic benchmark runs end to end on an exported VGGT (the path of
     ``benchmarks/fisheye_synthetic.py --weights``): every row, a fitted adapter, its gap."""
-    train = _script("train_default_network")
+    train = load_script("train_default_network")
     out = tmp_path / "run"
     assert train.main(["--out", str(out), *SMOKE, "--export", str(out / "net.safetensors")]) == 0
     from raytun3r_plugin.apps.benchmark import (

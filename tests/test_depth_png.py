@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import torch
 
-from raytun3r_plugin.apps.export import depth_panel
 from raytun3r_plugin.apps.inference import write_outputs
+from raytun3r_plugin.exports.files import depth_panel
 from raytun3r_plugin.prediction import Prediction
 from tests.helpers import fisheye
 

@@ -121,7 +121,7 @@ def test_quaternions_round_trip_on_every_branch():
 
 
 def test_tum_trajectories_store_x_y_z_w(tmp_path):
-    from raytun3r_plugin.apps.export import write_tum
+    from raytun3r_plugin.exports.files import write_tum
 
     world_from_cam = np.eye(4)
     world_from_cam[:3, :3] = axis_angle([0, 0, 1], math.pi / 2)

@@ -340,7 +340,8 @@ class _Reporter:
         refined = not reason
         end = state if refined else self.start
         initial, final = self.values(self.camera), self.values(camera)
-        want_focal, want_dist = "focal" in self.names, len(self.names) > int("focal" in self.names)
+        want_focal = "focal" in self.names
+        want_dist = self.dist_name is not None and self.dist_name in self.names
         return IntrinsicsReport(
             model=str(self.camera.model),
             params=self.names,

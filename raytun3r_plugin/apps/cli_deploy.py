@@ -1,6 +1,6 @@
 """``raytun3r export``: a graph of an adapted model for one fixed camera and input size.
 
-Not to be confused with :mod:`raytun3r_plugin.apps.export`, which writes a model's
+Not to be confused with `raytun3r infer --export` (:mod:`raytun3r_plugin.exports`), which writes a model's
 *predictions* (depth, poses, point clouds) to files. This command writes the *model*:
 :func:`raytun3r_plugin.deploy.freeze` then :func:`raytun3r_plugin.deploy.export_onnx`
 (docs/deployment.md).

@@ -15,7 +15,6 @@ classes, forward pass and output conventions are upstream's. The weight file's J
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from torch import nn
@@ -79,11 +78,9 @@ def read_sidecar(path: str | Path) -> dict:
             f"{weights}: the build record {side} is missing (scripts/train_default_network.py "
             "--export writes it beside the weights)"
         )
-    try:
-        record = json.loads(side.read_text())
-        record["build_kwargs"].items()
-    except (ValueError, KeyError, TypeError, AttributeError) as error:
-        raise WeightsError(f"{side} is not a valid build record ({error})") from error
+    from raytun3r_plugin.patches.da3_default import read_build_record
+
+    record = read_build_record(side, str(side))
     arch = record.get("arch", "da3")  # DA3 records predate the field
     if arch not in ARCHITECTURES:
         raise WeightsError(f"{side}: unknown arch {arch!r}; known: {ARCHITECTURES}")

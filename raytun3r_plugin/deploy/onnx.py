@@ -18,11 +18,10 @@ import torch
 
 from raytun3r_plugin.atomic_files import atomic_path
 from raytun3r_plugin.deploy.freeze import FrozenModel
-from raytun3r_plugin.errors import MissingDependencyError, UnsupportedUpstreamError
+from raytun3r_plugin.errors import UnsupportedUpstreamError, require_module
 
 INPUT_NAME = "images"
 OUTPUT_NAMES = ("depth", "confidence", "cam_from_world")
-_EXTRA_HINT = "pip install 'raytun3r[deploy]'"
 #: Families whose frozen model has no ONNX graph, and why (checked before anything is written).
 ONNX_BLOCKERS = {
     "pi3": "Pi3's camera head orthogonalises every rotation with torch.linalg.svd, for which "
@@ -34,14 +33,7 @@ ONNX_BLOCKERS = {
 
 
 def _require(module: str):
-    import importlib
-
-    try:
-        return importlib.import_module(module)
-    except ImportError as error:
-        raise MissingDependencyError(
-            f"exporting to ONNX needs {module!r} ({error}); install it with: {_EXTRA_HINT}"
-        ) from error
+    return require_module(module, "deploy", "exporting to ONNX")
 
 
 def export_onnx(frozen: FrozenModel, path: str | os.PathLike, opset: int = 18) -> Path:

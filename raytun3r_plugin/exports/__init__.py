@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from raytun3r_plugin.errors import InputError, MissingDependencyError
+from raytun3r_plugin.errors import InputError, require_module
 from raytun3r_plugin.exports.lens import COLMAP_LENS_CHOICES, DEFAULT_MAX_FIT_ERROR_PX
 from raytun3r_plugin.exports.scene import (
     DEPTH_CONVENTIONS,
@@ -93,14 +93,9 @@ class ExportPlan:
     notes: list[str] = field(default_factory=list)
 
 
-def require(module: str, extra: str = "viz"):
-    """Import an optional package or raise :class:`MissingDependencyError` naming the extra."""
-    try:
-        return importlib.import_module(module)
-    except ImportError:
-        raise MissingDependencyError(
-            f"this export needs the optional package {module!r}: pip install 'raytun3r[{extra}]'"
-        ) from None
+def require(module: str):
+    """Import an export's optional package (the ``viz`` extra)."""
+    return require_module(module, "viz", "this export")
 
 
 def check_formats(formats: Iterable[str]) -> list[str]:

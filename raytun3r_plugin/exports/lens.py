@@ -45,9 +45,6 @@ COLMAP_MODEL_IDS = {
     "EUCM": 16,
 }
 
-# raytun3r model -> COLMAP model with the same parameters in the same order: the calibration
-# writer's table (cameras/formats/colmap.py), one home for both.
-_COLMAP_EXACT = COLMAP_EXPORT_MODEL
 
 #: COLMAP projects through x / z: no ray at or beyond 90 degrees from the axis has a pixel.
 #: Observations and fits stop a degree short of it.
@@ -239,15 +236,15 @@ def colmap_lens(
     if choice not in COLMAP_LENS_CHOICES:
         raise InputError(f"COLMAP lens must be one of {list(COLMAP_LENS_CHOICES)}, got {choice!r}")
     values = camera.values
-    native = _COLMAP_EXACT.get(camera.model, "EUCM" if camera.model == "ucm" else None)
+    native = COLMAP_EXPORT_MODEL.get(camera.model, "EUCM" if camera.model == "ucm" else None)
     if choice == "opencv-fisheye" and native not in _BASIC_COLMAP:
         native = None
     if native is None:
         span = min(COLMAP_MAX_ANGLE_DEG, math.degrees(camera.max_angle))
         return _fitted(camera, span, max_fit_error_px, "COLMAP")
-    if camera.model in _COLMAP_EXACT:
+    if camera.model in COLMAP_EXPORT_MODEL:
         params = tuple(values[n] for n in camera.param_names)
-        model = _COLMAP_EXACT[camera.model]
+        model = COLMAP_EXPORT_MODEL[camera.model]
     else:  # UCM(alpha) = EUCM(alpha, beta = 1), the same formula
         params, model = (*(values[n] for n in camera.param_names), 1.0), "EUCM"
     notes = []
