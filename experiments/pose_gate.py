@@ -6,7 +6,13 @@ the default recipe's windows and matches, the zero adapter), per network: the me
 error of the network's relative poses, that of "no rotation", and their ratio. The rule for the
 threshold, written before this ran, is in docs/decisions.md ("The pose gate").
 
-    python experiments/pose_gate.py [--out runs/pose_gate.json]
+    python experiments/pose_gate.py [--out runs/pose_gate.json] [--sequences K]
+        [--weights FILE ...]   # networks from scripts/train_default_network.py (a VGGT one
+                               # needs PYTHONPATH=tests/stubs)
+
+Besides the error ratio it prints each network's responsiveness: the median angle of its own
+relative rotations over the targets' median angle (near 0 for a head that answers "no
+rotation" whatever the input).
 """
 
 from __future__ import annotations
@@ -40,9 +46,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="runs/pose_gate.json")
     parser.add_argument("--sequences", type=int, default=SEQUENCES_PER_CELL)
+    parser.add_argument("--weights", nargs="*", default=[], help="trained networks to add")
     args = parser.parse_args()
     torch.set_num_threads(1)
     models = {name: default_network(name)[0] for name in BUILT_IN_NETWORKS}
+    if args.weights:
+        from raytun3r_plugin.apps.trained_networks import load_trained_network
+
+        for path in args.weights:
+            models[Path(path).stem] = load_trained_network(path)[0]
     rows = []
     with quiet_upstream():
         for c, spec in enumerate(CAMERAS):
@@ -61,12 +73,13 @@ def main() -> None:
                         print(json.dumps(row), flush=True)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(rows, indent=1))
-    for name in BUILT_IN_NETWORKS:
-        ratios = [r["ratio"] for r in rows if r["network"] == name and r["pairs"]]
-        print(
-            f"{name}: ratio network / no rotation over {len(ratios)} sequences: median "
-            f"{statistics.median(ratios):.3f}, range {min(ratios):.3f}-{max(ratios):.3f}"
-        )
+    for name in models:
+        for key in ("ratio", "responsiveness"):
+            values = [r[key] for r in rows if r["network"] == name and r["pairs"]]
+            print(
+                f"{name}: {key} over {len(values)} sequences: median "
+                f"{statistics.median(values):.3f}, range {min(values):.3f}-{max(values):.3f}"
+            )
 
 
 if __name__ == "__main__":

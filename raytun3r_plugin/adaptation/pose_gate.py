@@ -41,10 +41,12 @@ def pose_agreement(
 
     Returns:
         ``{"pairs": n, "network_deg": median error of the network, "no_rotation_deg": median
-        rotation angle of the targets, "ratio": network / no rotation}``; the errors are NaN
-        without a pair.
+        rotation angle of the targets, "ratio": network / no rotation, "network_rotation_deg":
+        median angle of the network's own relative rotations, "responsiveness": that angle /
+        the targets' median angle}``, angles in degrees; a head that answers "no rotation"
+        whatever the input has responsiveness near 0. NaN without a pair.
     """
-    network, identity = [], []
+    network, identity, own = [], [], []
     with _evaluated(model, adapter, problem, config):
         for index, (_window, pairs) in enumerate(problem.windows):
             targets = [pair for pair in pairs if pair.rotation is not None]
@@ -57,13 +59,25 @@ def pose_agreement(
                 rotation = pair.rotation.detach().double().cpu()
                 network.append(float(poses.rotation_angle(rotation, relative[:3, :3])))
                 identity.append(float(poses.rotation_angle(rotation, torch.eye(3).double())))
+                own.append(float(poses.rotation_angle(relative[:3, :3], torch.eye(3).double())))
     if not network:
-        return {"pairs": 0, "network_deg": math.nan, "no_rotation_deg": math.nan, "ratio": math.nan}
+        nan = math.nan
+        return {
+            "pairs": 0,
+            "network_deg": nan,
+            "no_rotation_deg": nan,
+            "ratio": nan,
+            "network_rotation_deg": nan,
+            "responsiveness": nan,
+        }
     net = math.degrees(float(torch.tensor(network).median()))
     none = math.degrees(float(torch.tensor(identity).median()))
+    turned = math.degrees(float(torch.tensor(own).median()))
     return {
         "pairs": len(network),
         "network_deg": round(net, 4),
         "no_rotation_deg": round(none, 4),
         "ratio": round(net / none, 4) if none > 0 else math.inf,
+        "network_rotation_deg": round(turned, 4),
+        "responsiveness": round(turned / none, 4) if none > 0 else math.inf,
     }
