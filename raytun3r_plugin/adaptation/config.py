@@ -146,6 +146,15 @@ class AdaptConfig:
             (outdoors at 112 px: d_reproj rose on every sequence). When no window is left the
             fit stops at once with the verdict "no signal" and the tables stay as they started.
             0 keeps every window. docs/adaptation.md section 6.
+        pose_gate: self-supervised fit with a pose term only: before fitting, measure the
+            network's *responsiveness* on the adaptation set with the starting tables (the
+            median angle of its own relative rotations over the MAGSAC++ targets' median
+            angle, :func:`~raytun3r_plugin.adaptation.pose_gate.pose_agreement`); below this
+            value the head answers "no rotation" whatever the input, and the fit runs with
+            ``pose_source="targets"`` (no pose term) instead of bending the tables towards
+            making a head at chance reproduce the targets. ``training_info["pose_gate"]``
+            records the measurement. None: no gate (left out of :meth:`to_dict`, so existing
+            identities are unchanged). docs/decisions.md, "The pose gate, second form".
         refine_intrinsics: before fitting, refine the camera's focal and first distortion term
             jointly with the pairs' relative poses from the adaptation set's matches
             (:func:`~raytun3r_plugin.adaptation.intrinsics.refine_intrinsics`, docs/intrinsics.md)
@@ -209,6 +218,7 @@ class AdaptConfig:
     guard: bool = True
     guard_every: int = 25
     min_parallax_px: float = 0.3
+    pose_gate: float | None = None
     refine_intrinsics: bool = False
     photo_sigma: float = 1.0
     photo_pixels: int = 4096
@@ -254,6 +264,7 @@ class AdaptConfig:
             ("pe_regulariser", self.pe_regulariser in PE_REGULARISERS),
             ("guard_every", self.guard_every >= 1),
             ("min_parallax_px", self.min_parallax_px >= 0),
+            ("pose_gate", self.pose_gate is None or self.pose_gate >= 0),
             ("refine_intrinsics", isinstance(self.refine_intrinsics, bool)),
             ("recipe", isinstance(self.recipe, str)),
             ("photo_sigma", math.isfinite(self.photo_sigma) and self.photo_sigma >= 0),
@@ -323,6 +334,8 @@ class AdaptConfig:
         # configuration that does not use it stays what it was before the field existed.
         if not self.refine_intrinsics:
             del out["refine_intrinsics"]
+        if self.pose_gate is None:
+            del out["pose_gate"]
         out["weights"] = self.weights.as_dict()
         if not self.weights.photo and self.scale != "photometric":
             del out["photo_sigma"], out["photo_pixels"]

@@ -1,5 +1,5 @@
-"""Does the network's own relative pose agree with the matches? The measurement behind the
-pose gate (``AdaptConfig.pose_gate``).
+"""Does the network's own relative pose agree with the matches, and does it turn at all? The
+measurement behind the pose gate (``AdaptConfig.pose_gate``).
 
 The pose term pulls the network's relative pose towards the MAGSAC++ estimates from the matches.
 On a network whose pose output is no better than "no rotation" (the built-in v2) that pull is
@@ -11,12 +11,14 @@ rotation" is; the recipe keeps the pose term only where the network is clearly c
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import TYPE_CHECKING, Any
 
 import torch
 
 from raytun3r_plugin import poses
+from raytun3r_plugin.adaptation.config import POSE_TERM_SOURCES
 from raytun3r_plugin.adaptation.step import _evaluated
 from raytun3r_plugin.prediction import predict
 
@@ -27,7 +29,7 @@ if TYPE_CHECKING:
     from raytun3r_plugin.adaptation.problem import AdaptationProblem
     from raytun3r_plugin.adapter import Adapter
 
-__all__ = ["pose_agreement"]
+__all__ = ["gate_pose_term", "pose_agreement"]
 
 
 def pose_agreement(
@@ -81,3 +83,31 @@ def pose_agreement(
         "network_rotation_deg": round(turned, 4),
         "responsiveness": round(turned / none, 4) if none > 0 else math.inf,
     }
+
+
+def gate_pose_term(
+    model: nn.Module, adapter: Adapter, problem: AdaptationProblem, config: AdaptConfig
+) -> tuple[AdaptConfig, dict[str, Any] | None]:
+    """The settings a self-supervised fit runs with after the pose gate, and the gate's record.
+
+    With ``config.pose_gate`` set and a pose term in the objective, the network's
+    responsiveness is measured on ``problem`` with ``adapter``'s (starting) tables; below the
+    gate the returned settings reproject through the targets alone (``pose_source="targets"``:
+    no pose term). A NaN measurement (no pair with a target) is no evidence: the pose term stays.
+
+    Returns:
+        ``(settings, record)``; the record is None when the gate does not apply, else
+        :func:`pose_agreement`'s measurement with ``"threshold"`` and ``"pose_term"`` (kept).
+    """
+    if (
+        config.pose_gate is None
+        or config.pose_source not in POSE_TERM_SOURCES
+        or config.weights.pose <= 0
+    ):
+        return config, None
+    agreement = pose_agreement(model, adapter, problem, config)
+    switch = bool(agreement["responsiveness"] < config.pose_gate)  # NaN < x is False
+    record = {**agreement, "threshold": config.pose_gate, "pose_term": not switch}
+    if switch:
+        config = dataclasses.replace(config, pose_source="targets")
+    return config, record

@@ -66,6 +66,7 @@ from raytun3r_plugin.adaptation.guard import (
     fit_verdict,
 )
 from raytun3r_plugin.adaptation.loop import run_fit_loop
+from raytun3r_plugin.adaptation.pose_gate import gate_pose_term
 from raytun3r_plugin.adaptation.problem import (
     AdaptationProblem,
     prepare_problem,
@@ -218,6 +219,11 @@ def adapt(
             )
     problem.pe_scale = regulariser_scale(model, config)
     adapter.camera = problem.layout.native_camera
+    requested, pose_gate = config, None
+    if depth is None and poses is None:
+        # Measured with the starting tables, before any checkpoint is restored (as the parallax
+        # gate below), so a resumed run makes the same choice.
+        config, pose_gate = gate_pose_term(model, adapter, problem, config)
     teacher = depth is None and config.weights.teacher > 0
     teacher_record = None
     if teacher:
@@ -311,7 +317,9 @@ def adapt(
     adapter.training_info = _training_info(
         config, problem, completed, history, outcome.interrupted, outcome.seconds, start
     )
-    adapter.training_info["recipe"] = config.recipe_record(model)
+    adapter.training_info["recipe"] = requested.recipe_record(model)
+    if pose_gate is not None:
+        adapter.training_info["pose_gate"] = pose_gate
     if intrinsics is not None:
         adapter.training_info["intrinsics"] = intrinsics
     if guard is not None:
