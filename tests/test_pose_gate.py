@@ -17,6 +17,7 @@ from raytun3r_plugin.adaptation.pose_gate import gate_pose_term, pose_agreement
 from raytun3r_plugin.adaptation.problem import prepare_problem
 from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.adapter import Adapter
+from raytun3r_plugin.apps.adapter_report import describe_file
 from raytun3r_plugin.apps.benchmark import CAMERAS, make_camera
 from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.weights import load_backbone
@@ -79,6 +80,9 @@ def test_the_gate_switches_a_still_head_to_the_targets_and_the_adapter_says_so(
     assert info["config"]["pose_source"] == "targets"
     # The recipe record lists what the user asked for, not the gate's switch.
     assert "pose_source" not in info["recipe"]["changes"]
+    still.save(tmp_path / "still.safetensors")
+    summary = describe_file(tmp_path / "still.safetensors")
+    assert "pose gate: responsiveness" in summary and "pose term dropped" in summary
 
     turning = adapt(
         networks["raytun3r-da3-tiny-v3"],

@@ -94,6 +94,13 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
         lines.extend(f"{indent}{part}" for part in _wrap(text, 100 - len(indent)))
     elif training:
         lines.append(f"{indent}recipe: not recorded (fitted before recipes existed)")
+    gate = training.get("pose_gate")
+    if isinstance(gate, Mapping) and "pose_term" in gate:
+        verdict = "kept" if gate["pose_term"] else "dropped: the head does not turn"
+        lines.append(
+            f"{indent}pose gate: responsiveness {_setting(gate.get('responsiveness'))} against "
+            f"{_setting(gate.get('threshold'))}, pose term {verdict}"
+        )
     losses = training.get("final_losses") or {}
     if losses:
         over = training.get("final_losses_over_steps")
