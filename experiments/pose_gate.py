@@ -30,6 +30,8 @@ from raytun3r_plugin.adaptation.problem import prepare_problem
 from raytun3r_plugin.apps.benchmark import (
     CAMERAS,
     DEVELOPMENT_SEED,
+    HELD_OUT_SEED,
+    NEW_LENSES,
     SCENES,
     SEQUENCES_PER_CELL,
     make_camera,
@@ -47,6 +49,13 @@ def main() -> None:
     parser.add_argument("--out", default="runs/pose_gate.json")
     parser.add_argument("--sequences", type=int, default=SEQUENCES_PER_CELL)
     parser.add_argument("--weights", nargs="*", default=[], help="trained networks to add")
+    parser.add_argument(
+        "--held-out",
+        action="store_true",
+        help="the benchmark's held-out seeds (to check which fits the gate would change; "
+        "it measures the gate's input, no outcome)",
+    )
+    parser.add_argument("--new-lenses", action="store_true", help="UCM 200 and EUCM 210 too")
     args = parser.parse_args()
     torch.set_num_threads(1)
     models = {name: default_network(name)[0] for name in BUILT_IN_NETWORKS}
@@ -57,11 +66,13 @@ def main() -> None:
             models[Path(path).stem] = load_trained_network(path)[0]
     rows = []
     with quiet_upstream():
-        for c, spec in enumerate(CAMERAS):
+        base = HELD_OUT_SEED if args.held_out else DEVELOPMENT_SEED
+        lenses = (*CAMERAS, *NEW_LENSES) if args.new_lenses else CAMERAS
+        for c, spec in enumerate(lenses):
             camera = make_camera(spec, SIZE)
             for s, scene in enumerate(SCENES):
                 for k in range(args.sequences):
-                    seed = sequence_seed(c, s, k, DEVELOPMENT_SEED)
+                    seed = sequence_seed(c, s, k, base)
                     seq = synthetic.render_sequence(scene, camera, n_frames=36, seed=seed)
                     config = adapt_config(SIZE, 300, seed=0)
                     problem = prepare_problem(camera, seq.first_images(24), config)
