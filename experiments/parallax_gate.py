@@ -4,7 +4,7 @@ For every development sequence of the benchmark (its 3 cameras x 2 scenes, seeds
 + 10 camera + scene, k < ``--sequences``; never the benchmark's 90000+), rendered and windowed
 exactly as the benchmark fits them (36 frames, frames 0-23 for adaptation, the demo's
 configuration at 112 px), the per-window median depth parallax of the matches with the zero
-adapter (``step.window_parallax``: input pixels of reprojection per unit log depth), and how
+adapter (``parallax.window_parallax``: input pixels of reprojection per unit log depth), and how
 many windows a threshold drops.
 
     python experiments/parallax_gate.py               # 5 sequences per cell, about 3 minutes
@@ -27,8 +27,8 @@ import numpy as np
 import torch
 
 from raytun3r_plugin import synthetic
+from raytun3r_plugin.adaptation.parallax import window_parallax
 from raytun3r_plugin.adaptation.problem import prepare_problem
-from raytun3r_plugin.adaptation.step import window_parallax
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.apps.benchmark import (
     CAMERAS,

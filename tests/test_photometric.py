@@ -202,8 +202,8 @@ def test_the_photometric_scale_is_recorded_and_scales_the_reprojection(tmp_path)
     with it steps and measures its windows' parallax at that scale."""
     from depth_anything_3.utils.logger import logger
 
+    from raytun3r_plugin.adaptation.parallax import window_parallax
     from raytun3r_plugin.adaptation.problem import prepare_problem
-    from raytun3r_plugin.adaptation.step import window_parallax
     from raytun3r_plugin.adapter import Adapter
 
     saved = AdaptConfig(scale="photometric").to_dict()

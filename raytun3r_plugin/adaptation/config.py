@@ -141,7 +141,7 @@ class AdaptConfig:
         min_parallax_px: self-supervised fit only: before fitting, drop every window whose
             matches move less than this many input pixels per unit log depth (median over the
             window, at the fit's own translation scale and the starting adapter's depth;
-            :func:`~raytun3r_plugin.adaptation.step.window_parallax`): such matches cannot tell
+            :func:`~raytun3r_plugin.adaptation.parallax.window_parallax`): such matches cannot tell
             near from far, and fitting to them moved the tables by noise and smoothness alone
             (outdoors at 112 px: d_reproj rose on every sequence). When no window is left the
             fit stops at once with the verdict "no signal" and the tables stay as they started.

@@ -22,8 +22,8 @@ import torch
 from torch import nn
 
 from raytun3r_plugin.adaptation.checkpoint import _rewrite_log
+from raytun3r_plugin.adaptation.evaluation import frozen_backbone
 from raytun3r_plugin.adaptation.guard import _CollapseGuard
-from raytun3r_plugin.adaptation.step import _frozen
 
 __all__ = ["LoopOutcome", "run_fit_loop"]
 
@@ -151,7 +151,7 @@ def run_fit_loop(
     bar = _Progress(steps, start, progress, label)
     log = open(log_path, "a", encoding="utf-8") if log_path is not None else None  # noqa: SIM115
     try:
-        with _frozen(model), torch.random.fork_rng(devices=[]):
+        with frozen_backbone(model), torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             handle = patch()
             # The guard keeps and restores what is fitted (``guarded``).

@@ -19,7 +19,7 @@ import torch
 
 from raytun3r_plugin import poses
 from raytun3r_plugin.adaptation.config import POSE_TERM_SOURCES
-from raytun3r_plugin.adaptation.step import _evaluated
+from raytun3r_plugin.adaptation.evaluation import patched_for_evaluation
 from raytun3r_plugin.prediction import predict
 
 if TYPE_CHECKING:
@@ -49,16 +49,16 @@ def pose_agreement(
         whatever the input has responsiveness near 0. NaN without a pair.
     """
     network, identity, own = [], [], []
-    with _evaluated(model, adapter, problem, config):
+    with patched_for_evaluation(model, adapter, problem, config):
         for index, (_window, pairs) in enumerate(problem.windows):
-            targets = [pair for pair in pairs if pair.rotation is not None]
+            targets = [(pair, pair.rotation) for pair in pairs if pair.rotation is not None]
             if not targets:
                 continue
             cam_from_world = predict(model, problem.batch(index)[None]).cam_from_world[0]
             cam_from_world = cam_from_world.detach().double().cpu()
-            for pair in targets:
+            for pair, target in targets:
                 relative = poses.relative_pose(cam_from_world, pair.a, pair.b)
-                rotation = pair.rotation.detach().double().cpu()
+                rotation = target.detach().double().cpu()
                 network.append(float(poses.rotation_angle(rotation, relative[:3, :3])))
                 identity.append(float(poses.rotation_angle(rotation, torch.eye(3).double())))
                 own.append(float(poses.rotation_angle(relative[:3, :3], torch.eye(3).double())))

@@ -50,9 +50,10 @@ from raytun3r_plugin.adaptation.guard import (
     _CollapseGuard,
 )
 from raytun3r_plugin.adaptation.loop import run_fit_loop
+from raytun3r_plugin.adaptation.parallax import window_parallax
 from raytun3r_plugin.adaptation.problem import AdaptationProblem, _Pair, prepare_problem
 from raytun3r_plugin.adaptation.rig_step import cross_pairs, rig_step, rig_views
-from raytun3r_plugin.adaptation.step import regulariser_scale, window_parallax
+from raytun3r_plugin.adaptation.step import regulariser_scale
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
 from raytun3r_plugin.patching import apply, handle_of

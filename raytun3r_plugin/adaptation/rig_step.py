@@ -25,12 +25,11 @@ from raytun3r_plugin.adaptation.losses import (
 )
 from raytun3r_plugin.adaptation.problem import AdaptationProblem, _Pair
 from raytun3r_plugin.adaptation.step import (
-    _subset,
-    _targets_pose,
     optimiser_step,
     prediction_terms,
     window_of_step,
 )
+from raytun3r_plugin.adaptation.target_scale import subset_matches, targets_pose
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.poses import invert_rigid
 from raytun3r_plugin.prediction import predict
@@ -252,11 +251,9 @@ def _cross_term(
     generator: torch.Generator,
 ) -> torch.Tensor | None:
     """The reprojection term of one cross-camera pair: camera i's depth, projected into camera j."""
-    uv_i, uv_j, confidence, rays_i, rays_j = _subset(pair, config.max_matches, generator)
+    uv_i, uv_j, confidence, rays_i, rays_j = subset_matches(pair, config.max_matches, generator)
     camera_j = problem_j.layout.camera
-    relative = _targets_pose(
-        pair, depth_i, uv_i, uv_j, confidence, rays_i, rays_j, camera_j, config
-    )
+    relative = targets_pose(pair, depth_i, uv_i, uv_j, confidence, rays_i, rays_j, camera_j, config)
     loss, count = reprojection_loss(
         depth_i,
         relative,

@@ -9,8 +9,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -22,15 +20,13 @@ from raytun3r_plugin.adaptation.config import (
     TARGET_REPROJECTION_SOURCES,
     AdaptConfig,
 )
+from raytun3r_plugin.adaptation.evaluation import patched_for_evaluation
 from raytun3r_plugin.adaptation.losses import (
-    backproject,
-    depth_parallax_px,
     grouped_silog_loss,
     pe_correction_grid,
     pe_energy,
     pe_l2,
     pe_tv,
-    pixel_optimal_scale,
     relative_pose,
     reprojection_loss,
     sample_bilinear,
@@ -41,16 +37,20 @@ from raytun3r_plugin.adaptation.losses import (
 from raytun3r_plugin.adaptation.photometric import (
     blurred_gray,
     photometric_loss,
-    photometric_optimal_scale,
 )
 from raytun3r_plugin.adaptation.pose_terms import (
-    fit_translation_scale,
     pose_loss,
 )
 from raytun3r_plugin.adaptation.problem import AdaptationProblem, _Pair
+from raytun3r_plugin.adaptation.target_scale import (
+    photometric_scale,
+    sample_valid_pixels,
+    subset_matches,
+    targets_pose,
+)
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AlreadyAppliedError
-from raytun3r_plugin.patching import apply, handle_of
+from raytun3r_plugin.patching import handle_of
 from raytun3r_plugin.prediction import predict
 from raytun3r_plugin.preprocess import InputLayout
 from raytun3r_plugin.registry import spec_for
@@ -66,174 +66,13 @@ __all__ = [
     "problem_window_terms",
     "regulariser_scale",
     "window_of_step",
-    "window_parallax",
     "window_terms",
 ]
-
-
-@contextmanager
-def _frozen(model: nn.Module) -> Iterator[None]:
-    """Backbone parameters without gradients and every module in eval mode; restored after."""
-    flags = [(parameter, parameter.requires_grad) for parameter in model.parameters()]
-    modes = [(module, module.training) for module in model.modules()]
-    try:
-        for parameter, _ in flags:
-            parameter.requires_grad_(False)
-        model.eval()
-        yield
-    finally:
-        for parameter, flag in flags:
-            parameter.requires_grad_(flag)
-        for module, mode in modes:
-            module.training = mode
 
 
 # --------------------------------------------------------------------------------------------
 # Loss terms of one window
 # --------------------------------------------------------------------------------------------
-
-
-@contextmanager
-def _evaluated(
-    model: nn.Module, adapter: Adapter, problem: AdaptationProblem, config: AdaptConfig
-) -> Iterator[None]:
-    """``model`` frozen, in eval mode, without gradients and patched with ``adapter`` as the fit
-    patches it; everything restored afterwards."""
-    with (
-        _frozen(model),
-        torch.no_grad(),
-        apply(
-            model,
-            problem.layout.native_camera,
-            adapter,
-            components=config.components,
-            strict=False,
-            mask=problem.mask,
-        ),
-    ):
-        yield
-
-
-def _subset(pair: _Pair, max_matches: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
-    count = pair.uv_i.shape[0]
-    if max_matches and count > max_matches:
-        index = torch.randperm(count, generator=generator)[:max_matches]
-        return (
-            pair.uv_i[index],
-            pair.uv_j[index],
-            pair.confidence[index],
-            pair.rays_i[index],
-            pair.rays_j[index],
-        )
-    return pair.uv_i, pair.uv_j, pair.confidence, pair.rays_i, pair.rays_j
-
-
-def _matched_points(
-    depth_i: torch.Tensor, uv_i: torch.Tensor, rays_i: torch.Tensor, convention: str
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """(M, 3) points of the matches in camera i at the predicted depth, and (M,) where that depth
-    is usable (finite, positive; the other points sit at depth 1)."""
-    depth = sample_bilinear(depth_i, uv_i)
-    usable = torch.isfinite(depth) & (depth > 0)
-    points = backproject(torch.where(usable, depth, torch.ones_like(depth)), rays_i, convention)
-    return points, usable
-
-
-def _pose_scaled_to(
-    pair: _Pair,
-    points: torch.Tensor,
-    usable: torch.Tensor,
-    uv_j: torch.Tensor,
-    confidence: torch.Tensor,
-    rays_j: torch.Tensor,
-    camera: Camera,
-    config: AdaptConfig,
-    scale: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """``cam_j_from_cam_i`` from the MAGSAC++ target, translation scaled to ``points``
-    (``config.scale``: pixel-optimal and detached, or the differentiable least-squares scale),
-    or by ``scale`` where given (``config.scale="photometric"``: :func:`_photometric_scale`)."""
-    rotation = pair.rotation.to(points.dtype)
-    direction = pair.direction.to(points.dtype)
-    if scale is None:
-        scale = fit_translation_scale(
-            points[usable], rays_j[usable], rotation, direction, confidence[usable]
-        )
-        if config.scale == "pixel":
-            scale = pixel_optimal_scale(
-                points[usable],
-                uv_j[usable],
-                rotation,
-                direction,
-                camera,
-                confidence[usable],
-                robust_px=config.robust_px or 1.0,
-                initial=scale.detach(),
-            )
-    scale = scale.to(points.dtype)
-    pose = torch.eye(4, dtype=points.dtype)
-    return torch.cat((torch.cat((rotation, (scale * direction)[:, None]), dim=1), pose[3:]), dim=0)
-
-
-def _targets_pose(
-    pair: _Pair,
-    depth_i: torch.Tensor,
-    uv_i: torch.Tensor,
-    uv_j: torch.Tensor,
-    confidence: torch.Tensor,
-    rays_i: torch.Tensor,
-    rays_j: torch.Tensor,
-    camera: Camera,
-    config: AdaptConfig,
-    scale: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """``cam_j_from_cam_i`` from the MAGSAC++ target, translation scaled to the predicted depth
-    (:func:`_pose_scaled_to`)."""
-    points, usable = _matched_points(depth_i, uv_i, rays_i, config.depth_convention)
-    return _pose_scaled_to(pair, points, usable, uv_j, confidence, rays_j, camera, config, scale)
-
-
-def _valid_pixels(
-    valid: torch.Tensor, camera: Camera, count: int, generator: torch.Generator, dtype: torch.dtype
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """(K, 2) long (column, row) pixels, at most ``count`` drawn at random from ``valid``, and
-    their (K, 3) unit rays (pixels without a ray left out)."""
-    rows, cols = torch.nonzero(valid, as_tuple=True)
-    pick = torch.randperm(rows.shape[0], generator=generator)[:count]
-    pixels = torch.stack((cols[pick], rows[pick]), dim=-1)
-    with torch.no_grad():
-        rays, ok = camera.unproject(pixels.to(dtype))
-    return pixels[ok], rays[ok]
-
-
-def _photometric_scale(
-    depth_i: torch.Tensor,
-    gray_i: torch.Tensor,
-    gray_j: torch.Tensor,
-    pair: _Pair,
-    camera: Camera,
-    valid: torch.Tensor,
-    config: AdaptConfig,
-    generator: torch.Generator,
-) -> torch.Tensor:
-    """Translation length of ``pair``'s target for ``config.scale="photometric"``:
-    :func:`photometric_optimal_scale` of frame ``i``'s predicted depth (detached) on
-    ``config.photo_pixels`` random valid pixels."""
-    with torch.no_grad():
-        depth_i = depth_i.detach()
-        pixels, rays = _valid_pixels(valid, camera, config.photo_pixels, generator, depth_i.dtype)
-        points, usable = _matched_points(
-            depth_i, pixels.to(depth_i.dtype), rays, config.depth_convention
-        )
-        return photometric_optimal_scale(
-            points[usable],
-            gray_i[pixels[:, 1], pixels[:, 0]][usable].to(depth_i.dtype),
-            gray_j,
-            pair.rotation,
-            pair.direction,
-            camera,
-            valid,
-        )
 
 
 def window_terms(
@@ -355,11 +194,11 @@ def prediction_terms(
         # (and every fit of the single-pose modes) is what it was before "both" existed.
         if pair.uv_i.shape[0] == 0 or not (relatives or through_targets):
             continue
-        uv_i, uv_j, confidence, rays_i, rays_j = _subset(pair, config.max_matches, generator)
+        uv_i, uv_j, confidence, rays_i, rays_j = subset_matches(pair, config.max_matches, generator)
         if through_targets:
             scale = None
             if photometric:
-                scale = _photometric_scale(
+                scale = photometric_scale(
                     depth[pair.a],
                     gray[pair.a],
                     gray[pair.b],
@@ -370,7 +209,7 @@ def prediction_terms(
                     generator,
                 )
             relatives.append(
-                _targets_pose(
+                targets_pose(
                     pair,
                     depth[pair.a],
                     uv_i,
@@ -442,7 +281,9 @@ def _photometric_term(
     for pair in pairs:
         if pair.rotation is None:
             continue
-        pixels, rays = _valid_pixels(valid, camera, config.photo_pixels, generator, depth.dtype)
+        pixels, rays = sample_valid_pixels(
+            valid, camera, config.photo_pixels, generator, depth.dtype
+        )
         loss, count = photometric_loss(
             depth[pair.a],
             rays,
@@ -458,75 +299,6 @@ def _photometric_term(
         if count:
             losses.append(loss)
     return torch.stack(losses).mean() if losses else depth.sum() * 0.0
-
-
-def window_parallax(
-    model: nn.Module, adapter: Adapter, problem: AdaptationProblem, config: AdaptConfig
-) -> list[float]:
-    """Median depth parallax (px per unit log depth, :func:`depth_parallax_px`) of each window's
-    matches, NaN for a window without a pair that has a usable pose target.
-
-    Each used frame is predicted once, alone, through ``model`` patched with ``adapter`` (frozen,
-    in eval mode, restored afterwards); each pair's translation is scaled to that depth as the fit
-    scales it (:func:`_targets_pose`).
-    """
-    camera = problem.layout.camera
-    frames = sorted({frame for window, _ in problem.windows for frame in window.frames})
-    with _evaluated(model, adapter, problem, config):
-        depth = {
-            frame: predict(model, problem.inputs[frame][None, None]).depth[0, 0].cpu()
-            for frame in frames
-        }
-    medians = []
-    photometric = config.scale == "photometric"
-    generator = torch.Generator().manual_seed(int(config.seed))
-    with torch.no_grad():
-        if photometric:
-            gray = {
-                frame: blurred_gray(problem.inputs[frame][None].double(), config.photo_sigma)[0]
-                for frame in frames
-            }
-        for window, pairs in problem.windows:
-            values = []
-            for pair in pairs:
-                if pair.rotation is None or pair.uv_i.shape[0] == 0:
-                    continue
-                points, usable = _matched_points(
-                    depth[window.frames[pair.a]].double(),
-                    pair.uv_i.double(),
-                    pair.rays_i.double(),
-                    config.depth_convention,
-                )
-                if not usable.any():
-                    continue
-                scale = None
-                if photometric:
-                    i, j = window.frames[pair.a], window.frames[pair.b]
-                    scale = _photometric_scale(
-                        depth[i].double(),
-                        gray[i],
-                        gray[j],
-                        pair,
-                        camera,
-                        problem.valid,
-                        config,
-                        generator,
-                    )
-                pose = _pose_scaled_to(
-                    pair,
-                    points,
-                    usable,
-                    pair.uv_j.double(),
-                    pair.confidence.double(),
-                    pair.rays_j.double(),
-                    camera,
-                    config,
-                    scale,
-                )
-                points = points[usable]
-                values.append(float(depth_parallax_px(points, pose, camera).median()))
-            medians.append(float(torch.tensor(values).median()) if values else math.nan)
-    return medians
 
 
 # --------------------------------------------------------------------------------------------
@@ -663,7 +435,7 @@ def objective_value(
         raise AlreadyAppliedError("objective_value needs an unpatched model")
     problem = dataclasses.replace(problem, pe_scale=regulariser_scale(model, config))
     sums: dict[str, float] = {}
-    with _evaluated(model, adapter, problem, config):
+    with patched_for_evaluation(model, adapter, problem, config):
         for index in range(len(problem.windows)):
             generator = torch.Generator().manual_seed(int(seed) * 7_919 + index)
             terms, _ = problem_window_terms(model, adapter, problem, config, index, generator)

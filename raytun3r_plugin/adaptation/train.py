@@ -28,6 +28,11 @@ The run is split at its seams; each name lives in one module and is imported fro
   depth targets) and :class:`AdaptationProblem`;
 * :mod:`~raytun3r_plugin.adaptation.step`: :func:`window_terms`, :func:`adaptation_step`,
   :func:`objective_value`;
+* :mod:`~raytun3r_plugin.adaptation.target_scale`: a pair's MAGSAC++ target at the predicted
+  depth's scale; :mod:`~raytun3r_plugin.adaptation.evaluation`: the backbone frozen (and patched)
+  as a fit runs it;
+* :mod:`~raytun3r_plugin.adaptation.parallax` and :mod:`~raytun3r_plugin.adaptation.pose_gate`:
+  the two gates measured with the starting tables before a fit;
 * :mod:`~raytun3r_plugin.adaptation.checkpoint`: artefact paths, loss log, checkpoint;
 * :mod:`~raytun3r_plugin.adaptation.guard`: the collapse guard and :func:`fit_verdict`;
 * :mod:`~raytun3r_plugin.adaptation.loop`: the optimisation loop :func:`adapt` and
@@ -66,6 +71,7 @@ from raytun3r_plugin.adaptation.guard import (
     fit_verdict,
 )
 from raytun3r_plugin.adaptation.loop import run_fit_loop
+from raytun3r_plugin.adaptation.parallax import window_parallax
 from raytun3r_plugin.adaptation.pose_gate import gate_pose_term
 from raytun3r_plugin.adaptation.problem import (
     AdaptationProblem,
@@ -76,7 +82,6 @@ from raytun3r_plugin.adaptation.problem import (
 from raytun3r_plugin.adaptation.step import (
     adaptation_step,
     regulariser_scale,
-    window_parallax,
 )
 from raytun3r_plugin.adaptation.teacher import teacher_coverage, teacher_targets
 from raytun3r_plugin.adapter import Adapter
