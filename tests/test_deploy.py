@@ -1,11 +1,12 @@
 """Deployment for one camera and input size: the frozen model, the ONNX graph, ``raytun3r export``
 (docs/deployment.md).
 
-The default suite freezes every supported backbone in eager mode (fast) and writes one ONNX
-graph, of the built-in network through the command line, checked with ONNX Runtime against
-the eager patched model; the other graphs (da3-small with random weights, VGGT's stub, three
-views) are ``-m slow``: each export traces the whole model (about a minute here).
-"""
+The default suite freezes every supported backbone in eager mode (fast) and writes three ONNX
+graphs through the command line, checked with ONNX Runtime against the eager patched model:
+the built-in network, Pi3's stub (its SVD replaced) and the tiny nested DA3 model (its masked
+alignment replaced; tests/test_deploy_equivalents.py checks both replacements against
+upstream); the other graphs (da3-small with random weights, VGGT's stub, three views) are
+``-m slow``: each export traces the whole model (20 s to a minute here)."""
 
 from __future__ import annotations
 

@@ -7,8 +7,11 @@ resampling grid, the valid-token mask, the heads' coordinate embedding) is a con
 copy's patch, and installs in place of each hooked upstream method a frozen one
 (:mod:`raytun3r_plugin.deploy.frozen`) that reads them from registered buffers. The result runs
 no patching code, camera model, adapter or cache, and has no data-dependent shape: upstream's
-RoPE table length ``int(positions.max()) + 1`` becomes a constant too. It is checked against
-the model it was frozen from before it is returned.
+RoPE table length ``int(positions.max()) + 1`` becomes a constant too. Upstream code that no
+exported graph can hold is replaced in the copy by an equivalent (``EXPORT_EQUIVALENTS``): Pi3's
+SVD orthogonalisation (:mod:`~raytun3r_plugin.deploy.rotation`), nested DA3's masked quantiles
+(:mod:`~raytun3r_plugin.deploy.metric_alignment`). It is checked against the model it was
+frozen from before it is returned.
 
 The same path freezes an unpatched model (every upstream PE table, position grid and head
 embedding made a constant as well), which is the fair baseline of the deployment costs
@@ -51,15 +54,13 @@ ROPE_METHODS = {
 #: equivalent installed on every instance in the frozen copy). Pi3's SVD has no ONNX operator;
 #: DA3's sky handling and nested alignment select pixels with boolean masks (data-dependent
 #: sizes). docs/decisions.md "Export equivalents of Pi3's SVD and nested DA3's masked quantiles".
-_MONO_SKY = (
-    "DepthAnything3Net",
-    "_process_mono_sky_estimation",
-    metric_alignment.frozen_mono_sky_estimation,
-)
 EXPORT_EQUIVALENTS: dict[str, tuple[tuple[str, str, Callable], ...]] = {
-    "da3": (_MONO_SKY,),
     "da3nested": (
-        _MONO_SKY,
+        (
+            "DepthAnything3Net",  # the metric branch's own sky handling
+            "_process_mono_sky_estimation",
+            metric_alignment.frozen_mono_sky_estimation,
+        ),
         (
             "NestedDepthAnything3Net",
             "_apply_depth_alignment",
