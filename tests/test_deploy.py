@@ -1,11 +1,12 @@
 """Deployment for one camera and input size: the frozen model, the ONNX graph, ``raytun3r export``
 (docs/deployment.md).
 
-The default suite freezes every supported backbone in eager mode (fast) and writes one ONNX
-graph, of the built-in network through the command line, checked with ONNX Runtime against
-the eager patched model; the other graphs (da3-small with random weights, VGGT's stub, three
-views) are ``-m slow``: each export traces the whole model (about a minute here).
-"""
+The default suite freezes every supported backbone in eager mode (fast) and writes three ONNX
+graphs through the command line, checked with ONNX Runtime against the eager patched model:
+the built-in network, Pi3's stub (its SVD replaced) and the tiny nested DA3 model (its masked
+alignment replaced; tests/test_deploy_equivalents.py checks both replacements against
+upstream); the other graphs (da3-small with random weights, VGGT's stub, three views) are
+``-m slow``: each export traces the whole model (20 s to a minute here)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ import raytun3r_plugin as rt
 from raytun3r_plugin.deploy import SUPPORTED, freeze
 from raytun3r_plugin.deploy.frozen import BUFFER_PREFIX, fixed_size_rope
 from raytun3r_plugin.errors import InputError, UnsupportedUpstreamError
+from raytun3r_plugin.prediction import imagenet_normalise
 from tests.backbones import CASE, make
 from tests.helpers import fisheye, max_relative_difference, outputs, randomise_
 
@@ -170,16 +172,70 @@ def test_rig_and_bad_size_are_refused_before_any_copy():
         freeze(net, (height + 1, width), views=2)
 
 
-@pytest.mark.parametrize("family", ["pi3", "da3nested"])
-def test_onnx_export_of_a_blocked_backbone_is_refused_with_the_reason(family, tmp_path):
+def test_onnx_export_of_a_blocked_backbone_is_refused_with_the_reason(tmp_path, monkeypatch):
+    """``ONNX_BLOCKERS`` is empty today; a family listed there is refused before any file."""
     pytest.importorskip("onnx")
-    from raytun3r_plugin.deploy import export_onnx
+    from raytun3r_plugin.deploy import export_onnx, onnx
 
-    net, size = _patched(family)
+    monkeypatch.setitem(onnx.ONNX_BLOCKERS, "da3", "a reason")
+    net, size = _patched("da3")
     frozen = freeze(net, size, views=2)
-    with pytest.raises(UnsupportedUpstreamError, match="cannot be exported to ONNX: "):
+    with pytest.raises(UnsupportedUpstreamError, match="da3 cannot be exported to ONNX: a reason"):
         export_onnx(frozen, tmp_path / "model.onnx")
     assert not list(tmp_path.iterdir())
+
+
+def test_frozen_pi3_and_nested_da3_run_the_export_equivalents():
+    """Pi3's SVD and nested DA3's masked quantiles are replaced in the frozen copy only
+    (tests/test_deploy_equivalents.py checks them against upstream)."""
+    for family, replaced in (
+        ("pi3", ["CameraHead.svd_orthogonalize"]),
+        (
+            "da3nested",
+            [
+                "DepthAnything3Net._process_mono_sky_estimation",
+                "NestedDepthAnything3Net._apply_depth_alignment",
+                "NestedDepthAnything3Net._handle_sky_regions",
+            ],
+        ),
+    ):
+        net, size = _patched(family)
+        frozen = freeze(net, size, views=2)
+        assert frozen.info["replaced"] == replaced
+        for module in net.modules():  # the model it was frozen from runs upstream's code
+            assert not any(name.split(".")[1] in vars(module) for name in replaced)
+
+
+def _sky_mixed(net, images, sky_fraction: float = 0.3):
+    """Make the tiny nested model's metric sky head call about ``sky_fraction`` of the pixels
+    sky (the built model has none), so every masked path of the alignment runs."""
+    conv = net.da3_metric.head.scratch.sky_output_conv2[-1]
+    seen = []
+    hook = conv.register_forward_hook(lambda module, args, output: seen.append(output.detach()))
+    with torch.no_grad():
+        conv.weight.mul_(100.0)  # the random head's logits spread over a few 0.01
+        outputs(net, images)
+        hook.remove()
+        logits = seen[-1] - conv.bias.view(1, -1, 1, 1)
+        conv.bias.fill_(0.3 - float(torch.quantile(logits.flatten(), 1 - sky_fraction)))
+    return net
+
+
+def test_frozen_nested_da3_with_sky_is_upstreams():
+    """Sky in the metric branch: the frozen alignment and sky handling against upstream's,
+    equal but for the least-squares scale's float32 summation order (1e-6)."""
+    net, size = _patched("da3nested")
+    images = _images(size)
+    _sky_mixed(net, images)
+    frozen = freeze(net, size, views=2)
+    for seed in (5, 6, 7):
+        images = _images(size, seed=seed)
+        expected = outputs(net, images)
+        with torch.no_grad():
+            sky = net.da3_metric(imagenet_normalise(images))["sky"] >= 0.3
+        assert 0.05 < float(sky.float().mean()) < 0.95
+        got = _frozen_outputs(frozen, images)
+        assert max_relative_difference({k: expected[k] for k in got}, got) < 1e-6
 
 
 # ---------------------------------------------------------------------------------------------
@@ -262,6 +318,51 @@ def test_cli_export_needs_a_camera(tmp_path, capsys):
     )
     assert code == 2 and "needs --adapter" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def _cli_export(tmp_path, family, net, size, monkeypatch, capsys):
+    """``raytun3r export`` of the tiny ``net`` (patched with a random adapter saved to a file):
+    ``load_backbone`` hands the CLI an unpatched copy, as loading the weights would."""
+    from raytun3r_plugin.apps.cli import main
+
+    pristine = copy.deepcopy(net)
+    camera = fisheye(size[1], size[0])
+    adapter = randomise_(rt.Adapter.for_model(net, camera))
+    path = adapter.save(tmp_path / "cam0.safetensors")
+    monkeypatch.setattr(rt, "load_backbone", lambda name, weights=None: copy.deepcopy(pristine))
+    out = tmp_path / f"{family}.onnx"
+    arguments = ["export", "--backbone", family, "--adapter", str(path), "--size", *map(str, size)]
+    assert main([*arguments, "--views", "2", "--out", str(out)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    rt.apply(net, None, rt.Adapter.load(path))
+    return out
+
+
+def test_cli_export_of_pi3_matches_eager_in_onnx_runtime(tmp_path, monkeypatch, capsys):
+    """Pi3's stub with tiny random weights: the graph holds no SVD, and ONNX Runtime gives the
+    eager patched model's depth and pose (whose rotations come from upstream's SVD)."""
+    pytest.importorskip("onnxruntime")
+    import onnx
+
+    net, size = _tiny("pi3")
+    out = _cli_export(tmp_path, "pi3", net, size, monkeypatch, capsys)
+    operators = {node.op_type.lower() for node in onnx.load(str(out)).graph.node}
+    assert not any("svd" in name for name in operators)
+    _assert_onnx_parity(out, net, size)
+
+
+def test_cli_export_of_nested_da3_matches_eager_in_onnx_runtime(tmp_path, monkeypatch, capsys):
+    """The tiny nested model with sky in its metric branch: the masked quantiles traced, and
+    ONNX Runtime against the eager patched model (upstream's masked alignment)."""
+    pytest.importorskip("onnxruntime")
+    net, size = _tiny("da3nested")
+    _sky_mixed(net, _images(size, seed=9))
+    out = _cli_export(tmp_path, "da3nested", net, size, monkeypatch, capsys)
+    got = _assert_onnx_parity(out, net, size)
+    with torch.no_grad():
+        sky = net.da3_metric(imagenet_normalise(_images(size, seed=9)))["sky"] >= 0.3
+    assert 0.05 < float(sky.float().mean()) < 0.95
+    assert torch.isfinite(got["depth"]).all()
 
 
 @pytest.mark.slow

@@ -7,8 +7,11 @@ resampling grid, the valid-token mask, the heads' coordinate embedding) is a con
 copy's patch, and installs in place of each hooked upstream method a frozen one
 (:mod:`raytun3r_plugin.deploy.frozen`) that reads them from registered buffers. The result runs
 no patching code, camera model, adapter or cache, and has no data-dependent shape: upstream's
-RoPE table length ``int(positions.max()) + 1`` becomes a constant too. It is checked against
-the model it was frozen from before it is returned.
+RoPE table length ``int(positions.max()) + 1`` becomes a constant too. Upstream code that no
+exported graph can hold is replaced in the copy by an equivalent (``EXPORT_EQUIVALENTS``): Pi3's
+SVD orthogonalisation (:mod:`~raytun3r_plugin.deploy.rotation`), nested DA3's masked quantiles
+(:mod:`~raytun3r_plugin.deploy.metric_alignment`). It is checked against the model it was
+frozen from before it is returned.
 
 The same path freezes an unpatched model (every upstream PE table, position grid and head
 embedding made a constant as well), which is the fair baseline of the deployment costs
@@ -26,7 +29,7 @@ import torch
 from torch import nn
 
 from raytun3r_plugin import hooks
-from raytun3r_plugin.deploy import frozen
+from raytun3r_plugin.deploy import frozen, metric_alignment, rotation
 from raytun3r_plugin.errors import InputError, UnsupportedUpstreamError
 from raytun3r_plugin.patching import handle_of
 from raytun3r_plugin.prediction import Prediction
@@ -46,6 +49,26 @@ SUPPORTED = ("da3", "da3nested", "vggt", "pi3")
 ROPE_METHODS = {
     "RotaryPositionEmbedding2D": ("_compute_frequency_components", "_apply_1d_rope"),
     "RoPE2D": ("get_cos_sin", "apply_rope1d"),
+}
+#: Upstream methods that block export, by family: (class name, method, the export-friendly
+#: equivalent installed on every instance in the frozen copy). Pi3's SVD has no ONNX operator;
+#: DA3's sky handling and nested alignment select pixels with boolean masks (data-dependent
+#: sizes). docs/decisions.md "Export equivalents of Pi3's SVD and nested DA3's masked quantiles".
+EXPORT_EQUIVALENTS: dict[str, tuple[tuple[str, str, Callable], ...]] = {
+    "da3nested": (
+        (
+            "DepthAnything3Net",  # the metric branch's own sky handling
+            "_process_mono_sky_estimation",
+            metric_alignment.frozen_mono_sky_estimation,
+        ),
+        (
+            "NestedDepthAnything3Net",
+            "_apply_depth_alignment",
+            metric_alignment.frozen_depth_alignment,
+        ),
+        ("NestedDepthAnything3Net", "_handle_sky_regions", metric_alignment.frozen_sky_regions),
+    ),
+    "pi3": (("CameraHead", "svd_orthogonalize", rotation.frozen_svd_orthogonalize),),
 }
 #: The frozen model against the model it was frozen from, on the probe images (max relative).
 SELF_CHECK_TOLERANCE = 1e-5
@@ -156,12 +179,9 @@ def freeze(
             (height, width),
         )
 
-    result = FrozenModel(
-        work,
-        work_spec.predict,
-        shape,
-        {"family": spec.family, "patched": handle is not None, "size": (height, width)},
-    ).eval()
+    replaced = _install_export_equivalents(work, spec.family)
+    info = {"family": spec.family, "patched": handle is not None, "size": (height, width)}
+    result = FrozenModel(work, work_spec.predict, shape, {**info, "replaced": replaced}).eval()
     with torch.no_grad():
         got = result(images)
     _self_check(expected, got)
@@ -242,6 +262,20 @@ def _install(target, owner, spec, recording: _Recording, state, size: tuple[int,
         raise UnsupportedUpstreamError(
             f"{spec.family}: the {target.name!r} hook ({where}) has no frozen form"
         )
+
+
+def _install_export_equivalents(work: nn.Module, family: str) -> list[str]:
+    """Install ``EXPORT_EQUIVALENTS[family]`` on the frozen copy; returns what was replaced
+    (``Class.method`` names)."""
+    replaced = []
+    for module in work.modules():
+        names = {klass.__name__ for klass in type(module).__mro__}
+        for class_name, attribute, function in EXPORT_EQUIVALENTS.get(family, ()):
+            if class_name in names and callable(getattr(type(module), attribute, None)):
+                method = frozen.FrozenMethod(module, attribute, function)
+                object.__setattr__(module, attribute, method)
+                replaced.append(f"{class_name}.{attribute}")
+    return sorted(set(replaced))
 
 
 def _register(owner: nn.Module, name: str, value: torch.Tensor) -> str:

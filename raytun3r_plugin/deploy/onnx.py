@@ -23,13 +23,9 @@ from raytun3r_plugin.errors import UnsupportedUpstreamError, require_module
 INPUT_NAME = "images"
 OUTPUT_NAMES = ("depth", "confidence", "cam_from_world")
 #: Families whose frozen model has no ONNX graph, and why (checked before anything is written).
-ONNX_BLOCKERS = {
-    "pi3": "Pi3's camera head orthogonalises every rotation with torch.linalg.svd, for which "
-    "ONNX has no operator",
-    "da3nested": "upstream's metric alignment (NestedDepthAnything3Net.forward) selects the "
-    "non-sky pixels with a boolean mask and takes quantiles over them, sizes that depend on the "
-    "data and that torch.export cannot trace; the frozen model (deploy.freeze) runs in PyTorch",
-}
+#: None today: Pi3's SVD and nested DA3's masked quantiles have export equivalents
+#: (``freeze.EXPORT_EQUIVALENTS``); Pi3X and VGGT-Omega are refused by ``freeze`` already.
+ONNX_BLOCKERS: dict[str, str] = {}
 
 
 def _require(module: str):

@@ -43,17 +43,19 @@ class CameraHead(nn.Module):
         return self.convert_pose_to_4x4(BN, self.fc_rot(feat.float()), self.fc_t(feat.float()), feat.device)
 
     def convert_pose_to_4x4(self, B, out_r, out_t, device):
+        out_r = self.svd_orthogonalize(out_r)
         pose = torch.zeros((B, 4, 4), device=device)
-        pose[:, :3, :3] = self.svd_orthogonalize(out_r)
+        pose[:, :3, :3] = out_r
         pose[:, :3, 3] = out_t
         pose[:, 3, 3] = 1.0
         return pose
 
     def svd_orthogonalize(self, m):
-        """Nearest rotation (det +1) to each 3x3 matrix (rows normalised first)."""
-        m = F.normalize(m.reshape(-1, 3, 3), p=2, dim=-1)
-        u, _, vh = torch.linalg.svd(m)
-        det = torch.det(u @ vh)
-        fix = torch.ones_like(u[..., 0, :])
-        fix[:, -1] = det
-        return (u * fix[:, None, :]) @ vh
+        """Nearest rotation (det +1) to each 3x3 matrix, rows normalised first (upstream's code
+        path: torch.svd of the transpose, the last right-singular vector flipped by the det)."""
+        if m.dim() < 3:
+            m = m.reshape((-1, 3, 3))
+        m_transpose = torch.transpose(F.normalize(m, p=2, dim=-1), dim0=-1, dim1=-2)
+        u, s, v = torch.svd(m_transpose)
+        det = torch.det(torch.matmul(v, u.transpose(-2, -1)))
+        return torch.matmul(torch.cat([v[:, :, :-1], v[:, :, -1:] * det.view(-1, 1, 1)], dim=2), u.transpose(-2, -1))
