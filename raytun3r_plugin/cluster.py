@@ -54,8 +54,8 @@ class ClusterSpec:
     """Where and how tasks run.
 
     address: None (this machine: in this process with one worker, else an embedded Ray
-        cluster), ``"auto"`` (the cluster ``ray start`` made here), ``"HOST:PORT"`` or
-        ``"ray://HOST:PORT"`` (Ray Client).
+        cluster), ``"auto"`` (the cluster ``RAY_ADDRESS`` names, else the one ``ray start
+        --head`` made here), ``"HOST:PORT"`` or ``"ray://HOST:PORT"`` (Ray Client).
     workers: tasks at once on the embedded cluster (its CPU count); ignored when joining.
     threads: CPU threads per task (its CPU request and ``torch.set_num_threads``).
     gpus: one GPU per task; None: where the cluster has GPUs.
