@@ -54,8 +54,8 @@ class ClusterSpec:
     """Where and how tasks run.
 
     address: None (this machine: in this process with one worker, else an embedded Ray
-        cluster), ``"auto"`` (the cluster ``ray start`` made here), ``"HOST:PORT"`` or
-        ``"ray://HOST:PORT"`` (Ray Client).
+        cluster), ``"auto"`` (the cluster ``RAY_ADDRESS`` names, else the one ``ray start
+        --head`` made here), ``"HOST:PORT"`` or ``"ray://HOST:PORT"`` (Ray Client).
     workers: tasks at once on the embedded cluster (its CPU count); ignored when joining.
     threads: CPU threads per task (its CPU request and ``torch.set_num_threads``).
     gpus: one GPU per task; None: where the cluster has GPUs.
@@ -165,12 +165,13 @@ def connected(spec: ClusterSpec) -> Iterator[Any]:
         yield ray
         return
     if spec.address is not None:
-        host = spec.address.split("://")[-1].rsplit(":", 1)[0]
+        address = _cluster_address(spec.address)
+        host = address.split("://")[-1].rsplit(":", 1)[0]
         # A cluster on this machine's loopback (tests, a laptop): Ray would otherwise look for it
         # at the machine's network address (see RAY_LOCAL_ONLY_VARIABLE).
         local = _local_only(ray) if host in (LOOPBACK, "localhost") else nullcontext()
         with local:
-            ray.init(address=spec.address, log_to_driver=False, configure_logging=False)
+            ray.init(address=address, log_to_driver=False, configure_logging=False)
         try:
             yield ray
         finally:
@@ -189,6 +190,22 @@ def connected(spec: ClusterSpec) -> Iterator[Any]:
         yield ray
     finally:
         ray.shutdown()
+
+
+def _cluster_address(address: str) -> str:
+    """``address``, with ``"auto"`` replaced by the cluster it stands for, found as Ray finds it
+    (``RAY_ADDRESS``; else the cluster the last ``ray start --head`` here recorded; else any Ray
+    running here). Resolved before ``ray.init`` so that a cluster on loopback is seen to be one:
+    given ``"auto"``, Ray looked for a loopback cluster at the machine's network address and
+    waited for it forever."""
+    if address != "auto":
+        return address
+    from ray._private.services import get_ray_address_from_environment
+
+    try:
+        return get_ray_address_from_environment("auto", None)
+    except ConnectionError as error:  # no cluster found: the caller's address is wrong
+        raise InputError(f"address 'auto': {error}") from error
 
 
 def _ray_connected() -> bool:

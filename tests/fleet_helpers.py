@@ -92,12 +92,24 @@ def fleet_command(args: list[str]) -> subprocess.Popen:
 
 
 def kill_session(process: subprocess.Popen) -> None:
-    """SIGKILL a child started by :func:`fleet_command` and every process of its session."""
+    """SIGKILL a child started in a session of its own (:func:`fleet_command`, ``ray start``)
+    and every process of that session: its process group, and the processes that left the group
+    but not the session (Ray's workers each lead a group of their own)."""
     try:
         os.killpg(process.pid, signal.SIGKILL)
     except ProcessLookupError:
         pass
     process.wait()
+    for _ in range(50):  # a process may start one more before it dies: until none is left
+        left = session_processes(process.pid)
+        if not left:
+            return
+        for pid in left:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        time.sleep(0.1)
 
 
 def session_processes(session: int) -> list[int]:

@@ -1,6 +1,7 @@
 """``raytun3r fleet`` against real processes: a driver killed with SIGKILL and started again, and
-a two-node Ray cluster on this machine's loopback (a head and a second ``ray start --address``)
-joined with ``--address``. Each test stops only the processes it started."""
+a two-node Ray cluster on this machine's loopback (a head with its Ray Client server and a second
+``ray start --address``, token authentication on) joined with ``--address HOST:PORT``,
+``ray://HOST:PORT`` and ``auto``. Each test stops only the processes it started."""
 
 from __future__ import annotations
 
@@ -15,14 +16,17 @@ import socket
 import subprocess
 import sys
 import tempfile
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
 
+from raytun3r_plugin.cluster import RAY_LOCAL_ONLY_VARIABLE
 from tests.fleet_helpers import (
     fleet_command,
     kill_session,
     render_segment,
+    same_tensors,
     session_processes,
     wait_for,
     write_manifest,
@@ -135,52 +139,213 @@ def _ray_start(args: list[str], env: dict, wrapper: bool, log: Path) -> subproce
     return node
 
 
-def test_a_two_node_loopback_cluster_runs_tasks_on_both_nodes(tmp_path):
-    """Head and second node on 127.0.0.1 with one CPU each and a token of their own; ``fleet
-    adapt --address`` runs the three cameras' fits on both, and nothing listens beyond loopback."""
+@dataclass
+class LoopbackCluster:
+    """A head and a second node started with ``ray start`` on 127.0.0.1, one CPU each, with a
+    token of their own (``env``: the environment of every process that joins it)."""
+
+    port: int  # the head's GCS
+    client_port: int  # the head's Ray Client server
+    env: dict
+    temp: Path  # Ray's temporary folder for both nodes (session folders, logs, sockets)
+    nodes: list = field(default_factory=list)
+
+    def logs(self) -> list[Path]:
+        return sorted(self.temp.glob("session_*/logs"))
+
+    def node_ids(self) -> set[str]:
+        """The ids of the cluster's nodes, as their raylets logged them at start-up."""
+        return {
+            match
+            for logs in self.logs()
+            for log in logs.glob("raylet*.out")
+            for match in re.findall(r"Setting node ID node_id=([0-9a-f]+)", log.read_text())
+        }
+
+    def processes(self) -> set[int]:
+        return {pid for node in self.nodes for pid in session_processes(node.pid)}
+
+
+@pytest.fixture(scope="module")
+def loopback_cluster(tmp_path_factory):
+    """The two-node cluster shared by the tests that join it. Stopped whatever happens: every
+    process of the two ``ray start`` sessions is killed (not ``ray stop``, which stops every
+    Ray on this machine, other tests' and other users' too) and its temporary folder removed."""
     temp = Path(tempfile.mkdtemp(prefix="r40-", dir="/tmp"))  # Ray's socket paths must be short
-    port = _free_port()
+    folder = tmp_path_factory.mktemp("loopback-cluster")
     env = {
-        **{k: v for k, v in os.environ.items() if k != "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"},
+        **{
+            k: v for k, v in os.environ.items() if k not in (RAY_LOCAL_ONLY_VARIABLE, "RAY_ADDRESS")
+        },
         "OMP_NUM_THREADS": "1",
         "PYTHONPATH": str(ROOT),
         "RAY_AUTH_MODE": "token",
         "RAY_AUTH_TOKEN": secrets.token_hex(32),
     }
+    cluster = LoopbackCluster(_free_port(), _free_port(), env, temp)
     common = ["--node-ip-address", "127.0.0.1", "--num-cpus", "1", "--temp-dir", str(temp)]
     # Ports Ray would otherwise take at fixed numbers (Ray Client 10001, the agent's 52365),
     # which another Ray on this machine may hold.
-    head = ["--head", "--port", str(port), "--include-dashboard", "false", *common]
-    head += ["--ray-client-server-port", str(_free_port())]
-    second = ["--address", f"127.0.0.1:{port}", *common]
-    local_only = {**env, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
-    nodes = []
+    head = ["--head", "--port", str(cluster.port), "--include-dashboard", "false", *common]
+    head += ["--ray-client-server-port", str(cluster.client_port)]
+    second = ["--address", f"127.0.0.1:{cluster.port}", *common]
+    local_only = {**env, RAY_LOCAL_ONLY_VARIABLE: "0"}
     try:
         for args, node_env, wrapper, log in (
             (head, local_only, False, "head.log"),
             (second, env, True, "node.log"),
         ):
             args = [*args, "--dashboard-agent-listen-port", str(_free_port())]
-            nodes.append(_ray_start(args, node_env, wrapper=wrapper, log=tmp_path / log))
-        manifest, out = _manifest(tmp_path / "in"), tmp_path / "out"
-        run = subprocess.run(
-            [sys.executable, "-m", "raytun3r_plugin.apps.cli", "fleet", "adapt", str(manifest)]
-            + ["--out", str(out), "--address", f"127.0.0.1:{port}", "--no-progress"],
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
-        assert run.returncode == 0, run.stderr
-        sockets = _sockets_of({pid for node in nodes for pid in session_processes(node.pid)})
+            cluster.nodes.append(_ray_start(args, node_env, wrapper=wrapper, log=folder / log))
+        yield cluster
     finally:
-        for node in nodes:
+        for node in cluster.nodes:
             kill_session(node)
         shutil.rmtree(temp, ignore_errors=True)
-    results = [json.loads(p.read_text()) for p in (out / "tasks").glob("*/result.json")]
-    assert len(results) == 3
-    assert len({r["node"] for r in results}) == 2, results  # both nodes ran tasks
+
+
+@pytest.fixture(scope="module")
+def in_process_run(tmp_path_factory):
+    """The three cameras fitted in this process (``--workers 1``: no Ray), for comparison; on
+    one thread, as a Ray task with ``--threads 1`` runs."""
+    import torch
+
+    from raytun3r_plugin.apps.cli_fleet import run_fleet
+
+    folder = tmp_path_factory.mktemp("fleet-in-process")
+    out, threads = folder / "out", torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        run_fleet(_manifest(folder / "in"), out, "adapt", workers=1, progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    return out
+
+
+def _adapt_on(cluster: LoopbackCluster, address: str, folder: Path, env: dict | None = None):
+    """``raytun3r fleet adapt`` of the three cameras with ``--address address``; returns the
+    output folder and the listening sockets of the cluster's processes just after the run."""
+    manifest, out = _manifest(folder / "in"), folder / "out"
+    run = subprocess.run(
+        [sys.executable, "-m", "raytun3r_plugin.apps.cli", "fleet", "adapt", str(manifest)]
+        + ["--out", str(out), "--address", address, "--no-progress"],
+        env=cluster.env if env is None else env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    return out, _sockets_of(cluster.processes())
+
+
+def _assert_same_fits(out: Path, reference: Path) -> None:
+    """The same task folders, tables (but for the fit times) and bit-identical adapters."""
+    names = sorted(p.name for p in (out / "tasks").iterdir())
+    assert names == sorted(p.name for p in (reference / "tasks").iterdir())
+    for name in names:
+        assert same_tensors(
+            out / "tasks" / name / "adapter.safetensors",
+            reference / "tasks" / name / "adapter.safetensors",
+        ), name
+
+    def rows(folder: Path) -> list[dict]:
+        table = csv.DictReader((folder / "adapters.csv").open())
+        return sorted(({k: v for k, v in r.items() if k != "adapt_s"} for r in table), key=str)
+
+    assert rows(out) == rows(reference)
+
+
+def _results(out: Path) -> list[dict]:
+    return [json.loads(p.read_text()) for p in (out / "tasks").glob("*/result.json")]
+
+
+def test_a_two_node_loopback_cluster_runs_tasks_on_both_nodes(
+    loopback_cluster, in_process_run, tmp_path
+):
+    """``fleet adapt --address 127.0.0.1:PORT`` (the head's GCS) runs the three cameras' fits on
+    both nodes, fits as in this process, and nothing of the cluster listens beyond loopback."""
+    out, sockets = _adapt_on(loopback_cluster, f"127.0.0.1:{loopback_cluster.port}", tmp_path)
+    nodes = {r["node"] for r in _results(out)}
+    assert len(_results(out)) == 3
+    assert nodes == loopback_cluster.node_ids() and len(nodes) == 2  # both nodes ran tasks
+    _assert_same_fits(out, in_process_run)
     assert sockets and not [s for s in sockets if "127.0.0.1" not in s], sockets
+
+
+#: A Ray Client that connects once (one try, about 5 s) with the token of its environment, if
+#: any; exit status 3 when refused, with the server's reason in its log on stderr.
+CLIENT_PROBE = """
+import logging, sys
+from ray.util.client import ray as client
+log = logging.getLogger("ray.util.client.worker")
+log.setLevel(logging.DEBUG)
+log.addHandler(logging.StreamHandler())
+try:
+    client.connect(sys.argv[1], connection_retries=1)
+except ConnectionError:
+    sys.exit(3)
+"""
+
+
+def test_ray_client_runs_the_fleet_on_the_cluster_it_names_and_refuses_a_client_without_token(
+    loopback_cluster, in_process_run, tmp_path
+):
+    """``--address ray://127.0.0.1:PORT``: the driver works through the head's Ray Client server,
+    the tasks run on the cluster's nodes and fit as in this process, and the client servers
+    listen on loopback only. A client without the cluster's token is refused."""
+    cluster = loopback_cluster
+
+    def client_servers() -> list[Path]:
+        # The proxy on client_port hands each client to a server process of its own, which
+        # logs to ray_client_server_<its port>.out in the head's session.
+        return [p for logs in cluster.logs() for p in logs.glob("ray_client_server_*.out")]
+
+    assert not client_servers()
+    outsider = {k: v for k, v in cluster.env.items() if not k.startswith("RAY_AUTH_")}
+    probe = subprocess.Popen(  # alongside the run: it mostly waits
+        [sys.executable, "-c", CLIENT_PROBE, f"127.0.0.1:{cluster.client_port}"],
+        env=outsider,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        out, sockets = _adapt_on(cluster, f"ray://127.0.0.1:{cluster.client_port}", tmp_path)
+        _, refusal = probe.communicate(timeout=120)
+    finally:
+        probe.kill()  # nothing when it has ended
+        probe.wait()
+    assert probe.returncode == 3 and "Invalid or missing authentication token" in refusal
+    assert client_servers()  # the fleet's driver came through Ray Client
+    assert len(_results(out)) == 3
+    assert {r["node"] for r in _results(out)} <= cluster.node_ids()
+    assert str(cluster.client_port) in [s.rsplit(":", 1)[1] for s in sockets], sockets
+    assert not [s for s in sockets if "127.0.0.1" not in s], sockets
+    _assert_same_fits(out, in_process_run)
+
+
+def test_address_auto_is_the_cluster_ray_address_names(monkeypatch):
+    """Resolved before ``ray.init``, so that a loopback cluster is joined on loopback."""
+    from raytun3r_plugin.cluster import _cluster_address
+
+    monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:6399")
+    assert _cluster_address("auto") == "127.0.0.1:6399"
+    assert _cluster_address("ray://10.0.0.7:10001") == "ray://10.0.0.7:10001"
+
+
+@pytest.mark.slow  # one more fleet run on the cluster: about 20 s here
+def test_address_auto_joins_the_cluster_ray_address_names(
+    loopback_cluster, in_process_run, tmp_path
+):
+    """``--address auto`` with ``RAY_ADDRESS=127.0.0.1:PORT`` (as ``ray start`` suggests): the
+    tasks run on that cluster. Before the fix in ``raytun3r_plugin.cluster``, Ray looked for this
+    loopback cluster at the machine's network address and waited for it forever."""
+    cluster = loopback_cluster
+    env = {**cluster.env, "RAY_ADDRESS": f"127.0.0.1:{cluster.port}"}
+    out, _ = _adapt_on(cluster, "auto", tmp_path, env=env)
+    assert len(_results(out)) == 3
+    assert {r["node"] for r in _results(out)} <= cluster.node_ids()
+    _assert_same_fits(out, in_process_run)
 
 
 def _sockets_of(pids: set[int]) -> list[str]:
