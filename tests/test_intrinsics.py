@@ -213,6 +213,7 @@ def test_config_field_is_off_by_default_and_out_of_the_identity():
         "teacher_fov_deg",
         "teacher_max_coverage",
         "teacher_view_weights",
+        "pose_gate",
     )
     legacy = {k: v for k, v in asdict(off).items() if k not in (*later, "recipe")}
     del legacy["weights"]["photo"], legacy["weights"]["teacher"]
