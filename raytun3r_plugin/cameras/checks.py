@@ -226,7 +226,7 @@ def check_max_fov(owner: str, max_fov_deg: Any) -> float | None:
     return max_fov_deg
 
 
-def check_scale_factors(width: int, height: int, sx: Any, sy: Any) -> None:
+def check_scale_factors(width: int, height: int, sx: float, sy: float) -> None:
     """Resize factors of a ``width x height`` image: positive, finite, and leaving at most
     2 x ``MAX_IMAGE_SIDE`` pixels per side."""
     for name, s in (("sx", sx), ("sy", sy)):
@@ -247,7 +247,7 @@ def check_scale_factors(width: int, height: int, sx: Any, sy: Any) -> None:
             )
 
 
-def check_crop_offsets(x0: Any, y0: Any) -> None:
+def check_crop_offsets(x0: int, y0: int) -> None:
     """Crop offsets: integers within +-``MAX_CROP_OFFSET`` pixels."""
     for name, v in (("x0", x0), ("y0", y0)):
         if isinstance(v, bool) or not isinstance(v, numbers.Integral):
