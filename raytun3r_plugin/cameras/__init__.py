@@ -11,24 +11,21 @@ the checks and returns the round-trip error. See ``docs/cameras.md``.
 
 from __future__ import annotations
 
-from raytun3r_plugin.cameras.base import (
-    CAMERA_MODELS,
+from raytun3r_plugin.cameras.base import Camera, pixel_grid, validate
+from raytun3r_plugin.cameras.builders import fisheye, perturbed
+from raytun3r_plugin.cameras.checks import (
     DISTORTION_BOUND,
     FOCAL_RANGE_PX,
     MAX_IMAGE_SIDE,
     PRINCIPAL_MARGIN,
     ROUND_TRIP_TOL_PX,
-    Camera,
-    from_dict,
-    pixel_grid,
-    validate,
 )
-from raytun3r_plugin.cameras.builders import fisheye, perturbed
 from raytun3r_plugin.cameras.fisheye624 import Fisheye624
 from raytun3r_plugin.cameras.formats import load, save, to_colmap_line
 from raytun3r_plugin.cameras.fov import FOV
 from raytun3r_plugin.cameras.kb import KannalaBrandt4, ThinPrismFisheye
 from raytun3r_plugin.cameras.pinhole import OpenCVRadTan, Pinhole
+from raytun3r_plugin.cameras.serialisation import CAMERA_MODELS, from_dict
 from raytun3r_plugin.cameras.unified import EUCM, MEI, UCM, DoubleSphere
 
 __all__ = [

@@ -9,20 +9,42 @@ input (parameters are cast to it), and differentiable in the inputs and in ``par
 A subclass sets ``model`` and ``param_names`` (the first four are always ``fx, fy, cx, cy`` in
 pixels) and implements ``_project`` / ``_unproject`` / ``_natural_max_angle``; optionally
 ``_check_domain`` for parameter constraints.
+
+This module holds the camera contract and what every camera does with it (projection, whole-image
+helpers, resize / crop, identity). Its neighbours hold the parts it uses: ``checks`` (the bounds
+and input checks), ``round_trip`` (the invertibility check at construction) and
+``serialisation`` (the model registry and the dict form). The names users import from here
+(bounds, ``check_range``, ``param_error``, ``from_dict``, ...) are re-exported.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import numbers
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
 
-from raytun3r_plugin._strict import quote
+from raytun3r_plugin.cameras.checks import (
+    DISTORTION_BOUND,
+    FOCAL_RANGE_PX,
+    MAX_IMAGE_SIDE,
+    PRINCIPAL_MARGIN,
+    ROUND_TRIP_TOL_PX,
+    as_points,
+    check_crop_offsets,
+    check_intrinsics,
+    check_max_fov,
+    check_range,
+    check_scale_factors,
+    check_size,
+    param_error,
+    params_tensor,
+)
+from raytun3r_plugin.cameras.round_trip import ROUND_TRIP_GRID, check_round_trip, round_trip_error
+from raytun3r_plugin.cameras.serialisation import CAMERA_MODELS, from_dict
 from raytun3r_plugin.errors import CameraError, CameraModelError
 
 __all__ = [
@@ -31,6 +53,7 @@ __all__ = [
     "FOCAL_RANGE_PX",
     "MAX_IMAGE_SIDE",
     "PRINCIPAL_MARGIN",
+    "ROUND_TRIP_GRID",
     "ROUND_TRIP_TOL_PX",
     "Camera",
     "check_range",
@@ -40,81 +63,8 @@ __all__ = [
     "validate",
 ]
 
-#: Registry of concrete models by their ``model`` name ("pinhole", "kb4", ...).
-CAMERA_MODELS: dict[str, type[Camera]] = {}
-
 # The mandatory leading parameters of every model, in this order.
 _INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
-
-# ---------------------------------------------------------------------------- bounds
-# What a camera accepts (docs/cameras.md, "What a camera accepts"). Every bound is far outside
-# real calibrations and inside the range where the maths stays finite and invertible.
-
-#: Largest image side in pixels (width and height each in 1..MAX_IMAGE_SIDE).
-MAX_IMAGE_SIDE = 16384
-
-#: Focal lengths fx, fy must lie in this closed range, pixels.
-FOCAL_RANGE_PX = (1e-3, 1e6)
-
-#: The principal point may lie up to this many image sides outside the image:
-#: cx in [-m W, (1 + m) W], cy in [-m H, (1 + m) H] (crops may push it outside the image).
-PRINCIPAL_MARGIN = 2.0
-
-#: Bound on the magnitude of every polynomial distortion coefficient (k, p, s terms).
-DISTORTION_BOUND = 1e3
-
-#: Largest accepted project(unproject(uv)) - uv error, pixels, over the validation grid.
-ROUND_TRIP_TOL_PX = 0.05
-
-# The validation grid: ROUND_TRIP_GRID x ROUND_TRIP_GRID pixels spanning the image (border
-# included) plus _BORDER_SAMPLES pixels along each edge.
-ROUND_TRIP_GRID = 17
-_BORDER_SAMPLES = 33
-
-# Largest |crop offset| accepted by cropped(), pixels (keeps the offsets exact in float64 and
-# far from overflow; the principal-point margin decides what is really accepted).
-_MAX_CROP_OFFSET = 8 * MAX_IMAGE_SIDE
-
-# Round-trip results by camera key (worst error, worst pixel); see Camera._validate_round_trip.
-_ROUND_TRIP_CACHE: dict[tuple, tuple[float, tuple[float, float] | None]] = {}
-_ROUND_TRIP_CACHE_SIZE = 4096
-
-
-def param_error(model: str, name: str, problem: str) -> CameraError:
-    """A :class:`CameraError` about parameter ``name``; ``.param`` lets readers map it to a file field."""
-    err = CameraError(f"{model}: parameter '{name}' {problem}")
-    err.param = name  # type: ignore[attr-defined]
-    return err
-
-
-def check_range(
-    model: str,
-    name: str,
-    value: float,
-    lo: float,
-    hi: float,
-    *,
-    lo_open: bool = False,
-    hi_open: bool = False,
-    unit: str = "",
-) -> None:
-    """Raise :func:`param_error` unless ``lo <= value <= hi`` (``<`` on an open end)."""
-    above = value > lo if lo_open else value >= lo
-    below = value < hi if hi_open else value <= hi
-    if not (above and below):
-        left = "(" if lo_open else "["
-        right = ")" if hi_open else "]"
-        raise param_error(
-            model, name, f"must be in {left}{lo:g}, {hi:g}{right}{unit}, got {value!r}"
-        )
-
-
-def _to_float(model: str, name: str, v: Any) -> float:
-    # float() of a huge Python int raises OverflowError; that is a bad parameter, not a crash.
-    try:
-        return float(v)
-    except (OverflowError, TypeError, ValueError):
-        raise param_error(model, name, f"must be a finite number, got {quote(v)}") from None
 
 
 def pixel_grid(
@@ -132,37 +82,6 @@ def pixel_grid(
     u = torch.arange(width, device=device, dtype=dtype)
     v = torch.arange(height, device=device, dtype=dtype)
     return torch.stack(torch.meshgrid(u, v, indexing="xy"), dim=-1)
-
-
-def _as_points(x: Any, what: str, last: int) -> Tensor:
-    """Validate a (..., last) tensor and make it floating point (ints -> default dtype)."""
-    if not isinstance(x, Tensor):
-        x = torch.as_tensor(x)
-    if x.ndim == 0 or x.shape[-1] != last:
-        raise CameraError(f"{what} must have shape (..., {last}), got {tuple(x.shape)}")
-    if not x.is_floating_point():
-        if x.dtype == torch.bool or x.is_complex():
-            raise CameraError(f"{what} must be a real tensor, got dtype {x.dtype}")
-        x = x.to(torch.get_default_dtype())
-    return x
-
-
-def _check_size(name: str, value: Any) -> int:
-    # bool is an int subclass; a float such as 512.0 is accepted only if integral.
-    bad = CameraError(
-        f"camera {name} must be an integer in 1..{MAX_IMAGE_SIDE} pixels, got {quote(value)}"
-    )
-    if isinstance(value, bool):
-        raise bad
-    if isinstance(value, float) and value.is_integer():
-        value = int(value)
-    # Python ints compare exactly at any size (10**400 included): no float conversion here.
-    if not isinstance(value, numbers.Integral):
-        raise bad
-    n = int(value)
-    if not 1 <= n <= MAX_IMAGE_SIDE:
-        raise bad
-    return n
 
 
 class Camera:
@@ -238,34 +157,14 @@ class Camera:
 
     def _build(self, width: Any, height: Any, params: Any, max_fov_deg: Any) -> None:
         cls = type(self)
-        width = _check_size("width", width)
-        height = _check_size("height", height)
+        width = check_size("width", width)
+        height = check_size("height", height)
         p = self._params_tensor(params)
         values = tuple(float(v) for v in p.detach().cpu().tolist())
         named = dict(zip(cls.param_names, values, strict=True))
-        for name, v in named.items():
-            if not math.isfinite(v):
-                raise param_error(cls.__name__, name, f"must be finite, got {v!r}")
-        lo_f, hi_f = FOCAL_RANGE_PX
-        for name in ("fx", "fy"):
-            check_range(cls.__name__, name, named[name], lo_f, hi_f, unit=" px")
-        m = PRINCIPAL_MARGIN
-        check_range(cls.__name__, "cx", named["cx"], -m * width, (1 + m) * width, unit=" px")
-        check_range(cls.__name__, "cy", named["cy"], -m * height, (1 + m) * height, unit=" px")
-        for name in cls.distortion_names:
-            b = DISTORTION_BOUND
-            check_range(cls.__name__, name, named[name], -b, b)
+        check_intrinsics(cls.__name__, named, width, height, cls.distortion_names)
         self._check_domain(named)
-        if max_fov_deg is not None:
-            if isinstance(max_fov_deg, bool) or not isinstance(max_fov_deg, numbers.Real):
-                raise CameraError(
-                    f"{cls.__name__}: max_fov_deg must be a number, got {quote(max_fov_deg)}"
-                )
-            max_fov_deg = _to_float(cls.__name__, "max_fov_deg", max_fov_deg)
-            if not (math.isfinite(max_fov_deg) and 0.0 < max_fov_deg <= 360.0):
-                raise CameraError(
-                    f"{cls.__name__}: max_fov_deg must be in (0, 360], got {max_fov_deg!r}"
-                )
+        max_fov_deg = check_max_fov(cls.__name__, max_fov_deg)
         natural = float(self._natural_max_angle(named))
         cap = math.inf if max_fov_deg is None else math.radians(max_fov_deg) / 2.0
         # A cap is only enforced when it is tighter than the model's own domain.
@@ -280,68 +179,11 @@ class Camera:
         set_(self, "_max_angle", min(natural, cap))
         set_(self, "_cap_cos", cap_cos)
         set_(self, "_cache", {})
-        self._validate_round_trip(use_cache=True)
+        check_round_trip(self, use_cache=True)
 
     @classmethod
     def _params_tensor(cls, params: Any) -> Tensor:
-        names = cls.param_names
-        if isinstance(params, Mapping):
-            missing = [n for n in names if n not in params]
-            extra = [str(k) for k in params if k not in names]
-            if missing:
-                raise param_error(cls.__name__, missing[0], f"is missing (expected {list(names)})")
-            if extra:
-                err = CameraError(
-                    f"{cls.__name__}: unexpected parameter '{extra[0]}' (expected {list(names)})"
-                )
-                err.param = extra[0]  # type: ignore[attr-defined]
-                raise err
-            vals = []
-            for n in names:
-                v = params[n]
-                if isinstance(v, Tensor):
-                    if v.numel() != 1:
-                        raise param_error(cls.__name__, n, "must be a scalar")
-                    if v.dtype == torch.bool or v.is_complex():
-                        raise param_error(cls.__name__, n, f"must be a real number, got {v.dtype}")
-                    vals.append(v.reshape(()).to(torch.float64))
-                elif isinstance(v, bool) or not isinstance(v, numbers.Real):
-                    raise param_error(cls.__name__, n, f"must be a number, got {quote(v)}")
-                else:
-                    vals.append(torch.tensor(_to_float(cls.__name__, n, v), dtype=torch.float64))
-            if any(v.requires_grad for v in vals):
-                return torch.stack(vals)
-            return torch.stack(vals).detach()
-        if isinstance(params, Tensor):
-            if params.dtype == torch.bool or params.is_complex():
-                raise CameraError(
-                    f"{cls.__name__}: params must be real numbers, got {params.dtype}"
-                )
-            p = params.to(torch.float64)
-            if p is params:
-                p = p.clone()  # decouple from the caller's storage (clone keeps the graph)
-        else:
-            if isinstance(params, (str, bytes)):
-                raise CameraError(f"{cls.__name__}: params must be numbers, got {params!r}")
-            try:
-                seq = list(params)
-            except TypeError:
-                raise CameraError(
-                    f"{cls.__name__}: params must be a sequence, got {params!r}"
-                ) from None
-            floats = []
-            for i, v in enumerate(seq):
-                name = names[i] if i < len(names) else f"#{i}"
-                if isinstance(v, bool) or not isinstance(v, numbers.Real):
-                    raise param_error(cls.__name__, name, f"must be a number, got {quote(v)}")
-                floats.append(_to_float(cls.__name__, name, v))
-            p = torch.tensor(floats, dtype=torch.float64)
-        if p.ndim != 1 or p.shape[0] != len(names):
-            raise CameraError(
-                f"{cls.__name__}: expected {len(names)} parameters {list(names)}, got shape "
-                f"{tuple(p.shape)}"
-            )
-        return p
+        return params_tensor(cls.__name__, cls.param_names, params)
 
     # ------------------------------------------------------------------ model hooks
     def _check_domain(self, p: dict[str, float]) -> None:
@@ -361,24 +203,6 @@ class Camera:
         object.__setattr__(self, name, value)
 
     # ------------------------------------------------------------------ validation
-    def _check_grid(self) -> Tensor:
-        """(N, 2) float64 pixels of the validation grid: a 17 x 17 grid spanning the image,
-        corners and edges included, plus 33 samples along each of the four edges."""
-        w1, h1 = float(self.width - 1), float(self.height - 1)
-        n = ROUND_TRIP_GRID
-        us = torch.linspace(0.0, w1, n, dtype=torch.float64)
-        vs = torch.linspace(0.0, h1, n, dtype=torch.float64)
-        inner = torch.stack(torch.meshgrid(us, vs, indexing="xy"), dim=-1).reshape(-1, 2)
-        t = torch.linspace(0.0, 1.0, _BORDER_SAMPLES, dtype=torch.float64)
-        zero, one = torch.zeros_like(t), torch.ones_like(t)
-        edges = [
-            torch.stack([t * w1, zero], -1),
-            torch.stack([t * w1, one * h1], -1),
-            torch.stack([zero, t * h1], -1),
-            torch.stack([one * w1, t * h1], -1),
-        ]
-        return torch.cat([inner, *edges])
-
     def round_trip_error(self) -> tuple[float, tuple[float, float] | None, int]:
         """The worst ``|project(unproject(uv)) - uv|`` over the validation grid, in float64
         on the detached parameters (so a differentiable camera is checked on its values).
@@ -389,55 +213,7 @@ class Camera:
             not finite, and also where any grid pixel's ray is not finite (unproject promises
             finite rays everywhere). A camera with no valid grid pixel reports 0 valid pixels.
         """
-        uv = self._check_grid()
-        p = self.params.detach().to(device="cpu", dtype=torch.float64)
-        with torch.no_grad():
-            rays, valid = self._unproject(uv, p)
-            if self._cap_cos is not None:
-                valid = valid & (rays[..., 2] >= self._cap_cos)
-            if not bool(torch.isfinite(rays).all()):
-                bad = (~torch.isfinite(rays).all(-1)).nonzero()[0, 0]
-                return math.inf, (float(uv[bad, 0]), float(uv[bad, 1])), int(valid.sum())
-            if not bool(valid.any()):
-                return 0.0, None, 0
-            back, _ = self._project(rays[valid], p)
-            err = torch.linalg.vector_norm(back - uv[valid], dim=-1)
-            err = torch.where(torch.isfinite(err), err, torch.full_like(err, math.inf))
-            i = int(err.argmax())
-            worst = uv[valid][i]
-            return float(err[i]), (float(worst[0]), float(worst[1])), int(valid.sum())
-
-    def _validate_round_trip(self, use_cache: bool) -> float:
-        # The result depends only on the camera key, so resized / scaled copies built again
-        # and again (one per forward) pay for it once.
-        key = (type(self).__name__, *self.key())
-        hit = _ROUND_TRIP_CACHE.get(key) if use_cache else None
-        if hit is None:
-            err, worst, n_valid = self.round_trip_error()
-            if n_valid == 0:
-                hit = (-1.0, None)
-            else:
-                hit = (err, worst)
-            if len(_ROUND_TRIP_CACHE) >= _ROUND_TRIP_CACHE_SIZE:
-                _ROUND_TRIP_CACHE.pop(next(iter(_ROUND_TRIP_CACHE)))
-            _ROUND_TRIP_CACHE[key] = hit
-        err, worst = hit
-        name = type(self).__name__
-        if err < 0.0:
-            raise CameraError(
-                f"{name} ({self.model}): no pixel of the {self.width}x{self.height} image has a "
-                f"valid ray (the lens circle misses the image, or the distortion cannot be inverted "
-                f"anywhere in it)"
-            )
-        if not err <= ROUND_TRIP_TOL_PX:
-            assert worst is not None
-            raise CameraError(
-                f"{name} ({self.model}): project(unproject(uv)) misses pixel "
-                f"({worst[0]:.6g}, {worst[1]:.6g}) by {err:.3g} px (tolerance "
-                f"{ROUND_TRIP_TOL_PX} px): the parameters are outside the range where the model "
-                f"can be inverted"
-            )
-        return err
+        return round_trip_error(self)
 
     # ------------------------------------------------------------------ immutability
     def __setattr__(self, name: str, value: Any) -> None:
@@ -510,7 +286,7 @@ class Camera:
             valid: (...,) bool, false where the model is undefined or the ray is beyond
             ``max_angle``. The image bounds are *not* checked.
         """
-        pts = _as_points(points, "points", 3)
+        pts = as_points(points, "points", 3)
         p = self.params.to(device=pts.device, dtype=pts.dtype)
         uv, valid = self._project(pts, p)
         if self._cap_cos is not None:
@@ -529,7 +305,7 @@ class Camera:
             rays: (..., 3) unit vectors in the camera frame (finite everywhere).
             valid: (...,) bool, false where the pixel has no ray in the model's domain.
         """
-        q = _as_points(uv, "uv", 2)
+        q = as_points(uv, "uv", 2)
         p = self.params.to(device=q.device, dtype=q.dtype)
         rays, valid = self._unproject(q, p)
         if self._cap_cos is not None:
@@ -609,22 +385,7 @@ class Camera:
         ``cx' = (cx + 0.5) * sx - 0.5``; the new size is ``round(width * sx) x round(height * sy)``.
         Distortion acts on normalised coordinates in every model, so it is unchanged.
         """
-        for name, s in (("sx", sx), ("sy", sy)):
-            if isinstance(s, bool) or not isinstance(s, numbers.Real):
-                raise CameraError(f"scale {name} must be a positive finite number, got {quote(s)}")
-            try:
-                f = float(s)
-            except OverflowError:
-                f = math.inf
-            if not (math.isfinite(f) and f > 0):
-                raise CameraError(f"scale {name} must be a positive finite number, got {quote(s)}")
-        # A factor that leaves more than MAX_IMAGE_SIDE pixels is refused by the constructor;
-        # refusing it here keeps round() away from huge floats.
-        for name, side, s in (("width", self.width, sx), ("height", self.height, sy)):
-            if side * float(s) > 2 * MAX_IMAGE_SIDE:
-                raise CameraError(
-                    f"scaled {name} {side} x {float(s):g} exceeds {MAX_IMAGE_SIDE} pixels"
-                )
+        check_scale_factors(self.width, self.height, sx, sy)
         w = max(1, round(self.width * sx))
         h = max(1, round(self.height * sy))
         return self._replace(
@@ -633,8 +394,8 @@ class Camera:
 
     def resized(self, width: int, height: int) -> Camera:
         """The camera of the image resized to ``width x height`` pixels (pure resize)."""
-        width = _check_size("width", width)
-        height = _check_size("height", height)
+        width = check_size("width", width)
+        height = check_size("height", height)
         cam = self.scaled(width / self.width, height / self.height)
         if (cam.width, cam.height) == (width, height):
             return cam
@@ -646,15 +407,9 @@ class Camera:
         The window may extend beyond the image (padding): a pixel (u, v) of the original image
         is pixel (u - x0, v - y0) of the result.
         """
-        for name, v in (("x0", x0), ("y0", y0)):
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
-                raise CameraError(f"crop {name} must be an integer, got {quote(v)}")
-            if abs(v) > _MAX_CROP_OFFSET:
-                raise CameraError(
-                    f"crop {name} must be within +-{_MAX_CROP_OFFSET} pixels, got {quote(v)}"
-                )
-        w = _check_size("crop width", w)
-        h = _check_size("crop height", h)
+        check_crop_offsets(x0, y0)
+        w = check_size("crop width", w)
+        h = check_size("crop height", h)
         return self._replace(w, h, self.fx, self.fy, self.cx - int(x0), self.cy - int(y0))
 
     # ------------------------------------------------------------------ serialisation
@@ -727,50 +482,10 @@ def validate(camera: Camera) -> float:
     rebuilt = type(camera)(
         camera.width, camera.height, camera.params.detach(), max_fov_deg=camera.max_fov_deg
     )
-    return rebuilt._validate_round_trip(use_cache=False)
+    return check_round_trip(rebuilt, use_cache=False)
 
 
 def _rebuild(
     model: str, width: int, height: int, params: Tensor, max_fov_deg: float | None
 ) -> Camera:
     return CAMERA_MODELS[model](width, height, params, max_fov_deg=max_fov_deg)
-
-
-_DICT_KEYS = {"model", "width", "height", "params", "max_fov_deg"}
-
-
-def from_dict(d: Mapping[str, Any]) -> Camera:
-    """Build a camera from :meth:`Camera.to_dict` output (dispatch on ``"model"``).
-
-    Raises:
-        CameraError: not a mapping, unknown model, missing/extra keys, bad parameters.
-    """
-    if not isinstance(d, Mapping):
-        raise CameraError(f"camera description must be a JSON object, got {type(d).__name__}")
-    for k in ("model", "width", "height", "params"):
-        if k not in d:
-            raise CameraError(f"camera description: field '{k}' is missing")
-    extra = sorted(str(k) for k in d if k not in _DICT_KEYS)
-    if extra:
-        raise CameraError(f"camera description: unexpected field '{extra[0]}'")
-    model = d["model"]
-    # A list or dict here is unhashable: test the type before the dict lookup.
-    if not isinstance(model, str) or model not in CAMERA_MODELS:
-        raise CameraError(
-            f"camera description: field 'model': unknown camera model {quote(model)} "
-            f"(known: {sorted(CAMERA_MODELS)})"
-        )
-    params = d["params"]
-    if not isinstance(params, Mapping):
-        raise CameraError("camera description: field 'params' must be an object {name: value}")
-    try:
-        return CAMERA_MODELS[model](
-            d["width"], d["height"], params, max_fov_deg=d.get("max_fov_deg")
-        )
-    except CameraError as e:
-        p = getattr(e, "param", None)
-        if p is None:
-            raise
-        err = CameraError(f"camera description: field 'params.{p}': {e}")
-        err.param = p  # type: ignore[attr-defined]
-        raise err from None

@@ -13,7 +13,8 @@ import numbers
 from collections.abc import Sequence
 
 from raytun3r_plugin._strict import quote
-from raytun3r_plugin.cameras.base import MAX_IMAGE_SIDE, Camera
+from raytun3r_plugin.cameras.base import Camera
+from raytun3r_plugin.cameras.checks import MAX_IMAGE_SIDE
 from raytun3r_plugin.cameras.kb import KannalaBrandt4
 from raytun3r_plugin.cameras.unified import EUCM, UCM, DoubleSphere
 from raytun3r_plugin.errors import CameraError

@@ -8,7 +8,8 @@ import torch
 from torch import Tensor
 
 from raytun3r_plugin.cameras._math import safe_sqrt, small_threshold
-from raytun3r_plugin.cameras.base import Camera, param_error
+from raytun3r_plugin.cameras.base import Camera
+from raytun3r_plugin.cameras.checks import param_error
 from raytun3r_plugin.cameras.kb import _ray_from_angle, _unit_points
 
 __all__ = ["FOV"]

@@ -24,7 +24,8 @@ from raytun3r_plugin.cameras._math import (
     undistort,
     unit,
 )
-from raytun3r_plugin.cameras.base import Camera, check_range, param_error
+from raytun3r_plugin.cameras.base import Camera
+from raytun3r_plugin.cameras.checks import check_range, param_error
 
 #: Upper bound of EUCM's beta (real lenses: about 0.5 to 2).
 EUCM_BETA_MAX = 100.0

@@ -32,11 +32,10 @@ from raytun3r_plugin.synthetic.generate import (
     scene_of,
     stereo_extrinsics,
 )
+from raytun3r_plugin.synthetic.raycast import Hit, intersect
 from raytun3r_plugin.synthetic.render import RenderedFrame, Renderer, render_frame
 from raytun3r_plugin.synthetic.scene import (
-    Hit,
     Scene,
-    intersect,
     make_indoor_scene,
     make_outdoor_scene,
     make_scene,

@@ -136,7 +136,7 @@ def _raycast_visible(
     seq: Sequence, j: int, X_j: np.ndarray, rng_j: np.ndarray, rel_tol: float
 ) -> np.ndarray:
     from raytun3r_plugin.synthetic.generate import scene_of
-    from raytun3r_plugin.synthetic.scene import intersect
+    from raytun3r_plugin.synthetic.raycast import intersect
 
     scene = scene_of(seq)
     T = seq.cam_from_world[j]

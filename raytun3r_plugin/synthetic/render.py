@@ -35,6 +35,7 @@ import torch.nn.functional as F
 
 from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.synthetic.noise import SolidNoise, band_weight, smoothstep
+from raytun3r_plugin.synthetic.raycast import Hit, RayTiles, intersect
 from raytun3r_plugin.synthetic.scene import (
     MAT_BASE,
     MAT_COLOUR_VAR,
@@ -44,10 +45,7 @@ from raytun3r_plugin.synthetic.scene import (
     MAT_OFFSET,
     MAT_SPOT,
     MAT_SPOT_THRESHOLD,
-    Hit,
-    RayTiles,
     Scene,
-    intersect,
 )
 
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models

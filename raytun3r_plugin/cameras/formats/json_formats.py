@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from raytun3r_plugin._strict import quote
-from raytun3r_plugin.cameras.base import Camera, from_dict
+from raytun3r_plugin.cameras.base import Camera
 from raytun3r_plugin.cameras.formats._fields import (
     _SHORT,
     PathLike,
@@ -19,6 +19,7 @@ from raytun3r_plugin.cameras.formats._fields import (
 )
 from raytun3r_plugin.cameras.kb import KannalaBrandt4
 from raytun3r_plugin.cameras.pinhole import Pinhole
+from raytun3r_plugin.cameras.serialisation import from_dict
 from raytun3r_plugin.cameras.unified import EUCM, UCM, DoubleSphere
 from raytun3r_plugin.errors import CameraError
 
