@@ -22,11 +22,9 @@ from tests.helpers import fisheye, max_relative_difference, outputs, randomise_
 
 
 @pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+def _fresh_dynamo(one_thread):
+    """One thread, and no compiled code left for the next test."""
     yield
-    torch.set_num_threads(threads)
     torch._dynamo.reset()
 
 

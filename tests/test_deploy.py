@@ -29,12 +29,7 @@ DEPTH_TOLERANCE = 1e-4  # max relative depth difference
 POSE_TOLERANCE_RAD = 1e-4
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _tiny(family: str):

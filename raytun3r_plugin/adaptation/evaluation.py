@@ -13,14 +13,29 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
-from raytun3r_plugin.patching import apply
+from raytun3r_plugin.patching import RaytunHandle, apply
 
 if TYPE_CHECKING:
     from raytun3r_plugin.adaptation.config import AdaptConfig
     from raytun3r_plugin.adaptation.problem import AdaptationProblem
     from raytun3r_plugin.adapter import Adapter
 
-__all__ = ["frozen_backbone", "patched_for_evaluation"]
+__all__ = ["frozen_backbone", "patched_as_fitted", "patched_for_evaluation"]
+
+
+def patched_as_fitted(
+    model: nn.Module, adapter: Adapter, problem: AdaptationProblem, config: AdaptConfig
+) -> RaytunHandle:
+    """``model`` patched with ``adapter`` for ``problem``'s camera, components and scene mask, as
+    a fit patches it (a handle that is also a context manager: ``with ...:`` removes it)."""
+    return apply(
+        model,
+        problem.layout.native_camera,
+        adapter,
+        components=config.components,
+        strict=False,
+        mask=problem.mask,
+    )
 
 
 @contextmanager
@@ -49,13 +64,6 @@ def patched_for_evaluation(
     with (
         frozen_backbone(model),
         torch.no_grad(),
-        apply(
-            model,
-            problem.layout.native_camera,
-            adapter,
-            components=config.components,
-            strict=False,
-            mask=problem.mask,
-        ),
+        patched_as_fitted(model, adapter, problem, config),
     ):
         yield

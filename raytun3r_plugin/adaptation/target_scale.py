@@ -16,6 +16,7 @@ import torch
 from raytun3r_plugin.adaptation.losses import backproject, pixel_optimal_scale, sample_bilinear
 from raytun3r_plugin.adaptation.photometric import photometric_optimal_scale
 from raytun3r_plugin.adaptation.pose_terms import fit_translation_scale
+from raytun3r_plugin.errors import InputError
 
 if TYPE_CHECKING:
     from raytun3r_plugin.adaptation.config import AdaptConfig
@@ -25,9 +26,9 @@ if TYPE_CHECKING:
 
 def _target(pair: _Pair) -> tuple[torch.Tensor, torch.Tensor]:
     """The pair's MAGSAC++ (rotation, unit translation direction); the callers skip pairs
-    without one, so a missing target here is a bug, not an input problem."""
+    without one."""
     if pair.rotation is None or pair.direction is None:
-        raise RuntimeError("a pair without a MAGSAC++ target reached the target scaling")
+        raise InputError("a pair without a MAGSAC++ target reached the target scaling")
     return pair.rotation, pair.direction
 
 

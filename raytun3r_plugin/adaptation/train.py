@@ -64,6 +64,7 @@ from raytun3r_plugin.adaptation.config import (
     TERMS,
     AdaptConfig,
 )
+from raytun3r_plugin.adaptation.evaluation import patched_as_fitted
 from raytun3r_plugin.adaptation.guard import (
     GUARD_MIN_CORRELATION,
     GUARD_SPREAD_RANGE,
@@ -86,7 +87,7 @@ from raytun3r_plugin.adaptation.step import (
 from raytun3r_plugin.adaptation.teacher import teacher_coverage, teacher_targets
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
-from raytun3r_plugin.patching import apply, handle_of
+from raytun3r_plugin.patching import handle_of
 
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
@@ -294,14 +295,7 @@ def adapt(
     )
     outcome = run_fit_loop(
         model,
-        lambda: apply(
-            model,
-            problem.layout.native_camera,
-            adapter,
-            components=config.components,
-            strict=False,
-            mask=problem.mask,
-        ),
+        lambda: patched_as_fitted(model, adapter, problem, config),
         lambda step: adaptation_step(model, adapter, optimizer, problem, config, step),
         steps=config.steps if problem.windows else start,
         start=start,
