@@ -170,6 +170,7 @@ def main() -> None:
     parser.add_argument("--skip", choices=("exported", "compiled"), default=None)
     parser.add_argument("--note", default="", help="a remark printed under the table")
     parser.add_argument("--docs", type=Path, default=None)
+    parser.add_argument("--block", default="deploy-cost", help="the docs block to replace")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     rows = []
@@ -184,7 +185,7 @@ def main() -> None:
     text = table(rows, args)
     print(text)
     if args.docs is not None:
-        write_block(args.docs, "deploy-cost", text)
+        write_block(args.docs, args.block, text)
         print(f"wrote the table into {args.docs}")
 
 
