@@ -475,7 +475,9 @@ def test_mask_keeps_matches_and_losses_off_the_excluded_pixels(camera, frames, c
 
 
 def test_adapt_patches_with_the_mask_and_records_it(camera, frames, cache_dir, monkeypatch):
-    import raytun3r_plugin.adaptation.train as train
+    # Every patch a fit makes (the parallax gate's measurement and the fit itself) goes
+    # through one helper, which applies the mask.
+    import raytun3r_plugin.adaptation.evaluation as evaluation
 
     seen = []
 
@@ -483,7 +485,7 @@ def test_adapt_patches_with_the_mask_and_records_it(camera, frames, cache_dir, m
         seen.append(kwargs.get("mask"))
         return apply(*args, **kwargs)
 
-    monkeypatch.setattr(train, "apply", recording_apply)
+    monkeypatch.setattr(evaluation, "apply", recording_apply)
     mask = body_mask(camera)
     adapter = adapt(
         build_tiny_network(),
@@ -493,7 +495,8 @@ def test_adapt_patches_with_the_mask_and_records_it(camera, frames, cache_dir, m
         mask=mask.numpy(),
         progress=False,
     )
-    assert len(seen) == 1 and torch.equal(seen[0], mask & camera.valid_mask().bool())
+    expected = mask & camera.valid_mask().bool()
+    assert seen and all(torch.equal(used, expected) for used in seen)
     recorded = adapter.training_info["segment"]["mask"]
     assert recorded["valid_fraction"] == pytest.approx(
         float((mask & camera.valid_mask().bool()).float().mean()), abs=1e-4
