@@ -121,3 +121,12 @@ def test_a_negative_gate_is_refused():
 def test_the_gate_leaves_the_identity_of_settings_without_it_unchanged():
     assert "pose_gate" not in AdaptConfig().to_dict()
     assert AdaptConfig(pose_gate=GATE).to_dict()["pose_gate"] == GATE
+
+
+def test_a_rig_fit_refuses_the_gate_before_any_work():
+    from raytun3r_plugin.adaptation.rig import adapt_rig
+
+    model = load_backbone("raytun3r-da3-tiny")
+    config = AdaptConfig.from_recipe("rig", pose_gate=GATE)
+    with pytest.raises(InputError, match="no pose gate"):
+        adapt_rig(model, None, config, progress=False)

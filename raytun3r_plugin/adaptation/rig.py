@@ -155,6 +155,11 @@ def adapt_rig(
             "(AdaptConfig.from_recipe('rig')), set weights.teacher to 0, or fit each camera "
             "with adapt() for the teacher"
         )
+    if config.pose_gate is not None:
+        raise InputError(
+            "adapt_rig has no pose gate (AdaptConfig.pose_gate) yet: leave it None, or fit "
+            "each camera with adapt()"
+        )
     names = rig.names
     fitted = _starting_adapters(model, names, adapters, config)
     problems = _rig_problems(model, rig, names, fitted, config, depth)
