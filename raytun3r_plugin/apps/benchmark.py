@@ -21,7 +21,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
+from raytun3r_plugin.apps.evaluation import (
+    METRIC_COLUMNS,
+    format_table,
+    headline,
+    run_method,
+    score,
+)
 from raytun3r_plugin.apps.fits import adapt_config, fit_description, supervised_config
 from raytun3r_plugin.apps.sequence_methods import (  # noqa: F401 - also imported from here
     METHOD_KEYS,
@@ -71,21 +77,7 @@ SEQUENCES_PER_CELL = 5
 BASELINES = {"lora": "lora", "caltok": "calibration tokens"}
 #: Columns whose per-cell summary is an integer (the same count on every sequence of a cell).
 INTEGER_COLUMNS = ("params",)
-COLUMNS = [
-    "camera",
-    "scene",
-    "method",
-    "rot_deg",
-    "trans_deg",
-    "d_reproj_px",
-    "abs_rel",
-    "delta_1.25",
-    "coverage",
-    "adapt_s",
-    "params",
-    "ms_per_frame",
-    "x_vanilla",
-]
+COLUMNS = [*METRIC_COLUMNS, "adapt_s", "params", "ms_per_frame", "x_vanilla"]
 
 
 def gap_closed(

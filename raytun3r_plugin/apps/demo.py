@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from raytun3r_plugin.apps.evaluation import METRIC_COLUMNS
 from raytun3r_plugin.apps.fits import adapt_config, fit_description, supervised_config
 
 #: The built-in network the demo and the benchmarks use: v3, whose pose head beats the
@@ -194,16 +195,8 @@ def run_demo(args: argparse.Namespace) -> int:
     )
     for row in table_rows:
         row["lower_than_no_adapter"] = row.pop(f"lower_than_{labels['zero']}", "")
-    columns = [
-        "method",
-        "rot_deg",
-        "trans_deg",
-        "d_reproj_px",
-        "abs_rel",
-        "delta_1.25",
-        "coverage",
-        "lower_than_no_adapter",
-    ]
+    # The demo's table has one camera and scene: from the method on.
+    columns = [*METRIC_COLUMNS[METRIC_COLUMNS.index("method") :], "lower_than_no_adapter"]
     table = format_table(table_rows, columns)
     print()
     print(

@@ -32,6 +32,19 @@ from raytun3r_plugin.poses import relative_pose
 from raytun3r_plugin.prediction import predict
 
 METHODS = ("vanilla", "center-ph", "multi-ph", "raytun3r")
+#: What identifies a row and what it scores, in the order every table shows them (the benchmark,
+#: the demo and the report page add their own columns after these).
+METRIC_COLUMNS = (
+    "camera",
+    "scene",
+    "method",
+    "rot_deg",
+    "trans_deg",
+    "d_reproj_px",
+    "abs_rel",
+    "delta_1.25",
+    "coverage",
+)
 CENTER_PH_FOV_DEG = 110.0
 
 

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from raytun3r_plugin.apps.evaluation import METRIC_COLUMNS
 from raytun3r_plugin.errors import InputError
 
 __all__ = ["DepthSource", "build_report", "find_fits", "report_kind", "write_report"]
@@ -355,15 +356,7 @@ def _folder_section(folder: Path, kind: str) -> str:
     if not isinstance(summary, list) or not summary:
         raise InputError(f"{folder / name}: no summary rows")
     preferred = [
-        "camera",
-        "scene",
-        "method",
-        "rot_deg",
-        "trans_deg",
-        "d_reproj_px",
-        "abs_rel",
-        "delta_1.25",
-        "coverage",
+        *METRIC_COLUMNS,
         "params",
         "gap_closed",
         "lower_than_vanilla",
