@@ -25,12 +25,18 @@ from __future__ import annotations
 import os
 import secrets
 import sys
+import warnings
 from collections.abc import Callable, Generator, Iterator, Sequence
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from typing import Any
 
-from raytun3r_plugin.errors import InputError, MissingDependencyError, TaskError
+from raytun3r_plugin.errors import (
+    ClusterConnectionError,
+    InputError,
+    MissingDependencyError,
+    TaskError,
+)
 
 __all__ = [
     "ClusterSpec",
@@ -171,7 +177,7 @@ def connected(spec: ClusterSpec) -> Iterator[Any]:
         # at the machine's network address (see RAY_LOCAL_ONLY_VARIABLE).
         local = _local_only(ray) if host in (LOOPBACK, "localhost") else nullcontext()
         with local:
-            ray.init(address=address, log_to_driver=False, configure_logging=False)
+            _join(ray, address)
         try:
             yield ray
         finally:
@@ -190,6 +196,37 @@ def connected(spec: ClusterSpec) -> Iterator[Any]:
         yield ray
     finally:
         ray.shutdown()
+
+
+#: Tries of a Ray Client connection whose server side failed to start (see :func:`_join`).
+CLIENT_TRIES = 3
+
+
+def _join(ray, address: str) -> None:
+    """``ray.init(address)``. Through Ray Client (``ray://``), a connection the head's client
+    server accepted but could not start a per-client server for ("Initialization failure from
+    server", ``ConnectionAbortedError``) is tried again, up to :data:`CLIENT_TRIES` times: on a
+    busy head, Ray 2.60's proxy at times sees that server's process gone milliseconds after
+    starting it, with nothing in its log (docs/fleet.md), and the next one starts. A refused
+    token or an unreachable address is not retried."""
+    tries = CLIENT_TRIES if address.startswith("ray://") else 1
+    for attempt in range(1, tries + 1):
+        try:
+            ray.init(address=address, log_to_driver=False, configure_logging=False)
+            return
+        except ConnectionAbortedError as error:
+            ray.shutdown()
+            if attempt == tries:
+                raise ClusterConnectionError(
+                    f"{address}: the cluster's Ray Client server failed to start a server for "
+                    f"this driver {tries} times; last reason: {error}"
+                ) from error
+            warnings.warn(
+                f"{address}: Ray Client server failed to start (try {attempt} of {tries}); "
+                "trying again",
+                RuntimeWarning,
+                stacklevel=2,
+            )
 
 
 def _cluster_address(address: str) -> str:

@@ -86,3 +86,8 @@ def require_module(module: str, extra: str, purpose: str):
             f"{purpose} needs the optional package {module!r} ({error}); install it with: "
             f"pip install 'raytun3r[{extra}]'"
         ) from error
+
+
+class ClusterConnectionError(Raytun3rError, ConnectionError):
+    """A Ray cluster named by ``--address`` could not be joined (after the retries a Ray Client
+    connection gets); the message names the address and Ray's reason."""
