@@ -37,6 +37,7 @@ from raytun3r_plugin.errors import (
     MissingDependencyError,
     TaskError,
 )
+from raytun3r_plugin.threads import torch_threads
 
 __all__ = [
     "ClusterSpec",
@@ -63,26 +64,35 @@ class ClusterSpec:
         cluster), ``"auto"`` (the cluster ``RAY_ADDRESS`` names, else the one ``ray start
         --head`` made here), ``"HOST:PORT"`` or ``"ray://HOST:PORT"`` (Ray Client).
     workers: tasks at once on the embedded cluster (its CPU count); ignored when joining.
-    threads: CPU threads per task (its CPU request and ``torch.set_num_threads``).
+    threads: CPU threads per task: its CPU request on Ray and ``torch.set_num_threads`` while
+        it runs, in this process too. None: one on Ray; in this process, torch's setting as
+        it is.
     gpus: one GPU per task; None: where the cluster has GPUs.
     max_retries: reruns of a task whose worker process died.
     """
 
     address: str | None = None
     workers: int = 1
-    threads: int = 1
+    threads: int | None = None
     gpus: bool | None = None
     max_retries: int = 3
 
     def __post_init__(self) -> None:
         for name in ("workers", "threads"):
             value = getattr(self, name)
+            if name == "threads" and value is None:
+                continue
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise InputError(f"{name} must be a positive integer, got {value!r}")
         if self.max_retries < 0:
             raise InputError(f"max_retries must be at least 0, got {self.max_retries}")
         if self.address is not None and not self.address.strip():
             raise InputError("address must be 'auto', HOST:PORT or ray://HOST:PORT, got ''")
+
+    @property
+    def task_threads(self) -> int:
+        """CPU threads a task asks for on Ray."""
+        return 1 if self.threads is None else self.threads
 
     @property
     def in_process(self) -> bool:
@@ -186,7 +196,7 @@ def connected(spec: ClusterSpec) -> Iterator[Any]:
     with _local_only(ray):
         ray.init(
             address="local",
-            num_cpus=spec.workers * spec.threads,
+            num_cpus=spec.workers * spec.task_threads,
             include_dashboard=False,
             _node_ip_address=LOOPBACK,
             log_to_driver=False,
@@ -302,11 +312,14 @@ def _run_in_process(
     tasks: Sequence[tuple],
     initializer: Callable[..., Any] | None,
     initargs: tuple,
+    threads: int | None,
 ) -> Iterator[TaskOutcome]:
     state = None if initializer is None else initializer(*initargs)
     for index, arguments in enumerate(tasks):
         try:
-            value = function(state, *arguments)
+            # per task, not around the loop: the caller runs between tasks on its own setting
+            with torch_threads(threads):
+                value = function(state, *arguments)
         except Exception as error:  # reported per task, as on Ray
             yield TaskOutcome(index, error=f"{type(error).__name__}: {error}", pid=os.getpid())
             continue
@@ -317,7 +330,7 @@ def _resources(ray, spec: ClusterSpec) -> dict[str, float]:
     gpus = spec.gpus
     if gpus is None:
         gpus = ray.cluster_resources().get("GPU", 0) > 0
-    return {"num_cpus": spec.threads, "num_gpus": 1 if gpus else 0}
+    return {"num_cpus": spec.task_threads, "num_gpus": 1 if gpus else 0}
 
 
 def run_tasks(
@@ -346,7 +359,7 @@ def run_tasks(
         bar = tqdm(total=len(tasks), desc=progress, unit="task", file=sys.stderr)
     try:
         if spec.in_process:
-            outcomes = _run_in_process(function, tasks, initializer, initargs)
+            outcomes = _run_in_process(function, tasks, initializer, initargs, spec.threads)
         else:
             outcomes = _run_on_ray(function, tasks, spec, initializer, initargs)
         for outcome in outcomes:
@@ -374,7 +387,9 @@ def _run_on_ray(
             max_retries=spec.max_retries, retry_exceptions=False, **_resources(ray, spec)
         )
         pending = {
-            remote.remote(function, initializer, key, boxed, tuple(arguments), spec.threads): index
+            remote.remote(
+                function, initializer, key, boxed, tuple(arguments), spec.task_threads
+            ): index
             for index, arguments in enumerate(tasks)
         }
         try:

@@ -49,12 +49,14 @@ def _adapters(out: Path) -> dict[str, Path]:
 
 @pytest.fixture(scope="module")
 def in_process_run(tmp_path_factory):
-    """The two-camera fleet fitted in this process (``--workers 1``: no Ray)."""
+    """The two-camera fleet fitted in this process (``--workers 1``: no Ray), on one thread
+    (``--threads 1``) as the Ray runs below compare with: adapters are bit-identical only on
+    the same thread count."""
     from raytun3r_plugin.apps.cli_fleet import run_fleet
 
     folder = tmp_path_factory.mktemp("fleet-plain")
     manifest = _fleet_manifest(folder / "in")
-    report = run_fleet(manifest, folder / "out", "adapt", workers=1, progress=False)
+    report = run_fleet(manifest, folder / "out", "adapt", workers=1, threads=1, progress=False)
     return manifest, folder / "out", report
 
 
@@ -351,3 +353,25 @@ def test_a_task_asks_for_one_gpu_exactly_where_the_cluster_has_gpus():
     assert _resources(cpu_only, spec) == {"num_cpus": 3, "num_gpus": 0}
     assert _resources(with_gpus, ClusterSpec(threads=3, gpus=False))["num_gpus"] == 0
     assert _resources(cpu_only, ClusterSpec(gpus=True))["num_gpus"] == 1
+    assert _resources(cpu_only, ClusterSpec()) == {"num_cpus": 1, "num_gpus": 0}  # threads None
+
+
+def _threads_now(_state, _task):
+    import torch
+
+    return torch.get_num_threads()
+
+
+def test_in_process_tasks_run_on_the_threads_asked_for_and_leave_the_callers_as_it_was():
+    """``--workers 1 --threads N`` pins each task to N threads as a Ray task is pinned; without
+    ``threads`` the caller's setting is used; either way it is the caller's again afterwards."""
+    import torch
+
+    from raytun3r_plugin.cluster import ClusterSpec, run_tasks
+    from raytun3r_plugin.threads import torch_threads
+
+    with torch_threads(2):
+        ran = list(run_tasks(_threads_now, [(0,), (1,)], ClusterSpec(threads=1)))
+        assert [o.value for o in ran] == [1, 1] and torch.get_num_threads() == 2
+        ran = list(run_tasks(_threads_now, [(0,)], ClusterSpec()))
+        assert [o.value for o in ran] == [2]

@@ -211,18 +211,11 @@ def loopback_cluster(tmp_path_factory):
 @pytest.fixture(scope="module")
 def in_process_run(tmp_path_factory):
     """The three cameras fitted in this process (``--workers 1``: no Ray), for comparison; on
-    one thread, as a Ray task with ``--threads 1`` runs."""
-    import torch
-
+    one thread (``--threads 1``), as a Ray task runs by default."""
     from raytun3r_plugin.apps.cli_fleet import run_fleet
 
-    folder = tmp_path_factory.mktemp("fleet-in-process")
-    out, threads = folder / "out", torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        run_fleet(_manifest(folder / "in"), out, "adapt", workers=1, progress=False)
-    finally:
-        torch.set_num_threads(threads)
+    out = tmp_path_factory.mktemp("fleet-in-process") / "out"
+    run_fleet(_manifest(out.parent / "in"), out, "adapt", workers=1, threads=1, progress=False)
     return out
 
 

@@ -58,6 +58,7 @@ CHECKED = [
     "raytun3r_plugin/apps/report.py",
     "raytun3r_plugin/apps/sequence_methods.py",
     "raytun3r_plugin/cluster.py",
+    "raytun3r_plugin/threads.py",
     "raytun3r_plugin/apps/fleet.py",
     "raytun3r_plugin/apps/fleet_manifest.py",
     "raytun3r_plugin/apps/cli_fleet.py",

@@ -19,7 +19,7 @@ def run_fleet(
     *,
     address: str | None = None,
     workers: int | None = None,
-    threads: int = 1,
+    threads: int | None = None,
     gpus: bool | None = None,
     max_retries: int = 3,
     progress: bool = True,
@@ -145,7 +145,12 @@ def add_fleet_commands(sub) -> None:
             help="tasks at once on the embedded cluster (default: one per CPU, at most one per "
             "task; 1 = in this process, without Ray)",
         )
-        p.add_argument("--threads", type=int, default=1, help="CPU threads per task (default 1)")
+        p.add_argument(
+            "--threads",
+            type=int,
+            default=None,
+            help="CPU threads per task (default: 1 on Ray; with --workers 1, torch's own)",
+        )
         p.add_argument(
             "--gpus",
             type=_gpus,

@@ -24,8 +24,6 @@ has the same colour in every frame.
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -47,11 +45,12 @@ from raytun3r_plugin.synthetic.scene import (
     MAT_SPOT_THRESHOLD,
     Scene,
 )
+from raytun3r_plugin.threads import torch_threads
 
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
 
-__all__ = ["RenderedFrame", "Renderer", "render_frame", "torch_threads"]
+__all__ = ["RenderedFrame", "Renderer", "render_frame"]
 
 _OCTAVE_GAIN = (0.32, 0.26, 0.2, 0.13, 0.09)
 
@@ -157,21 +156,6 @@ class _CameraRays:
         cos = torch.where(real[..., 0], cos, torch.ones_like(cos))
         radius = torch.arccos(cos.min(dim=1).values) + 1e-4
         return RayTiles(axes.float(), radius.float(), members)
-
-
-@contextmanager
-def torch_threads(n: int | None) -> Iterator[None]:
-    """Run the body with ``n`` torch intra-op threads (process-wide, restored afterwards);
-    ``None`` leaves torch's setting alone."""
-    old = torch.get_num_threads()
-    if n is None or n == old:
-        yield
-        return
-    torch.set_num_threads(int(n))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
 
 
 _RAY_CACHE: OrderedDict[tuple, _CameraRays] = OrderedDict()
