@@ -11,8 +11,9 @@ consecutive scored pairs for:
 * ``pose oracle``: the tables fitted to the ground-truth relative poses of frames 0-23
   (``adapt(..., poses=...)``, recipe ``pose-oracle``: the pose term through the network's own
   pose head, no depth term), the rotation the tables can reach;
-* with ``--recipes NAME ...``, self-supervised fits of those recipes (``trajectory-candidate``:
-  the oracle's settings with the MAGSAC++ targets in place of the ground truth).
+* with ``--recipes NAME ...``, self-supervised fits of those recipes (``trajectory-candidate``,
+  the oracle's settings with the MAGSAC++ targets in place of the ground truth, was the
+  ``trajectory`` recipe before it was adopted).
 
 AbsRel of every row is kept beside its rotation (``abs_rel`` in each JSON row).
 ``--development`` uses the development seeds (80000+), for choosing; ``--no-components`` skips
