@@ -321,3 +321,21 @@ def test_the_pose_oracle_fits_the_tables_to_the_true_relative_poses(network, seg
             adapt(network, camera, seq.images, config, poses=bad, progress=False)
     with pytest.raises(InputError, match="depth .* or poses"):
         adapt(network, camera, seq.images, poses=seq.cam_from_world, depth=seq.depth)
+
+
+def test_the_trajectory_recipe_is_the_pose_oracle_on_the_matches_own_targets(network, segment):
+    """``trajectory``: the oracle's settings, fitted without ground truth (the MAGSAC++ relative
+    poses), so a user can run it on their own footage; it moves the tables through the pose term
+    alone."""
+    camera, frames = segment
+    oracle, trajectory = get_recipe("pose-oracle"), get_recipe("trajectory")
+    assert trajectory.changes == oracle.changes
+    assert oracle.needs_poses and not trajectory.needs_poses
+    config = AdaptConfig.from_recipe(
+        "trajectory", steps=12, n_windows=3, input_size=112, checkpoint_every=0
+    )
+    adapter = adapt(network, camera, frames, config, progress=False)
+    info = adapter.training_info
+    assert info["recipe"]["name"] == "trajectory" and info["supervision"]["kind"] != "poses"
+    assert {k for k, v in info["config"]["weights"].items() if v} == {"pose"}
+    assert not adapter.is_zero()
