@@ -1,4 +1,5 @@
-"""Camera models: exactness against independent references, round trips, domains, gradients."""
+"""Camera models: exactness against independent references, round trips, domains, identity,
+JSON and validation (gradients, batching and image helpers: test_cameras_differentiable.py)."""
 
 from __future__ import annotations
 
@@ -26,136 +27,16 @@ from raytun3r_plugin.cameras import (
     from_dict,
 )
 from raytun3r_plugin.errors import CameraError, Raytun3rError
-
-# Official calibrations (docs/cameras.md), used full size and scaled down.
-TUMVI_KB4 = [190.97847715128717, 190.9733070521226, 254.93170605935475, 256.8974428996504,
-             0.0034823894022493434, 0.0007150348452162257, -0.0020532361418706202,
-             0.00020293673591811182]  # fmt: skip
-TUMVI_DS = [158.28600034966977, 158.2743455478755, 254.96116578191653, 256.8894394501779,
-            -0.17213086034353243, 0.5931177593944744]  # fmt: skip
-TUMVI_EUCM = [191.14799836282189, 191.13150963902818, 254.9585771534443, 256.88154645599448,
-              0.6291060881178562, 1.0418067381860868]  # fmt: skip
-KITTI360_02 = [1336.3220825849971, 1335.7883350012958, 716.94323510126321, 705.76498308221585,
-               2.2134047507854890, 0.016798235660113681, 1.6548773243373522,
-               4.2223943394772046e-04, 4.2462134260997584e-04]  # fmt: skip
-ETH3D_TP = [3411.42, 3410.02, 3041.29 - 0.5, 2014.07 - 0.5, 0.21047, 0.21102, -5.36231e-06,
-            0.00051541, -0.158023, 0.406856, -8.46499e-05, 0.000861313]  # fmt: skip
-# A Project-Tango-like FOV fisheye (640x480, omega about 53 degrees).
-TANGO_FOV = [256.1, 255.7, 319.8, 239.4, 0.9217]
-# A Project-Aria-SLAM-like Fisheye624 (640x480): plausible coefficients, not an official file.
-ARIA_F624 = [241.3, 241.3, 316.9, 237.6, -0.0255, 0.0979, -0.0665, 0.0070, 0.0031, -0.0013,
-             -0.0003, 0.0002, 0.0005, -0.0001, -0.0004, 0.00005]  # fmt: skip
-EUROC_RADTAN = [458.654, 457.296, 367.215, 248.375, -0.28340811, 0.07395907, 0.00019359,
-                1.76187114e-05]  # fmt: skip
-
-
-def _small(cam: Camera, width: int = 200, height: int = 160) -> Camera:
-    """Scale a real camera to 200 px wide, then centre-crop/pad to ``width x height``."""
-    s = cam.resized(width, round(cam.height * width / cam.width))
-    return s.cropped(0, (s.height - height) // 2, width, height)
-
-
-def make_cameras() -> dict[str, Camera]:
-    return {
-        "pinhole": Pinhole(200, 160, [160.0, 158.0, 99.3, 80.1]),
-        "opencv": _small(OpenCVRadTan(752, 480, EUROC_RADTAN)),
-        "kb4": _small(KannalaBrandt4(512, 512, TUMVI_KB4)),
-        "ucm": UCM(200, 160, [74.6, 74.5, 99.8, 80.3, 0.63]),
-        "eucm": _small(EUCM(512, 512, TUMVI_EUCM)),
-        "ds": _small(DoubleSphere(512, 512, TUMVI_DS)),
-        "mei": _small(MEI(1400, 1400, KITTI360_02)),
-        "thin_prism_fisheye": _small(ThinPrismFisheye(6048, 4032, ETH3D_TP), 200, 133),
-        "fov": _small(FOV(640, 480, TANGO_FOV), 200, 150),
-        "fisheye624": _small(Fisheye624(640, 480, ARIA_F624), 200, 150),
-    }
-
-
-CAMS = make_cameras()
-NAMES = list(CAMS)
-
-
-# ----------------------------------------------------------------------------- references
-def ref_project(cam: Camera, X: np.ndarray) -> np.ndarray:
-    """Independent numpy implementations written from the published formulas."""
-    p = cam.values
-    x, y, z = X[:, 0], X[:, 1], X[:, 2]
-    fx, fy, cx, cy = p["fx"], p["fy"], p["cx"], p["cy"]
-    if cam.model == "pinhole":
-        return np.stack([fx * x / z + cx, fy * y / z + cy], -1)
-    if cam.model == "opencv":
-        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-        D = np.array([p["k1"], p["k2"], p["p1"], p["p2"]])
-        uv, _ = cv2.projectPoints(X.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, D)
-        return uv.reshape(-1, 2)
-    if cam.model == "kb4":
-        r = np.hypot(x, y)
-        th = np.arctan2(r, z)
-        td = th * (1 + p["k1"] * th**2 + p["k2"] * th**4 + p["k3"] * th**6 + p["k4"] * th**8)
-        return np.stack([fx * td * x / r + cx, fy * td * y / r + cy], -1)
-    if cam.model == "ucm":  # via the xi form: a different formula for the same model
-        xi = p["alpha"] / (1 - p["alpha"])
-        rho = np.linalg.norm(X, axis=1)
-        den = z + xi * rho
-        return np.stack([fx * (1 + xi) * x / den + cx, fy * (1 + xi) * y / den + cy], -1)
-    if cam.model == "eucm":
-        a, b = p["alpha"], p["beta"]
-        d = np.sqrt(b * (x * x + y * y) + z * z)
-        den = a * d + (1 - a) * z
-        return np.stack([fx * x / den + cx, fy * y / den + cy], -1)
-    if cam.model == "ds":
-        xi, a = p["xi"], p["alpha"]
-        d1 = np.linalg.norm(X, axis=1)
-        k = xi * d1 + z
-        d2 = np.sqrt(x * x + y * y + k * k)
-        den = a * d2 + (1 - a) * k
-        return np.stack([fx * x / den + cx, fy * y / den + cy], -1)
-    if cam.model == "mei":
-        s = X / np.linalg.norm(X, axis=1, keepdims=True)
-        xu = s[:, 0] / (s[:, 2] + p["xi"])
-        yu = s[:, 1] / (s[:, 2] + p["xi"])
-        r2 = xu * xu + yu * yu
-        rad = 1 + p["k1"] * r2 + p["k2"] * r2 * r2
-        xd = xu * rad + 2 * p["p1"] * xu * yu + p["p2"] * (r2 + 2 * xu * xu)
-        yd = yu * rad + p["p1"] * (r2 + 2 * yu * yu) + 2 * p["p2"] * xu * yu
-        return np.stack([fx * xd + cx, fy * yd + cy], -1)
-    if cam.model == "thin_prism_fisheye":  # COLMAP's route: normalised plane, then atan(R)
-        a, b = x / z, y / z
-        R = np.hypot(a, b)
-        th = np.arctan(R)
-        u, v = a * th / R, b * th / R
-        r2 = u * u + v * v
-        rad = p["k1"] * r2 + p["k2"] * r2**2 + p["k3"] * r2**3 + p["k4"] * r2**4
-        ud = u + u * rad + 2 * p["p1"] * u * v + p["p2"] * (r2 + 2 * u * u) + p["sx1"] * r2
-        vd = v + v * rad + 2 * p["p2"] * u * v + p["p1"] * (r2 + 2 * v * v) + p["sy1"] * r2
-        return np.stack([fx * ud + cx, fy * vd + cy], -1)
-    if cam.model == "fov":  # COLMAP's FOVCameraModel: normalised plane, atan(2 r tan(w/2)) / (r w)
-        a, b = x / z, y / z
-        R = np.hypot(a, b)
-        factor = np.arctan(2 * R * np.tan(p["omega"] / 2)) / (R * p["omega"])
-        return np.stack([fx * a * factor + cx, fy * b * factor + cy], -1)
-    if cam.model == "fisheye624":  # COLMAP's route: normalised plane, atan(R), radial, then prism
-        a, b = x / z, y / z
-        R = np.hypot(a, b)
-        th = np.arctan(R)
-        u, v = a * th / R, b * th / R
-        t2 = u * u + v * v
-        rad = 1 + sum(p[f"k{i}"] * t2 ** (i + 1) for i in range(6))
-        xr, yr = u * rad, v * rad
-        r2 = xr * xr + yr * yr
-        dx = 2 * p["p1"] * xr * yr + p["p0"] * (r2 + 2 * xr * xr) + p["s0"] * r2 + p["s1"] * r2 * r2
-        dy = 2 * p["p0"] * xr * yr + p["p1"] * (r2 + 2 * yr * yr) + p["s2"] * r2 + p["s3"] * r2 * r2
-        return np.stack([fx * (xr + dx) + cx, fy * (yr + dy) + cy], -1)
-    raise AssertionError(cam.model)
-
-
-def directions(n: int, max_angle: float, seed: int = 0, min_angle: float = 0.0) -> torch.Tensor:
-    """(n, 3) float64 directions with angle from the axis uniform in [min_angle, max_angle],
-    random azimuth, random (positive) length."""
-    g = torch.Generator().manual_seed(seed)
-    th = min_angle + (max_angle - min_angle) * torch.rand(n, generator=g, dtype=torch.float64)
-    ph = 2 * math.pi * torch.rand(n, generator=g, dtype=torch.float64)
-    d = torch.stack([th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos()], -1)
-    return d * (0.1 + 10 * torch.rand(n, 1, generator=g, dtype=torch.float64))
+from tests.camera_cases import (
+    CAMS,
+    KITTI360_02,
+    NAMES,
+    TUMVI_DS,
+    TUMVI_KB4,
+    directions,
+    ref_project,
+    small_camera,
+)
 
 
 def test_registry_names():
@@ -371,7 +252,7 @@ def test_kb4_fold_limits_domain():
 def test_mei_kitti360_lens_circle():
     cam = MEI(1400, 1400, KITTI360_02)
     assert math.isclose(math.degrees(cam.max_angle), 116.86, abs_tol=0.01)  # pi - acos(1/xi)
-    small = _small(cam, 200, 200)
+    small = small_camera(cam, 200, 200)
     mask = small.valid_mask()
     assert mask[100, 100] and not mask[0, 0] and not mask[199, 0] and not mask[0, 199]
     # The mask is the image of the fold circle (tangential terms shift it by < 1 px).
@@ -446,186 +327,6 @@ def test_fisheye624_without_prism_terms_is_kb4_in_front():
     rays, ok = tilted.unproject(uv_t)
     assert ok.all() and torch.allclose(rays, points / points.norm(dim=-1, keepdim=True), atol=1e-9)
     assert not tilted.project(torch.tensor([1.0, 0.0, -0.01], dtype=torch.float64))[1]
-
-
-# ----------------------------------------------------------------------------- gradients
-def _probe_points(cam: Camera) -> torch.Tensor:
-    return directions(3, 0.8 * min(cam.max_angle, 2.0), seed=10, min_angle=0.2)
-
-
-@pytest.mark.parametrize("name", NAMES)
-def test_gradcheck_project(name):
-    cam = CAMS[name]
-    X = _probe_points(cam).requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda x: cam.project(x)[0], (X,))
-    params = cam.params.clone().requires_grad_(True)
-    X0 = X.detach()
-    assert torch.autograd.gradcheck(
-        lambda p: type(cam)(cam.width, cam.height, p).project(X0)[0], (params,)
-    )
-
-
-@pytest.mark.parametrize("name", NAMES)
-def test_gradcheck_unproject(name):
-    cam = CAMS[name]
-    uv = cam.project(_probe_points(cam))[0].detach().requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda q: cam.unproject(q)[0], (uv,))
-    params = cam.params.clone().requires_grad_(True)
-    uv0 = uv.detach()
-    assert torch.autograd.gradcheck(
-        lambda p: type(cam)(cam.width, cam.height, p).unproject(uv0)[0], (params,)
-    )
-
-
-@pytest.mark.parametrize("name", NAMES)
-def test_gradients_finite_on_axis(name):
-    cam = CAMS[name]
-    params = cam.params.clone().requires_grad_(True)
-    c = type(cam)(cam.width, cam.height, params)
-    X = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 0.0]], dtype=torch.float64, requires_grad=True)
-    uv = c.project(X)[0]
-    pp = c.params[2:4].detach().clone().reshape(1, 2).requires_grad_(True)
-    rays = c.unproject(pp)[0]
-    (uv.sum() + rays.sum()).backward()
-    assert (
-        torch.isfinite(X.grad).all()
-        and torch.isfinite(pp.grad).all()
-        and torch.isfinite(params.grad).all()
-    )
-    # At the principal point the ray is the axis, and the analytic Jacobian there matches a
-    # central difference (the series branches near the axis must carry the right derivative).
-    torch.testing.assert_close(
-        rays.detach(), torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64), rtol=0, atol=1e-12
-    )
-    q0 = pp.detach()
-    j = torch.autograd.functional.jacobian(lambda q: cam.unproject(q)[0], q0)[0, :, 0, :]
-    h = 1e-4
-    for k in range(2):
-        e = torch.zeros(1, 2, dtype=torch.float64)
-        e[0, k] = h
-        fd = (cam.unproject(q0 + e)[0] - cam.unproject(q0 - e)[0])[0] / (2 * h)
-        torch.testing.assert_close(j[:, k], fd, rtol=1e-6, atol=1e-10)
-    jp = torch.autograd.functional.jacobian(lambda x: cam.project(x)[0], X.detach()[:1])[0, :, 0, :]
-    assert (
-        abs(
-            float(jp[0, 0])
-            - float(
-                cam.project(torch.tensor([[1e-6, 0.0, 2.0]], dtype=torch.float64))[0][0, 0]
-                - cam.values["cx"]
-            )
-            / 1e-6
-        )
-        < 1e-4
-    )
-
-
-def test_params_gradient_reaches_leaf():
-    leaf = torch.tensor(TUMVI_KB4, dtype=torch.float64, requires_grad=True)
-    cam = KannalaBrandt4(512, 512, leaf)
-    assert cam.requires_grad
-    rays, _ = cam.ray_table(dtype=torch.float64)  # not cached: it carries the graph
-    assert rays.requires_grad
-    rays[..., 2].sum().backward()
-    assert leaf.grad is not None and torch.isfinite(leaf.grad).all() and leaf.grad[0] != 0
-    assert cam.ray_table(dtype=torch.float64)[0] is not rays
-    # Parameters given as a float32 tensor are stored as float64.
-    assert (
-        KannalaBrandt4(512, 512, torch.tensor(TUMVI_KB4, dtype=torch.float32)).params.dtype
-        == torch.float64
-    )
-
-
-# ----------------------------------------------------------------------------- batching, dtypes
-@pytest.mark.parametrize("name", NAMES)
-def test_batching_over_leading_dims(name):
-    cam = CAMS[name]
-    X = directions(4 * 2 * 3, 0.9 * min(cam.max_angle, 2.0), seed=11).reshape(2, 3, 4, 3)
-    uv, valid = cam.project(X)
-    assert uv.shape == (2, 3, 4, 2) and valid.shape == (2, 3, 4)
-    uv_flat, _ = cam.project(X.reshape(-1, 3))
-    torch.testing.assert_close(uv.reshape(-1, 2), uv_flat, rtol=0, atol=0)
-    rays, valid = cam.unproject(uv)
-    assert rays.shape == (2, 3, 4, 3) and valid.shape == (2, 3, 4)
-    torch.testing.assert_close(rays.reshape(-1, 3), cam.unproject(uv_flat)[0], rtol=0, atol=0)
-    # A single point (no batch dims).
-    assert cam.project(X[0, 0, 0])[0].shape == (2,)
-
-
-@pytest.mark.parametrize("name", NAMES)
-def test_float32_agrees_with_float64(name):
-    cam = CAMS[name]
-    r32, v32 = cam.ray_table(dtype=torch.float32)
-    r64, v64 = cam.ray_table(dtype=torch.float64)
-    assert r32.dtype == torch.float32
-    both = v32 & v64
-    assert (v32 != v64).sum() <= 2  # only pixels on the domain boundary may differ
-    torch.testing.assert_close(r32[both].double(), r64[both], rtol=0, atol=2e-5)
-    X = directions(50, 0.9 * min(cam.max_angle, 2.0), seed=12)
-    torch.testing.assert_close(
-        cam.project(X.float())[0].double(), cam.project(X)[0], rtol=1e-5, atol=1e-3
-    )
-    with pytest.raises(CameraError):
-        cam.project(torch.zeros(4, 2))
-    with pytest.raises(CameraError):
-        cam.unproject(torch.zeros(4, 3))
-
-
-# ----------------------------------------------------------------------------- image helpers
-def test_ray_table_cache_and_valid_mask():
-    cam = make_cameras()["mei"]
-    a = cam.ray_table()
-    assert cam.ray_table() is a
-    assert cam.ray_table(dtype=torch.float64) is not a
-    assert cam.ray_table(device="cpu") is a
-    assert a[0].shape == (cam.height, cam.width, 3) and a[1].shape == (cam.height, cam.width)
-    mask = cam.valid_mask()
-    assert mask.dtype == torch.bool and mask.shape == (cam.height, cam.width)
-    assert torch.equal(mask, cam.ray_table(dtype=torch.float64)[1])
-    assert cam.valid_mask() is mask
-    # Pixel (u, v) of the table is the ray of pixel centre (u, v).
-    r, _ = cam.unproject(torch.tensor([[17.0, 42.0]]))
-    torch.testing.assert_close(a[0][42, 17], r[0])
-
-
-def test_fov_deg():
-    pin = Pinhole(200, 100, [100.0, 100.0, 99.5, 49.5])
-    corner = math.degrees(math.atan(math.hypot(99.5, 49.5) / 100.0))
-    assert math.isclose(pin.fov_deg, 2 * corner, rel_tol=1e-12)
-    assert CAMS["kb4"].fov_deg > 180.0
-
-
-@pytest.mark.parametrize("name", NAMES)
-def test_crop_and_scale_keep_rays(name):
-    cam = CAMS[name]
-    g = torch.Generator().manual_seed(13)
-    uv = torch.rand(300, 2, generator=g, dtype=torch.float64) * torch.tensor(
-        [cam.width - 1.0, cam.height - 1.0]
-    )
-    rays, valid = cam.unproject(uv)
-    crop = cam.cropped(13, 7, 150, 120)
-    assert (crop.width, crop.height) == (150, 120)
-    r2, v2 = crop.unproject(uv - torch.tensor([13.0, 7.0], dtype=torch.float64))
-    assert torch.equal(valid, v2) and valid.sum() > 200
-    torch.testing.assert_close(r2[valid], rays[valid], rtol=0, atol=1e-12)
-    for sx, sy in [(0.5, 0.5), (2.0, 2.0), (0.7, 1.3)]:
-        sc = cam.scaled(sx, sy)
-        assert (sc.width, sc.height) == (round(cam.width * sx), round(cam.height * sy))
-        uv_s = (uv + 0.5) * torch.tensor([sx, sy], dtype=torch.float64) - 0.5
-        r3, v3 = sc.unproject(uv_s)
-        assert torch.equal(valid, v3)
-        torch.testing.assert_close(r3[valid], rays[valid], rtol=0, atol=1e-10)
-    rs = cam.resized(100, 80)
-    assert (rs.width, rs.height) == (100, 80)
-    assert math.isclose(rs.values["cx"], (cam.values["cx"] + 0.5) * 100 / cam.width - 0.5)
-    # Scaling keeps the lens cap; the grid of a 2x resize covers the same field of view.
-    assert cam.scaled(2.0, 2.0).max_angle == cam.max_angle
-
-
-def test_scaled_is_differentiable():
-    leaf = torch.tensor(TUMVI_KB4, dtype=torch.float64, requires_grad=True)
-    cam = KannalaBrandt4(512, 512, leaf).resized(256, 256).cropped(10, 10, 200, 200)
-    cam.fx.backward()
-    assert float(leaf.grad[0]) == 0.5
 
 
 # ----------------------------------------------------------------------------- identity, JSON
