@@ -20,7 +20,8 @@ AbsRel of every row is kept beside its rotation (``abs_rel`` in each JSON row).
 the rows with one correction off.
 
     python experiments/rotation.py [--cells "KB4 185 indoor" ...] [--development]
-        [--no-components] [--recipes default trajectory-candidate] [--out runs/rotation.json]
+        [--no-components] [--recipes default trajectory-candidate] [--weights FILE]
+        [--out runs/rotation.json]
 
 The decisions it serves and their numbers: docs/decisions.md, "Rotation: the pose oracle and the
 components" and "A trajectory recipe".
@@ -102,10 +103,21 @@ def main() -> None:
     parser.add_argument("--development", action="store_true", help="development seeds (80000+)")
     parser.add_argument("--no-components", action="store_true")
     parser.add_argument("--recipes", nargs="*", default=[], help=f"recipe names, or {CANDIDATE}")
+    parser.add_argument(
+        "--weights",
+        default=None,
+        help="a network exported by scripts/train_default_network.py (e.g. the VGGT-architecture "
+        f"one) instead of {DEFAULT_NETWORK}",
+    )
     parser.add_argument("--out", default="runs/rotation.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    model, _ = default_network(DEFAULT_NETWORK)
+    if args.weights:
+        from raytun3r_plugin.apps.trained_networks import load_trained_network
+
+        model, _ = load_trained_network(args.weights)
+    else:
+        model, _ = default_network(DEFAULT_NETWORK)
     rows = []
     with quiet_upstream():
         for c, spec in enumerate(CAMERAS):
