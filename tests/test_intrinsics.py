@@ -31,6 +31,7 @@ from raytun3r_plugin.adaptation import (
 from raytun3r_plugin.adaptation.intrinsics import DISTORTION_TERM, distortion_term
 from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.synthetic import render_sequence
+from raytun3r_plugin.threads import torch_threads
 
 SIZE, FRAMES, TRUE_K1, K1_START, FOCAL_OFF = 128, 16, 0.02, 0.05, 0.05
 FOCAL_TOL = 0.02  # relative focal error after refinement (measured 1.2-1.5 %)
@@ -47,12 +48,15 @@ def rough_camera(true: cameras.Camera) -> cameras.Camera:
 
 @pytest.fixture(scope="module")
 def scene():
-    torch.set_num_threads(1)
-    true = cameras.fisheye(SIZE, 190.0, "kb4", k=(TRUE_K1, 0.0, 0.0, 0.0))
-    sequence = render_sequence("indoor", true, FRAMES, seed=0)
-    rough = rough_camera(true)
-    adaptation = prepare_adaptation_set(sequence.images, rough, get_matcher("dis"), n_windows=30)
-    return true, rough, sequence, adaptation
+    """The module's tests run on one torch thread (tiny tensors); the setting is restored after."""
+    with torch_threads(1):
+        true = cameras.fisheye(SIZE, 190.0, "kb4", k=(TRUE_K1, 0.0, 0.0, 0.0))
+        sequence = render_sequence("indoor", true, FRAMES, seed=0)
+        rough = rough_camera(true)
+        adaptation = prepare_adaptation_set(
+            sequence.images, rough, get_matcher("dis"), n_windows=30
+        )
+        yield true, rough, sequence, adaptation
 
 
 @pytest.fixture(scope="module")
