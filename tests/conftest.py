@@ -35,6 +35,17 @@ except ImportError:  # pragma: no cover - the [test] extra installs it
     pass
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _one_torch_thread():
+    """The whole suite on one torch thread: its tensors are tiny, and on a shared 2-core machine
+    intra-op threads mostly wait on each other (a test that needs more sets it, e.g. with
+    ``raytun3r_plugin.threads.torch_threads``). Processes a test starts keep their own."""
+    from raytun3r_plugin.threads import torch_threads
+
+    with torch_threads(1):
+        yield
+
+
 @pytest.fixture(autouse=True)
 def _quiet_da3_logger():
     """DA3 logs at INFO on every forward with 3+ views; keep test output readable."""
