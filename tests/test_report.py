@@ -7,7 +7,9 @@ import json
 import re
 import shutil
 import sys
+import tempfile
 from html import escape as html_escape
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -234,9 +236,22 @@ def test_the_browser_check_sees_a_broken_image_and_a_console_error(tmp_path, mon
         '<img src="data:image/png;base64,AAAA"><script>console.error("drawn wrong")</script>'
         "</body></html>"
     )
+    profiles = set(Path(tempfile.gettempdir()).glob("raytun3r-chromium-*"))
     seen = render_page(page, None)
     assert [ok for _, ok in seen.images] == [True, False] and len(seen.broken_images) == 1
     assert seen.errors == ["console: drawn wrong"]
+    # Every Chromium process is gone and its profile removed when render_page returns.
+    assert set(Path(tempfile.gettempdir()).glob("raytun3r-chromium-*")) <= profiles
+    assert not [
+        p for p in Path("/proc").glob("[0-9]*/cmdline") if b"raytun3r-chromium-" in _read(p)
+    ]
     monkeypatch.setenv("RAYTUN3R_CHROMIUM", str(tmp_path / "no-such-browser"))
     with pytest.raises(MissingDependencyError, match="cannot start Chromium"):
         render_page(page, None)
+
+
+def _read(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError:  # the process ended meanwhile
+        return b""

@@ -17,6 +17,7 @@ import json
 import os
 import select
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -170,7 +171,11 @@ def render_page(
         os.dup2(reading, 3)
         os.dup2(writing, 4)
 
-    with tempfile.TemporaryDirectory(prefix="raytun3r-chromium-") as profile:
+    # Cleanup errors ignored: a helper Chromium left behind (which _stop_browser waits out)
+    # must not turn a rendered page into a failure; the profile holds nothing of the user's.
+    with tempfile.TemporaryDirectory(
+        prefix="raytun3r-chromium-", ignore_cleanup_errors=True
+    ) as profile:
         try:
             process = subprocess.Popen(
                 [
@@ -191,6 +196,7 @@ def render_page(
                 stderr=subprocess.DEVNULL,
                 preexec_fn=_wire_pipes,
                 close_fds=False,  # descriptors 3 and 4 must reach the browser; the others are CLOEXEC
+                start_new_session=True,  # its helper processes share a group, stopped together
             )
         except OSError as error:
             for fd in (to_browser_read, to_browser_write, from_browser_read, from_browser_write):
@@ -210,12 +216,33 @@ def render_page(
         finally:
             os.close(to_browser_write)
             os.close(from_browser_read)
-            process.terminate()
+            _stop_browser(process)
+
+
+def _stop_browser(process: subprocess.Popen, timeout_s: float = 10.0) -> None:
+    """Stop Chromium and every helper process it started (its process group), and wait until
+    they are gone: a helper still writing into the profile folder made removing it fail
+    ("Directory not empty") in a test run."""
+    group = process.pid
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(group, sig)
+        except ProcessLookupError:
+            break
+        try:
+            process.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            continue
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
             try:
-                process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+                os.killpg(group, 0)  # raises once no process of the group is left
+            except ProcessLookupError:
+                return
+            time.sleep(0.05)
+    if process.poll() is None:
+        process.kill()
+        process.wait()
 
 
 def _drive(pipe: _Pipe, page: Path, png_path, width: int) -> PageRender:
