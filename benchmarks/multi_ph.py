@@ -19,17 +19,18 @@ import torch
 
 from raytun3r_plugin import synthetic
 from raytun3r_plugin.apps.demo import default_network, demo_camera
-from raytun3r_plugin.apps.evaluation import format_table, headline, run_method, score
+from raytun3r_plugin.apps.evaluation import (
+    METRIC_COLUMNS,
+    format_table,
+    headline,
+    run_method,
+    score,
+)
 
 METHODS = ("vanilla", "center-ph", "multi-ph")
+#: One demo sequence per run: the table's metric columns without camera and scene.
 COLUMNS = [
-    "method",
-    "rot_deg",
-    "trans_deg",
-    "d_reproj_px",
-    "abs_rel",
-    "delta_1.25",
-    "coverage",
+    *(c for c in METRIC_COLUMNS if c not in ("camera", "scene")),
     "images_per_frame",
     "ms_per_frame",
     "x_vanilla",
