@@ -292,16 +292,25 @@ def test_eval_with_a_perturbed_calibration_reports_both_rows(setup, capsys):
     assert "| raytun3r |" in out
     assert "| raytun3r (calibration focal +0.1, principal +0.02) |" in out
     assert "trans_folded_deg" in out and "protocol: pair stride 2 (given)" in out
-    assert (
-        main(
-            [
-                "eval",
-                *model_args(setup),
-                "--dataset",
-                str(setup["sequence"]),
-                "--perturb-calibration",
-                "zoom=2",
-            ]
-        )
-        == 2
-    )
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "named"),
+    [
+        ("--perturb-calibration", "zoom=2", "--perturb-calibration"),
+        ("--pair-stride", "two", "--pair-stride"),
+        ("--method", "vanilla,fisheye-magic", "fisheye-magic"),
+    ],
+)
+def test_eval_refuses_a_bad_option_before_loading_the_model(
+    setup, capsys, monkeypatch, option, value, named
+):
+    from raytun3r_plugin.apps import cli
+
+    def no_load(*args, **kwargs):
+        raise AssertionError("the model was loaded before the options were checked")
+
+    monkeypatch.setattr(cli, "_load_model", no_load)
+    code = main(["eval", *model_args(setup), "--dataset", str(setup["sequence"]), option, value])
+    assert code == 2
+    assert named in capsys.readouterr().err

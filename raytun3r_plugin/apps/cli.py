@@ -144,6 +144,8 @@ def cmd_infer(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adapter import Adapter
     from raytun3r_plugin.apps.evaluation import (
+        METHODS,
+        choose_pair_stride,
         fit_sequence,
         format_table,
         headline,
@@ -152,6 +154,22 @@ def cmd_eval(args: argparse.Namespace) -> int:
     )
     from raytun3r_plugin.datasets import load_sequence
 
+    # Every option is checked before the model and the sequence load: a typo costs no forward.
+    methods = args.method.split(",")
+    unknown = [method for method in methods if method not in METHODS]
+    if unknown:
+        raise InputError(
+            f"--method: unknown {', '.join(map(repr, unknown))}; choose from {METHODS}"
+        )
+    amounts = _parse_amounts(args.perturb_calibration) if args.perturb_calibration else None
+    stride: int | None = None
+    if args.pair_stride != "auto":
+        try:
+            stride = int(args.pair_stride)
+        except ValueError:
+            raise InputError(
+                f"--pair-stride must be 'auto' or an integer, got {args.pair_stride!r}"
+            ) from None
     model = _load_model(args.backbone, args.weights)
     adapter = Adapter.load(args.adapter) if args.adapter else None
     # Scored at the long side the adapter was fitted at unless --size says otherwise.
@@ -164,9 +182,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     )
     if seq.cam_from_world is None:
         raise InputError(f"{args.dataset}: the sequence has no ground-truth poses to score against")
-    from raytun3r_plugin.apps.evaluation import choose_pair_stride
-
-    if args.pair_stride == "auto":
+    if stride is None:
         chosen = choose_pair_stride(seq)
         stride = chosen["stride"]
         stride_note = (
@@ -174,14 +190,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
             f"least {chosen['rule']} = {chosen['threshold']:.3g}; it is {chosen['median_baseline']:.3g})"
         )
     else:
-        try:
-            stride = int(args.pair_stride)
-        except ValueError:
-            raise InputError(
-                f"--pair-stride must be 'auto' or an integer, got {args.pair_stride!r}"
-            ) from None
         stride_note = f"pair stride {stride} (given)"
-    methods = args.method.split(",")
     rows = [
         {
             "method": method,
@@ -189,12 +198,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         }
         for method in methods
     ]
-    if args.perturb_calibration:
+    if amounts is not None:
         import dataclasses
 
         from raytun3r_plugin.cameras import perturbed
 
-        amounts = _parse_amounts(args.perturb_calibration)
         rough = dataclasses.replace(seq, camera=perturbed(seq.camera, **amounts))
         label = ", ".join(f"{k} {v:+g}" for k, v in amounts.items())
         for method in methods:
