@@ -43,7 +43,7 @@ from raytun3r_plugin.registry import quiet_upstream
 def build(name: str) -> torch.nn.Module:
     if name == "built-in":
         return rt.load_backbone("raytun3r-da3-tiny-v3")
-    from raytun3r_plugin.patches.da3 import build_network
+    from raytun3r_plugin.patches.da3_networks import build_network
 
     torch.manual_seed(0)
     model = build_network(name).eval()

@@ -323,7 +323,7 @@ def run_checks(cuda: torch.device) -> None:
 
 def random_network(name: str, cuda: torch.device) -> torch.nn.Module:
     """A random-weight DA3 network from DA3's own config, random PE table, eval mode, frozen."""
-    from raytun3r_plugin.patches.da3 import build_network
+    from raytun3r_plugin.patches.da3_networks import build_network
 
     torch.manual_seed(0)
     model = build_network(name).eval()

@@ -16,7 +16,7 @@ import statistics
 import time
 
 import torch
-from raytun3r_plugin.patches.da3 import build_network
+from raytun3r_plugin.patches.da3_networks import build_network
 
 import raytun3r_plugin as rt
 from raytun3r_plugin import cameras

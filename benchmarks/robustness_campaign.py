@@ -257,7 +257,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--json", type=Path, help="also write the counts here")
     args = parser.parse_args(argv)
 
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     torch.manual_seed(args.seed)
     net = build_tiny_network(seed=0)

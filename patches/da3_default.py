@@ -8,9 +8,9 @@ procedural PINHOLE views only (``scripts/train_default_network.py``; model card
 ``raytun3r_plugin/data/raytun3r-da3-tiny.safetensors``, the build arguments in the JSON sidecar
 next to it, so ``load_backbone("raytun3r-da3-tiny")`` needs no path and no download.
 
-``patches/da3.py`` merges :data:`BUILDERS` into the DA3 spec's builders. This module imports
-``patches.da3`` lazily (inside :func:`build`) because ``da3`` imports this module while it is
-being imported.
+``patches/da3_networks.py`` merges :data:`BUILDERS` into the DA3 spec's builders. This module
+imports ``patches.da3_networks`` lazily (inside :func:`build`) because ``da3_networks`` imports
+this module while it is being imported.
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def build(path=None, name: str = NAME):
     Returns the network in eval mode, named ``name`` (``describe`` reports it).
     Raises :class:`WeightsError` when the packaged weight file is missing.
     """
-    from raytun3r_plugin.patches.da3 import build_tiny_network, load_weights
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network, load_weights
 
     weights = Path(path) if path is not None else data_dir() / f"{name}.safetensors"
     if path is None and not weights.is_file():

@@ -65,7 +65,7 @@ def load_checkpoint(out: Path, model, opt, aux=None) -> int:
     if is_vggt(model):
         from raytun3r_plugin.patches.vggt import load_weights
     else:
-        from raytun3r_plugin.patches.da3 import load_weights
+        from raytun3r_plugin.patches.da3_networks import load_weights
 
     meta = json.loads((out / "checkpoint.json").read_text())
     load_weights(model, out / "checkpoint.safetensors")

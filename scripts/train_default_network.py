@@ -438,7 +438,7 @@ def run_record(args, out: Path) -> dict:
 def build_model(args):
     """``(network, its build kwargs, the flow head or None, the global-attention layers)``,
     the absolute PE table started as a sin-cos map with ``--pe-std``."""
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     kwargs = dict(TINY_KWARGS if args.tiny else MODEL_KWARGS)
     kwargs["seed"] = args.seed
@@ -494,7 +494,7 @@ def initialise(args, out: Path, model, opt, aux, device) -> int:
         if args.arch == "vggt":
             from raytun3r_plugin.patches.vggt import load_weights
         else:
-            from raytun3r_plugin.patches.da3 import load_weights
+            from raytun3r_plugin.patches.da3_networks import load_weights
 
         load_weights(model, args.init)
         model.to(device)

@@ -58,7 +58,7 @@ class BackboneCase:
 
 
 def _build_da3(seed: int) -> nn.Module:
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     return build_tiny_network(seed=seed)
 

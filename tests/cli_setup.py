@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from raytun3r_plugin.patches.da3 import build_network
+from raytun3r_plugin.patches.da3_networks import build_network
 
 from raytun3r_plugin import cameras, synthetic
 from tests.helpers import fisheye

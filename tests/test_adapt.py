@@ -26,7 +26,7 @@ from tests.helpers import fisheye
 from tests.test_losses import room_sequence
 
 pytest.importorskip("depth_anything_3")
-from raytun3r_plugin.patches.da3 import build_tiny_network  # noqa: E402
+from raytun3r_plugin.patches.da3_networks import build_tiny_network  # noqa: E402
 
 TERMS = ("reproj", "smooth", "l2", "tv", "pose")
 RECORDED_RULE = {"rule": RULE, "rule_version": RULE_VERSION}

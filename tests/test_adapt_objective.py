@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from raytun3r_plugin.patches.da3 import build_tiny_network
+from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
 from raytun3r_plugin.adaptation import train
 from raytun3r_plugin.adaptation.checkpoint import artifact_paths

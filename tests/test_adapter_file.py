@@ -16,7 +16,7 @@ from raytun3r_plugin.errors import AdapterError, Raytun3rError
 from tests.helpers import fisheye, randomise_
 
 pytest.importorskip("depth_anything_3")
-from raytun3r_plugin.patches.da3 import build_network, build_tiny_network  # noqa: E402
+from raytun3r_plugin.patches.da3_networks import build_network, build_tiny_network  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -142,7 +142,7 @@ pytest.importorskip("depth_anything_3")
 
 
 def test_strict_apply_refuses_a_camera_that_differs_only_in_its_field_of_view():
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     from raytun3r_plugin.cameras import fisheye
 
@@ -162,7 +162,7 @@ _NET: list = []
 
 
 def _tiny_net():
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     if not _NET:
         _NET.append(build_tiny_network(seed=0))

@@ -51,7 +51,7 @@ def test_the_equidistant_reference_is_sec_squared():
 
 
 pytest.importorskip("depth_anything_3")
-from raytun3r_plugin.patches.da3 import build_tiny_network  # noqa: E402
+from raytun3r_plugin.patches.da3_networks import build_tiny_network  # noqa: E402
 
 
 def _set_table(net, values):

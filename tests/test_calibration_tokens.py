@@ -34,7 +34,7 @@ from tests.helpers import (
 @pytest.fixture
 def net():
     pytest.importorskip("depth_anything_3")
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     return build_tiny_network(seed=0)
 
@@ -46,7 +46,7 @@ def _depth(model, images):
 
 def test_da3_small_has_the_papers_parameter_count():
     pytest.importorskip("depth_anything_3")
-    from raytun3r_plugin.patches.da3 import build_network
+    from raytun3r_plugin.patches.da3_networks import build_network
 
     with inject_calibration_tokens(build_network("da3-small")) as handle:
         assert handle.tokens.num_parameters() == 12 * 4 * 384 == 18_432

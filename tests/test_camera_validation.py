@@ -415,7 +415,7 @@ def test_accepted_cameras_never_break_the_patched_geometry(inputs):
 
 def test_accepted_edge_cameras_run_the_tiny_da3_network_end_to_end():
     pytest.importorskip("depth_anything_3")
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     import raytun3r_plugin as rt
 

@@ -30,7 +30,7 @@ from raytun3r_plugin.weights import (
 )
 
 pytest.importorskip("depth_anything_3")
-from raytun3r_plugin.patches import da3 as da3_patch  # noqa: E402
+from raytun3r_plugin.patches import da3_networks  # noqa: E402
 from raytun3r_plugin.patches import pi3 as pi3_patch  # noqa: E402
 from raytun3r_plugin.patches import vggt as vggt_patch  # noqa: E402
 
@@ -54,7 +54,7 @@ def _da3_config(name: str) -> dict:
 def small(tmp_path_factory):
     """A da3-small (random weights) saved as the official repository folder is laid out."""
     torch.manual_seed(0)
-    net = da3_patch.build_network("da3-small")
+    net = da3_networks.build_network("da3-small")
     with torch.no_grad():
         for parameter in net.parameters():
             parameter.normal_(0, 0.02)
@@ -184,7 +184,7 @@ def test_file_of_another_size_names_the_likely_backbone(small, tmp_path, monkeyp
     def never(name):
         raise AssertionError("built a network for a file of another size")
 
-    monkeypatch.setattr(da3_patch, "build_network", never)  # the refusal comes before any build
+    monkeypatch.setattr(da3_networks, "build_network", never)  # the refusal comes before any build
     bare = tmp_path / "small.safetensors"  # no config.json next to it: the shapes decide
     os.symlink(folder / "model.safetensors", bare)
     with pytest.raises(WeightsError) as error:
@@ -231,8 +231,8 @@ def test_nested_checkpoint_is_recognised_and_built_as_nested(tmp_path, monkeypat
     def build(name):
         raise Built(name)
 
-    monkeypatch.setattr(da3_patch, "build_network", build)
-    monkeypatch.setitem(da3_patch._NEEDS, "da3nested-giant-large", ())
+    monkeypatch.setattr(da3_networks, "build_network", build)
+    monkeypatch.setitem(da3_networks._NEEDS, "da3nested-giant-large", ())
     with pytest.raises(Built, match="^da3nested-giant-large$"):
         rt.load_backbone(None, tmp_path)
     with pytest.raises(
@@ -248,7 +248,7 @@ def test_nested_checkpoint_is_recognised_and_built_as_nested(tmp_path, monkeypat
 
 
 def test_built_models_record_their_name():
-    net = da3_patch.build_network("da3-small")
+    net = da3_networks.build_network("da3-small")
     assert net.raytun3r_name == "da3-small"
     assert _name(net) == "da3-small"
 
@@ -406,13 +406,13 @@ def test_cli_weights_on_unknown_and_missing_files(tmp_path, capsys):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["da3metric-large", "da3mono-large", "da3-large-1.1"])
 def test_official_large_builds_report_their_own_name(name):
-    net = da3_patch.build_network(name)
+    net = da3_networks.build_network(name)
     assert _name(net) == name
 
 
 @pytest.mark.slow
 @pytest.mark.skipif(find_spec("evo") is not None, reason="evo is installed here")
 def test_da3_giant_import_failure_inside_the_build_is_a_missing_dependency(monkeypatch):
-    monkeypatch.setattr(da3_patch, "_NEEDS", {})  # skip the pre-check: upstream's import fails
+    monkeypatch.setattr(da3_networks, "_NEEDS", {})  # skip the pre-check: upstream's import fails
     with pytest.raises(MissingDependencyError, match=r"'evo'.*pip install evo"):
-        da3_patch.build_network("da3-giant")
+        da3_networks.build_network("da3-giant")

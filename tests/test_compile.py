@@ -126,7 +126,7 @@ def test_compiled_nested_da3_matches_eager_without_recompiles():
     even unpatched it recompiles once on the second call (measured: 3 graphs unpatched, 1
     patched); from then on nothing compiles again."""
     pytest.importorskip("depth_anything_3")
-    from raytun3r_plugin.patches.da3 import build_tiny_nested_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_nested_network
 
     net = build_tiny_nested_network()
     images = torch.rand(1, 2, 3, 70, 84, generator=torch.Generator().manual_seed(2))

@@ -28,7 +28,7 @@ from tests.helpers import (
 )
 
 pytest.importorskip("depth_anything_3")
-from raytun3r_plugin.patches.da3 import build_tiny_network  # noqa: E402
+from raytun3r_plugin.patches.da3_networks import build_tiny_network  # noqa: E402
 
 H, W = 70, 84
 

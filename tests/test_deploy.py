@@ -35,7 +35,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 def _tiny(family: str):
     if family == "da3nested":
         pytest.importorskip("depth_anything_3")
-        from raytun3r_plugin.patches.da3 import build_tiny_nested_network
+        from raytun3r_plugin.patches.da3_networks import build_tiny_nested_network
 
         return build_tiny_nested_network(), (70, 84)
     case = CASE[family]
@@ -385,7 +385,7 @@ def test_onnx_export_with_three_views_and_reference_view_selection(tmp_path):
 @pytest.mark.slow
 def test_onnx_export_of_da3_small_with_random_weights(tmp_path):
     pytest.importorskip("onnxruntime")
-    from raytun3r_plugin.patches.da3 import build_network
+    from raytun3r_plugin.patches.da3_networks import build_network
 
     from raytun3r_plugin.deploy import export_onnx
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from raytun3r_plugin.patches.da3 import build_tiny_network
+from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
 from raytun3r_plugin import cameras
 from raytun3r_plugin.baselines.multi_ph import (

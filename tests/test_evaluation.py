@@ -87,7 +87,7 @@ def test_center_ph_round_trip_reproduces_ground_truth_range(seq):
 
 def test_methods_are_scored_on_the_same_pairs(seq):
     pytest.importorskip("depth_anything_3")
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     model = build_tiny_network(seed=0)
     rows = {}

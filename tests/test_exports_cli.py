@@ -24,7 +24,7 @@ pytest.importorskip("rerun")
 def inputs(tmp_path_factory):
     """Random da3-small weights, a 160 x 128 fisheye (cropped to 154 x 128 at 84 px) with its
     file, a double-sphere file of the same size, and four rendered frames."""
-    from raytun3r_plugin.patches.da3 import build_network
+    from raytun3r_plugin.patches.da3_networks import build_network
     from safetensors.torch import save_model
 
     folder = tmp_path_factory.mktemp("exports_cli")

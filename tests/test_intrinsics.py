@@ -235,7 +235,7 @@ def test_config_field_is_off_by_default_and_out_of_the_identity():
 def test_adapt_refines_the_camera_only_when_asked(scene):
     pytest.importorskip("depth_anything_3")
     from depth_anything_3.utils.logger import logger
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     from raytun3r_plugin.adaptation import adapt
 

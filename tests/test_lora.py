@@ -14,7 +14,7 @@ import torch
 
 pytest.importorskip("depth_anything_3")
 
-from raytun3r_plugin.patches.da3 import build_network, build_tiny_network  # noqa: E402
+from raytun3r_plugin.patches.da3_networks import build_network, build_tiny_network  # noqa: E402
 
 import raytun3r_plugin as rt  # noqa: E402
 from raytun3r_plugin.baselines import LoraWeights, inject_lora, lora_targets  # noqa: E402

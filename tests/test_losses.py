@@ -341,7 +341,7 @@ def _measured_correction(model, camera, adapter, height: int, width: int) -> tor
 
 def test_pe_regularisers_act_on_the_correction_only():
     pytest.importorskip("depth_anything_3")
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     camera = fisheye(84, 70, 190.0)
     geometry = GeometryCache(camera, 14).at(70, 84)

@@ -16,6 +16,7 @@ import torch
 pytest.importorskip("depth_anything_3")
 
 from raytun3r_plugin.patches import da3 as da3_patch  # noqa: E402
+from raytun3r_plugin.patches import da3_networks  # noqa: E402
 from safetensors.torch import save_model  # noqa: E402
 
 import raytun3r_plugin as rt  # noqa: E402
@@ -198,7 +199,7 @@ def test_wrong_width_adapter_leaves_the_model_untouched(net):
 
 def test_adapter_of_the_metric_width_is_refused_naming_the_branch():
     """Branches of other widths (64 and 48, as the giant's 1536 and the large's 1024)."""
-    nested = da3_patch.build_tiny_nested_network(embed_dim=64, metric_embed_dim=48)
+    nested = da3_networks.build_tiny_nested_network(embed_dim=64, metric_embed_dim=48)
     metric_sized = rt.Adapter.for_model(nested.da3_metric, fisheye())
     assert metric_sized.embed_dim == 48
     before = snapshot(nested)
@@ -316,8 +317,8 @@ def tiny_builds(monkeypatch):
         built.append(name)
         return model
 
-    monkeypatch.setattr(da3_patch, "build_network", build)
-    monkeypatch.setitem(da3_patch._NEEDS, "da3nested-giant-large", ())  # evo: giant's GS head
+    monkeypatch.setattr(da3_networks, "build_network", build)
+    monkeypatch.setitem(da3_networks._NEEDS, "da3nested-giant-large", ())  # evo: giant's GS head
     return built
 
 
@@ -418,10 +419,10 @@ def test_full_size_nested_model_in_the_hub_layout_loads_patches_and_predicts(
             ("evo.core.trajectory", trajectory),
         ):
             monkeypatch.setitem(sys.modules, name, module)
-        monkeypatch.setitem(da3_patch._NEEDS, "da3nested-giant-large", ())
+        monkeypatch.setitem(da3_networks._NEEDS, "da3nested-giant-large", ())
     folder = tmp_path / "DA3NESTED-GIANT-LARGE"
     folder.mkdir()
-    built = da3_patch.build_network("da3nested-giant-large")
+    built = da3_networks.build_network("da3nested-giant-large")
     save_model(_Wrapper(built), str(folder / "model.safetensors"))
     config = {"model_name": "da3nested-giant-large", "config": {"anyview": {}, "metric": {}}}
     (folder / "config.json").write_text(json.dumps(config))

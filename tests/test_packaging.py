@@ -40,7 +40,7 @@ def test_wheel_contains_patches_under_the_package(tmp_path):
     )
     wheel = next(tmp_path.glob("raytun3r-*.whl"))
     names = set(zipfile.ZipFile(wheel).namelist())
-    for module in ("da3", "vggt", "pi3", "da3_default", "__init__"):
+    for module in ("da3", "da3_networks", "vggt", "pi3", "da3_default", "__init__"):
         assert f"raytun3r_plugin/patches/{module}.py" in names
     assert not any(name.startswith("patches/") for name in names)
     assert "raytun3r_plugin/data/raytun3r-da3-tiny.safetensors" in names

@@ -109,7 +109,7 @@ def test_changes_are_recorded_against_the_recipe_and_weights_merge():
 
 def test_the_input_size_is_the_backbones_own(network):
     assert native_input_size(network) == 112
-    from raytun3r_plugin.patches.da3 import build_network
+    from raytun3r_plugin.patches.da3_networks import build_network
 
     assert native_input_size(build_network("da3-small")) == 504
     # A size given to the backbone's own is no change from the recipe.

@@ -110,7 +110,7 @@ def test_eth3d_rig_set_puts_the_reference_first(tmp_path):
 
 
 def test_adapt_rig_fits_each_camera_in_one_forward(stereo, tmp_path):
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     torch.manual_seed(0)
     model = build_tiny_network(seed=0).eval()
@@ -197,7 +197,7 @@ def test_a_tumvi_and_an_eth3d_rig_run_through_a_patched_model(tmp_path):
 
 
 def test_adapt_rig_gate_without_signal_leaves_every_camera_as_it_started(stereo):
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     model = build_tiny_network(seed=0).eval()
     config = AdaptConfig.from_recipe(
@@ -303,7 +303,7 @@ def test_rig_inputs_are_each_cameras_layout_instant_major(stereo):
 
 def test_adapt_rig_cross_camera_terms_give_signal_where_motion_gives_none(monkeypatch):
     """Every temporal window gated off: only the cross-camera terms can move the tables."""
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     from raytun3r_plugin.adaptation import rig as rig_fit
 

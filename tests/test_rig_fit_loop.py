@@ -24,7 +24,7 @@ def stereo():
 
 
 def _network():
-    from raytun3r_plugin.patches.da3 import build_tiny_network
+    from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
     return build_tiny_network(seed=0).eval()
 

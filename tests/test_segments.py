@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from raytun3r_plugin.patches.da3 import build_tiny_network
+from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
 from raytun3r_plugin import synthetic
 from raytun3r_plugin.adaptation.config import AdaptConfig

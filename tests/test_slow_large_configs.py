@@ -9,7 +9,7 @@ import raytun3r_plugin as rt
 from tests.helpers import fisheye, max_relative_difference, outputs, pinhole, randomise_
 
 pytest.importorskip("depth_anything_3")
-from raytun3r_plugin.patches.da3 import build_network  # noqa: E402
+from raytun3r_plugin.patches.da3_networks import build_network  # noqa: E402
 
 pytestmark = pytest.mark.slow
 

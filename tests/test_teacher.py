@@ -14,7 +14,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from raytun3r_plugin.patches.da3 import build_tiny_network
+from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
 from raytun3r_plugin import apply, synthetic
 from raytun3r_plugin.adaptation.config import TEACHER_WEIGHTS, AdaptConfig

@@ -14,7 +14,7 @@ from raytun3r_plugin.errors import MissingDependencyError, WeightsError
 from raytun3r_plugin.weights import alias_keys
 
 pytest.importorskip("depth_anything_3")
-from raytun3r_plugin.patches.da3 import build_network  # noqa: E402
+from raytun3r_plugin.patches.da3_networks import build_network  # noqa: E402
 
 
 @pytest.fixture(scope="module")

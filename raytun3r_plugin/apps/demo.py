@@ -54,7 +54,7 @@ def default_network(name: str = DEFAULT_NETWORK):
             f"{name}: a small Depth Anything 3 network trained by raytun3r on pinhole renders only (docs/model_card_raytun3r_da3_tiny.md)",
         )
     except WeightsError:
-        from raytun3r_plugin.patches.da3 import build_tiny_network
+        from raytun3r_plugin.patches.da3_networks import build_tiny_network
 
         return build_tiny_network(seed=0), (
             "RANDOM-WEIGHT tiny Depth Anything 3 network (the trained default is not in this build): "

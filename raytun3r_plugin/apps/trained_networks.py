@@ -104,7 +104,7 @@ def load_trained_network(path: str | Path) -> tuple[nn.Module, str]:
         model = load_weights(build_small_vggt(unseeded), path)
         what = "a small VGGT-architecture network (stub package classes)"
     else:
-        from raytun3r_plugin.patches.da3 import build_tiny_network, load_weights
+        from raytun3r_plugin.patches.da3_networks import build_tiny_network, load_weights
 
         built = {k: (tuple(v) if isinstance(v, list) else v) for k, v in kwargs.items()}
         model = load_weights(build_tiny_network(**{**built, "seed": None}), path)
