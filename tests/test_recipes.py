@@ -339,3 +339,83 @@ def test_the_trajectory_recipe_is_the_pose_oracle_on_the_matches_own_targets(net
     assert info["recipe"]["name"] == "trajectory" and info["supervision"]["kind"] != "poses"
     assert {k for k, v in info["config"]["weights"].items() if v} == {"pose"}
     assert not adapter.is_zero()
+
+
+def test_the_check_frames_are_cut_from_the_last_segment_with_their_depth_and_poses():
+    import numpy as np
+
+    from raytun3r_plugin.adaptation.check import split_off_check
+
+    frames, depth, poses = np.zeros((20, 8, 8, 3)), np.ones((20, 8, 8)), np.zeros((20, 4, 4))
+    fit, fit_depth, fit_poses, check = split_off_check(frames, depth, poses, "auto")
+    assert len(fit) == len(fit_depth) == len(fit_poses) == 16 and len(check) == 4
+    assert split_off_check(frames, depth, poses, 0)[3] is None
+    assert split_off_check(frames[:14], None, None, "auto")[3] is None  # too short for a check
+    segments = [
+        np.zeros((6, 8, 8, 3)),
+        np.arange(20.0)[:, None, None, None] * np.ones((20, 8, 8, 3)),
+    ]
+    fit, fit_depth, _, check = split_off_check(segments, None, None, 5)
+    assert [len(s) for s in fit] == [6, 15] and fit_depth is None
+    assert [float(c[0, 0, 0]) for c in check] == [15.0, 16.0, 17.0, 18.0, 19.0]
+    with pytest.raises(InputError, match="leaves 2 of 8 frames"):
+        split_off_check(frames[:8], None, None, 6)
+
+
+def test_check_and_keep_settings_are_checked_and_stay_out_of_old_identities():
+    assert AdaptConfig(check_frames="4").check_frames == 4
+    assert AdaptConfig(check_frames="auto", keep_margin=0.02).to_dict()["keep_margin"] == 0.02
+    assert AdaptConfig().identity() == AdaptConfig(check_frames=0, keep_margin=None).identity()
+    for field_name, changes in (
+        ("check_frames", {"check_frames": 2}),
+        ("check_frames", {"check_frames": "some"}),
+        ("keep_margin", {"keep_margin": 0.02}),  # nothing to check it on
+        ("keep_margin", {"check_frames": "auto", "keep_margin": 1.5}),
+    ):
+        with pytest.raises(InputError, match=f"AdaptConfig.{field_name}"):
+            AdaptConfig(**changes)
+
+
+@pytest.mark.parametrize(("change", "kept"), [(-0.05, True), (-0.01, False), (None, False)])
+def test_a_fit_is_kept_only_when_the_check_falls_by_the_margin(
+    network, segment, monkeypatch, change, kept
+):
+    from raytun3r_plugin.adaptation import check as check_module
+
+    camera, frames = segment
+    seen: dict = {}
+
+    def scored(model, camera, frames, adapter, config, *, mask=None, reference=None):
+        seen["frames"], seen["reference"] = len(frames), reference
+        return {"frames": len(frames), "windows": 1, "change": change}
+
+    monkeypatch.setattr(check_module, "held_out_reprojection", scored)
+    config = AdaptConfig(
+        input_size=112, steps=3, n_windows=3, lr=5e-2, check_frames=3, keep_margin=0.02
+    )
+    start = Adapter.for_model(network, camera)
+    with torch.no_grad():
+        start.pe["radial"].normal_(0, 0.01)  # not zero: "not kept" goes back to it, not to zero
+    adapter = adapt(network, camera, frames, config, adapter=start, progress=False)
+    info = adapter.training_info
+    assert seen["frames"] == 3 and info["segment"]["n_frames"] == 15
+    assert torch.equal(seen["reference"].pe["radial"], start.pe["radial"])
+    assert info["check"]["kept"] is kept
+    same = all(
+        torch.equal(a, b) for a, b in zip(adapter.parameters(), start.parameters(), strict=True)
+    )
+    assert same is not kept  # the 3-step fit moved the tables; "not kept" restores the start
+    assert (info["verdict"]["status"] == "not kept") is not kept
+    if not kept:
+        assert info["verdict"]["summary"].startswith("NOT KEPT: on the 3 held-out frames")
+
+
+def test_the_check_is_recorded_and_changes_nothing_without_a_margin(network, segment):
+    camera, frames = segment
+    config = AdaptConfig(input_size=112, steps=2, n_windows=2, lr=5e-2, check_frames="auto")
+    adapter = adapt(network, camera, frames, config, progress=False)
+    check = adapter.training_info["check"]
+    assert check["frames"] == 3 and "kept" not in check
+    assert check["zero_adapter_px"] > 0 and check["adapted_px"] > 0
+    assert adapter.training_info["verdict"]["status"] != "not kept"
+    assert any(float(table.detach().abs().max()) > 0 for table in adapter.parameters())

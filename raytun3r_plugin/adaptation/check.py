@@ -1,5 +1,10 @@
 """A check a user can read after a fit: reprojection error on frames the fit did not see.
 
+``AdaptConfig.check_frames`` keeps the trailing frames of the last segment out of the fit
+(:func:`split_off_check`); :func:`judge_on_check` scores them after it and, with
+``AdaptConfig.keep_margin``, keeps the fit only when it lowers that error by the margin
+(docs/decisions.md, "A held-out check that decides whether a fit is kept").
+
 ``raytun3r adapt`` keeps the last frames of the segment out of the fit (``--check-frames``) and
 scores them with the zero adapter and with the fitted one: matched pixels (the fit's own
 matcher), back-projected with the predicted depth, moved by the relative pose estimated from the
@@ -14,9 +19,12 @@ from __future__ import annotations
 import dataclasses
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+import torch
+
 from raytun3r_plugin.adaptation.config import AdaptConfig
 from raytun3r_plugin.adaptation.losses import LossWeights
-from raytun3r_plugin.adaptation.problem import prepare_problem
+from raytun3r_plugin.adaptation.problem import prepare_problem, split_segments
 from raytun3r_plugin.adaptation.step import objective_value
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import InputError
@@ -26,7 +34,13 @@ if TYPE_CHECKING:
 
     from raytun3r_plugin.cameras.base import Camera
 
-__all__ = ["MIN_SEGMENT_FOR_CHECK", "check_frame_count", "held_out_reprojection"]
+__all__ = [
+    "MIN_SEGMENT_FOR_CHECK",
+    "check_frame_count",
+    "held_out_reprojection",
+    "judge_on_check",
+    "split_off_check",
+]
 
 #: A segment shorter than this keeps every frame for the fit: ``--check-frames auto`` is then 0.
 MIN_SEGMENT_FOR_CHECK = 15
@@ -63,8 +77,10 @@ def held_out_reprojection(
     config: AdaptConfig,
     *,
     mask: Any = None,
+    reference: Adapter | None = None,
 ) -> dict[str, Any]:
-    """Mean match reprojection error on ``frames`` with the zero adapter and with ``adapter``.
+    """Mean match reprojection error on ``frames`` with the zero adapter (or ``reference``, the
+    tables a fit started from) and with ``adapter``.
 
     Args:
         model: the (unpatched) backbone the adapter was fitted for.
@@ -99,8 +115,9 @@ def held_out_reprojection(
     except InputError as error:
         return {**record, "zero_adapter_px": None, "adapted_px": None, "reason": str(error)}
     record["windows"] = len(problem.windows)
-    zero = Adapter.for_model(model, adapter.camera, components=adapter.components)
-    before = objective_value(model, zero, problem, scoring)
+    if reference is None:
+        reference = Adapter.for_model(model, adapter.camera, components=adapter.components)
+    before = objective_value(model, reference, problem, scoring)
     after = objective_value(model, adapter, problem, scoring)
     if "reproj" not in before:
         return {**record, "zero_adapter_px": None, "adapted_px": None, "reason": "no scored pair"}
@@ -110,4 +127,85 @@ def held_out_reprojection(
         "zero_adapter_px": round(e0, 4),
         "adapted_px": round(e1, 4),
         "change": round(e1 / e0 - 1.0, 4) if e0 > 0 else None,
+    }
+
+
+def split_off_check(
+    frames: Any, depth: Any, poses: Any, asked: str | int
+) -> tuple[Any, Any, Any, Any]:
+    """Keep the trailing frames of the last segment out of a fit.
+
+    Args:
+        frames: what :func:`~raytun3r_plugin.adaptation.train.adapt` takes: one segment ((N, H,
+            W, 3) array or tensor, or a ``datasets.Sequence``) or a list of segments.
+        depth: None, one (N, H, W) depth, or one per segment; cut like its segment.
+        poses: None or (N, 4, 4) poses of one segment; cut like it.
+        asked: ``AdaptConfig.check_frames`` (``"auto"`` or a count; 0: no check).
+
+    Returns:
+        ``(frames, depth, poses, check)`` to fit and to check, ``check`` an (n, H, W, 3) array
+        or tensor, or None (and the inputs unchanged) when no frame is kept out.
+    """
+    if asked in (0, "0"):
+        return frames, depth, poses, None
+    parts = split_segments(frames, depth)
+    segments, depths = (list(parts[0]), list(parts[1])) if parts else ([frames], [depth])
+    images = getattr(segments[-1], "images", segments[-1])
+    if isinstance(images, (list, tuple)):
+        images = np.stack([np.asarray(image) for image in images])
+    count = check_frame_count(len(images), asked)
+    if not count:
+        return frames, depth, poses, None
+    keep = len(images) - count
+    segments[-1], check = images[:keep], images[keep:]
+    if depths[-1] is not None:
+        depths[-1] = depths[-1][:keep]
+    if poses is not None:
+        poses = poses[:keep]
+    if parts:
+        return segments, (depths if depth is not None else None), poses, check
+    return segments[0], depths[0], poses, check
+
+
+def judge_on_check(
+    model: nn.Module,
+    camera: Camera,
+    check: Any,
+    adapter: Adapter,
+    start: Adapter | None,
+    config: AdaptConfig,
+    *,
+    mask: Any = None,
+) -> None:
+    """Score the held-out ``check`` frames with the starting tables (``start``; None: zero) and
+    the fitted ones, record it in ``adapter.training_info["check"]`` and, with
+    ``config.keep_margin``, put the starting tables back unless the fit lowered the error by at
+    least that fraction (``"kept"`` says which; the verdict becomes ``"not kept"``)."""
+    if start is None:
+        start = Adapter.for_model(model, adapter.camera, components=adapter.components)
+    result = held_out_reprojection(
+        model, camera, check, adapter, config, mask=mask, reference=start
+    )
+    info = adapter.training_info
+    info["check"] = result
+    if config.keep_margin is None:
+        return
+    change = result.get("change")
+    kept = change is not None and change <= -config.keep_margin
+    result["kept"], result["keep_margin"] = kept, config.keep_margin
+    if kept:
+        return
+    with torch.no_grad():
+        for table, original in zip(adapter.parameters(), start.parameters(), strict=True):
+            table.copy_(original)
+    seen = "could not be scored" if change is None else f"changed it by {100 * change:+.1f} %"
+    info["verdict"] = {
+        **info["verdict"],
+        "status": "not kept",
+        "fit_status": info["verdict"]["status"],
+        "summary": (
+            f"NOT KEPT: on the {result['frames']} held-out frames the fit {seen} (it must lower "
+            f"the reprojection error by {100 * config.keep_margin:.0f} % to be kept), so the "
+            "adapter keeps its starting tables; the fit said: " + info["verdict"]["summary"]
+        ),
     }

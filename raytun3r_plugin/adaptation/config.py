@@ -155,6 +155,16 @@ class AdaptConfig:
             making a head at chance reproduce the targets. ``training_info["pose_gate"]``
             records the measurement. None: no gate (left out of :meth:`to_dict`, so existing
             identities are unchanged). docs/decisions.md, "The pose gate, second form".
+        check_frames: trailing frames of the last segment kept out of the fit and scored after
+            it with the starting and the fitted tables (the held-out reprojection check,
+            ``training_info["check"]``; :mod:`~raytun3r_plugin.adaptation.check`); ``"auto"``: a
+            fifth of the segment (at least 3) when it has at least 15 frames, else none; 0 (the
+            default): none. Left out of :meth:`to_dict` when 0.
+        keep_margin: with check frames: keep the fit only when it lowers the check's error by
+            at least this fraction (0.02 = 2 %), else put the starting tables back (verdict
+            ``"not kept"``); None: the fit is kept whatever the check says. Left out of
+            :meth:`to_dict` when None. docs/decisions.md, "A held-out check that decides
+            whether a fit is kept".
         refine_intrinsics: before fitting, refine the camera's focal and first distortion term
             jointly with the pairs' relative poses from the adaptation set's matches
             (:func:`~raytun3r_plugin.adaptation.intrinsics.refine_intrinsics`, docs/intrinsics.md)
@@ -219,6 +229,8 @@ class AdaptConfig:
     guard_every: int = 25
     min_parallax_px: float = 0.3
     pose_gate: float | None = None
+    check_frames: int | str = 0
+    keep_margin: float | None = None
     refine_intrinsics: bool = False
     photo_sigma: float = 1.0
     photo_pixels: int = 4096
@@ -247,6 +259,8 @@ class AdaptConfig:
             self.teacher_view_weights = None
         if self.cache_dir is not None:
             self.cache_dir = str(self.cache_dir)
+        if isinstance(self.check_frames, str) and self.check_frames.strip().isdigit():
+            self.check_frames = int(self.check_frames)  # "5" from a command line
         checks = (
             ("steps", self.steps >= 0),
             ("lr", self.lr > 0),
@@ -265,6 +279,16 @@ class AdaptConfig:
             ("guard_every", self.guard_every >= 1),
             ("min_parallax_px", self.min_parallax_px >= 0),
             ("pose_gate", self.pose_gate is None or self.pose_gate >= 0),
+            ("check_frames", _check_frames_ok(self.check_frames)),
+            (
+                "keep_margin",
+                self.keep_margin is None
+                or (
+                    isinstance(self.keep_margin, (int, float))
+                    and 0 <= self.keep_margin < 1
+                    and self.check_frames not in (0, "0")
+                ),
+            ),
             ("refine_intrinsics", isinstance(self.refine_intrinsics, bool)),
             ("recipe", isinstance(self.recipe, str)),
             ("photo_sigma", math.isfinite(self.photo_sigma) and self.photo_sigma >= 0),
@@ -289,10 +313,12 @@ class AdaptConfig:
             ),
         )
         expected = {
+            "check_frames": "expected 'auto', 0, or a count of at least 3",
+            "keep_margin": "expected None, or a fraction in [0, 1) with check_frames set",
             "teacher_view_weights": (
                 f"expected None or {{view: weight >= 0}} naming exactly the teacher views "
                 f"{self.teacher_views!r}, at least one weight > 0"
-            )
+            ),
         }
         for name, ok in checks:
             if not ok:
@@ -336,6 +362,10 @@ class AdaptConfig:
             del out["refine_intrinsics"]
         if self.pose_gate is None:
             del out["pose_gate"]
+        if self.check_frames in (0, "0"):
+            del out["check_frames"]
+        if self.keep_margin is None:
+            del out["keep_margin"]
         out["weights"] = self.weights.as_dict()
         if not self.weights.photo and self.scale != "photometric":
             del out["photo_sigma"], out["photo_pixels"]
@@ -453,6 +483,19 @@ class AdaptConfig:
 
 
 _FIELDS = frozenset(AdaptConfig.__dataclass_fields__)
+
+
+def _check_frames_ok(value: Any) -> bool:
+    """``"auto"``, 0 or a count of at least 3 (a scored window has 3 frames)."""
+    if value == "auto":
+        return True
+    if isinstance(value, bool) or not isinstance(value, (int, str)):
+        return False
+    try:
+        count = int(value)
+    except ValueError:
+        return False
+    return count == 0 or count >= 3
 
 
 def _family_changes(model: nn.Module | None, recipe: str) -> Mapping[str, Any]:

@@ -26,9 +26,13 @@ from raytun3r_plugin.errors import InputError
 
 __all__ = ["BOOKKEEPING_FIELDS", "RECIPES", "Recipe", "get_recipe", "recipe_names"]
 
-#: Fields that say where a run keeps its files or how often it saves, not what it fits: an
-#: adapter file does not list them among the settings that differ from its recipe.
-BOOKKEEPING_FIELDS = frozenset({"cache_dir", "sequence_id", "checkpoint_every", "recipe"})
+#: Fields that say where a run keeps its files, how often it saves or which of the frames it was
+#: given it keeps out for the held-out check (the file's segment record says what was fitted),
+#: not how it fits: an adapter file does not list them among the settings that differ from its
+#: recipe.
+BOOKKEEPING_FIELDS = frozenset(
+    {"cache_dir", "sequence_id", "checkpoint_every", "recipe", "check_frames"}
+)
 
 
 @dataclass(frozen=True)

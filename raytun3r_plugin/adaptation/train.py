@@ -53,6 +53,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from raytun3r_plugin.adaptation.check import judge_on_check, split_off_check
 from raytun3r_plugin.adaptation.checkpoint import (
     _restore_checkpoint,
     _save_checkpoint,
@@ -166,6 +167,13 @@ def adapt(
     ``config.teacher_max_coverage`` (``training_info["teacher"]`` records the largest view's
     coverage and whether the term was used).
 
+    With ``config.check_frames`` (``"auto"``: a fifth of the last segment when it has at least
+    15 frames), the trailing frames of the last segment are kept out of the fit and scored after
+    it with the starting and the fitted tables (:func:`~raytun3r_plugin.adaptation.check.held_out_reprojection`,
+    ``training_info["check"]``); with ``config.keep_margin`` the fit is kept only when it lowers
+    that error by at least this fraction, and otherwise the adapter goes back to its starting
+    tables (``training_info["check"]["kept"]``, verdict ``"not kept"``).
+
     Returns:
         The fitted :class:`Adapter` (camera: the camera of the frames, cropped if the input
         layout needed a crop); ``adapter.training_info`` records the steps done, the final
@@ -199,6 +207,47 @@ def adapt(
         )
         config = AdaptConfig.from_recipe(recipe, model=model)
     config = config.sized_for(model)
+    frames, depth, poses, check = split_off_check(frames, depth, poses, config.check_frames)
+    start = None if adapter is None else copy.deepcopy(adapter)
+    fitted = _fit(
+        model,
+        camera,
+        frames,
+        config,
+        out_path=out_path,
+        adapter=adapter,
+        resume=resume,
+        progress=progress,
+        mask=mask,
+        depth=depth,
+        poses=poses,
+        tune=tune,
+    )
+    if check is not None and tune is None and not fitted.training_info.get("interrupted"):
+        judge_on_check(model, camera, check, fitted, start, config, mask=mask)
+        if progress and not fitted.training_info["check"].get("kept", True):
+            print(f"adapt: {fitted.training_info['verdict']['summary']}", file=sys.stderr)
+        if out_path is not None:
+            fitted.save(artifact_paths(out_path)["adapter"])
+    return fitted
+
+
+def _fit(
+    model: nn.Module,
+    camera: Camera,
+    frames: Any,
+    config: AdaptConfig,
+    *,
+    out_path: str | os.PathLike | None,
+    adapter: Adapter | None,
+    resume: bool,
+    progress: bool,
+    mask: Any,
+    depth: Any,
+    poses: Any,
+    tune: nn.Module | None,
+) -> Adapter:
+    """:func:`adapt` on the frames it fits, with its settings resolved."""
     if handle_of(model) is not None:
         raise AlreadyAppliedError(
             "adapt needs an unpatched model; remove the existing raytun3r patch first"

@@ -4,6 +4,7 @@ the message a fit ends with. The parser that wires them is :mod:`raytun3r_plugin
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 
 from raytun3r_plugin.errors import InputError
@@ -139,25 +140,8 @@ def _adapt_config(args: argparse.Namespace, settings: dict, supervised: bool):
     return AdaptConfig.from_recipe(name, **changes)
 
 
-def _held_out_frames(args: argparse.Namespace, segments: list, depths: list):
-    """Split the last segment's trailing ``--check-frames`` off for the held-out check.
-
-    Returns (segments to fit, depths to fit, check frames or None)."""
-    from raytun3r_plugin.adaptation.check import check_frame_count
-
-    count = check_frame_count(len(segments[-1]), args.check_frames)
-    if not count:
-        return segments, depths, None
-    last = len(segments[-1]) - count
-    check = segments[-1][last:]
-    segments = [*segments[:-1], segments[-1][:last]]
-    if depths:
-        depths = [*depths[:-1], depths[-1][:last]]
-    return segments, depths, check
-
-
 def cmd_adapt(args: argparse.Namespace) -> int:
-    from raytun3r_plugin.adaptation.check import held_out_reprojection
+    from raytun3r_plugin.adaptation.check import check_frame_count
     from raytun3r_plugin.adaptation.checkpoint import artifact_paths
     from raytun3r_plugin.adaptation.train import adapt
     from raytun3r_plugin.cameras import load as load_camera
@@ -181,12 +165,13 @@ def cmd_adapt(args: argparse.Namespace) -> int:
                     args.depth[k], names, frames.shape[2], frames.shape[1], args.depth_png_scale
                 )
             )
-    segments, depths, check = _held_out_frames(args, segments, depths)
     height, width = segments[0].shape[1:3]
     mask = read_mask(args.mask, width, height) if args.mask else None
     depth = (depths if len(segments) > 1 else depths[0]) if depths else None
     model = _load_model(args.backbone, args.weights)
-    config = config.sized_for(model)
+    held_out = check_frame_count(len(segments[-1]), args.check_frames)  # refuses a bad value
+    # The check frames are the fit's own setting (adapt keeps them out and scores them).
+    config = dataclasses.replace(config.sized_for(model), check_frames=args.check_frames)
     recipe = config.recipe_record(model)
     changed = ", ".join(f"{key} {new}" for key, (_, new) in recipe["changes"].items())
     print(
@@ -194,8 +179,8 @@ def cmd_adapt(args: argparse.Namespace) -> int:
         + (f", changed: {changed}" if changed else "")
         + f"; input {config.input_size} px; "
         + (
-            f"the last {len(check)} frames held out for the check"
-            if check is not None
+            f"the last {held_out} frames held out for the check"
+            if held_out
             else "no frames held out for a check (--check-frames)"
         ),
         file=sys.stderr,
@@ -211,11 +196,8 @@ def cmd_adapt(args: argparse.Namespace) -> int:
         resume=not args.restart,
     )
     lines = [adapter.training_info["verdict"]["summary"]]
-    if check is not None:
-        result = held_out_reprojection(model, camera, check, adapter, config, mask=mask)
-        adapter.training_info["check"] = result
-        adapter.save(args.out)
-        lines.append(_check_line(result))
+    if "check" in adapter.training_info:
+        lines.append(_check_line(adapter.training_info["check"]))
     paths = artifact_paths(args.out)
     print(
         f"saved adapter to {args.out} ({adapter.num_parameters()['total']:,} parameters, recipe "
