@@ -53,15 +53,3 @@ def _quiet_da3_logger():
 
     logging.getLogger("depth_anything_3").setLevel(logging.WARNING)
     yield
-
-
-@pytest.fixture
-def one_thread():
-    """torch on one thread for the test (timing-free parity tests beside other jobs), restored
-    afterwards."""
-    import torch
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)

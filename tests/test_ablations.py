@@ -46,14 +46,6 @@ RADIAL_ONLY = ["pe", "pe_radial_only"]
 NAIVE = ["pe_naive_remap"]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="module")
 def net():
     return make("da3")

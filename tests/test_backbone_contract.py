@@ -48,15 +48,6 @@ from tests.helpers import (
 
 
 @pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    """The models are tiny: intra-op threads only spin on a shared 2-core machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-@pytest.fixture(scope="module", autouse=True)
 def _upstream_globals():
     """The upstream module globals at the start, with every importable model built once; no
     test of this module may leave one changed (the Pi3X uv trampoline is the one global patch)."""

@@ -144,14 +144,6 @@ KINDS = ("vggt", "pi3", "pi3x")
 T = 4
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(params=KINDS)
 def kind(request):
     pytest.importorskip("vggt" if request.param == "vggt" else "pi3")

@@ -22,8 +22,8 @@ from tests.helpers import fisheye, max_relative_difference, outputs, randomise_
 
 
 @pytest.fixture(autouse=True)
-def _fresh_dynamo(one_thread):
-    """One thread, and no compiled code left for the next test."""
+def _fresh_dynamo():
+    """No compiled code left for the next test."""
     yield
     torch._dynamo.reset()
 

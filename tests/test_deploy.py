@@ -29,9 +29,6 @@ DEPTH_TOLERANCE = 1e-4  # max relative depth difference
 POSE_TOLERANCE_RAD = 1e-4
 
 
-pytestmark = pytest.mark.usefixtures("one_thread")
-
-
 def _tiny(family: str):
     if family == "da3nested":
         pytest.importorskip("depth_anything_3")

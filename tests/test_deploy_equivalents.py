@@ -37,9 +37,6 @@ ROTATION_TOLERANCE = 5e-6
 SCALE_TOLERANCE = 1e-6
 
 
-pytestmark = pytest.mark.usefixtures("one_thread")
-
-
 # ---------------------------------------------------------------------------------------------
 # The closest rotation (Pi3's camera head)
 # ---------------------------------------------------------------------------------------------

@@ -41,15 +41,6 @@ def _patch_embed(model) -> torch.nn.Module:
     return owner
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    """Tiny models: intra-op threads only spin on a shared 2-core machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(params=[case.family for case in CASES])
 def kind(request):
     return request.param

@@ -24,15 +24,6 @@ from raytun3r_plugin.metrics import (
 from raytun3r_plugin.synthetic import correspondences, relative_pose, render_sequence
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """Small tensors: one torch thread avoids OpenMP barrier stalls on a shared, loaded CPU."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def rot(axis, deg: float) -> np.ndarray:
     a = np.asarray(axis, dtype=np.float64)
     a = a / np.linalg.norm(a)

@@ -20,14 +20,6 @@ from tests.backbones import CASE, CASES, make
 from tests.helpers import assert_same_snapshot, fisheye, outputs, pinhole, randomise_, snapshot
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 #: Components every family can use per view (VGGT-Omega's RoPE table is one for all frames).
 def _components(family: str) -> dict[str, bool] | None:
     if family == "vggt_omega":

@@ -27,15 +27,6 @@ from raytun3r_plugin.synthetic.noise import SolidNoise
 from raytun3r_plugin.synthetic.scene import Scene
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """Small tensors: one torch thread avoids OpenMP barrier stalls on a shared, loaded CPU."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def fisheye(size: int = 96, fov: float = 195.0) -> cameras.KannalaBrandt4:
     """An equidistant-like KB4 fisheye whose lens circle (``fov`` degrees) fits the image."""
     f = (size / 2 - 1) / math.radians(fov / 2)

@@ -30,14 +30,6 @@ HEIGHT, WIDTH = CASE["vggt_omega"].size
 ROPE_PATHS = ("aggregator.rope_embed", "aggregator.patch_embed.rope_embed")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture
 def net():
     return make("vggt_omega")

@@ -39,15 +39,6 @@ from raytun3r_plugin.patches import vggt as vggt_patch  # noqa: E402
 KINDS = ("vggt", "pi3", "pi3x")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    """The models are tiny: intra-op threads only spin on a shared 2-core machine (~10x CPU time)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="module")
 def images():
     return torch.rand(1, 2, 3, H, W, generator=torch.Generator().manual_seed(1))
