@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import cv2
@@ -25,6 +26,7 @@ from raytun3r_plugin.datasets import (
 )
 from raytun3r_plugin.datasets._common import invert_pose, quat_to_rot, rot_to_quat, slerp
 from raytun3r_plugin.errors import DatasetError, Raytun3rError
+from tests.calibration_files import KITTI360_IMAGE_02
 
 W, H = 12, 10
 
@@ -447,25 +449,18 @@ def test_tumvi_reader_errors(tmp_path):
 # KITTI-360
 # ------------------------------------------------------------------------------------------
 
-MEI_YAML = """%YAML:1.0
----
-model_type: MEI
-camera_name: image_02
-image_width: 28
-image_height: 28
-mirror_parameters:
-   xi: 2.2134047507854890e+00
-distortion_parameters:
-   k1: 1.6798235660113681e-02
-   k2: 1.6548773243373522e+00
-   p1: 4.2223943394772046e-04
-   p2: 4.2462134260997584e-04
-projection_parameters:
-   gamma1: 2.6726441651699942e+01
-   gamma2: 2.6715766700025916e+01
-   u0: 1.4338864702025264e+01
-   v0: 1.4115299661644317e+01
-"""
+
+def mei_yaml(size: int = 28) -> str:
+    """KITTI-360's image_02 calibration (tests/calibration_files.py) for ``size`` x ``size``
+    frames: the image size and the projection parameters scaled from its 1400 px."""
+    factor = size / 1400
+    text = KITTI360_IMAGE_02.replace("1400\n", f"{size}\n")
+    for key in ("gamma1", "gamma2", "u0", "v0"):
+        text = re.sub(
+            rf"({key}: )(\S+)", lambda m: f"{m.group(1)}{float(m.group(2)) * factor!r}", text
+        )
+    return text
+
 
 SEQ = "2013_05_28_drive_0007_sync"
 
@@ -474,7 +469,7 @@ def kitti_fixture(
     root: Path, pose_rows: dict[int, np.ndarray], c2p: np.ndarray, n_images: int = 6
 ) -> None:
     (root / "calibration").mkdir(parents=True)
-    (root / "calibration" / "image_02.yaml").write_text(MEI_YAML)
+    (root / "calibration" / "image_02.yaml").write_text(mei_yaml())
     lines = []
     for k in range(4):
         T = c2p if k == 2 else rigid(rot([0, 0, 1], 10.0 * k), [k, 0, 0])
