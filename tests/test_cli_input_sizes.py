@@ -23,6 +23,16 @@ def setup(tmp_path_factory):
     return build_cli_setup(tmp_path_factory.mktemp("cli"))
 
 
+def _one_step_adapt(model: list[str], camera_file, frames, size: int, adapter) -> list[str]:
+    """``raytun3r adapt`` of one step on two windows: the fit these tests only need to exist."""
+    return [
+        "adapt",
+        *model,
+        *("--camera", str(camera_file), "--frames", str(frames), "--size", str(size)),
+        *("--steps", "1", "--windows", "2", "--out", str(adapter)),
+    ]
+
+
 def _write_segment(folder, camera, n_frames: int = 6, seed: int = 5, render_camera=None):
     """A camera file for ``camera`` and a PNG frame folder rendered through ``render_camera``
     (default: ``camera``); returns (camera file, frame folder)."""
@@ -56,29 +66,9 @@ def test_adapt_then_infer_on_a_non_square_camera(setup, tmp_path, width, height,
 
     camera = fisheye(width, height, 190.0)
     camera_file, frames = _write_segment(tmp_path, camera)
-    model = ["--backbone", "da3-small", "--weights", str(setup["weights"])]
+    model = model_args(setup)
     adapter = tmp_path / "adapter.safetensors"
-    assert (
-        main(
-            [
-                "adapt",
-                *model,
-                "--camera",
-                str(camera_file),
-                "--frames",
-                str(frames),
-                "--size",
-                str(size),
-                "--steps",
-                "1",
-                "--windows",
-                "2",
-                "--out",
-                str(adapter),
-            ]
-        )
-        == 0
-    )
+    assert main(_one_step_adapt(model, camera_file, frames, size, adapter)) == 0
     layout = input_layout(camera, size)
     assert layout.crop == crop
     fitted = Adapter.load(adapter)
@@ -138,29 +128,9 @@ def test_adapt_then_infer_on_a_non_square_camera(setup, tmp_path, width, height,
 def test_infer_rescales_the_camera_to_frames_of_another_size(setup, tmp_path, capsys):
     camera = fisheye(160, 120, 190.0)
     camera_file, frames = _write_segment(tmp_path / "native", camera)
-    model = ["--backbone", "da3-small", "--weights", str(setup["weights"])]
+    model = model_args(setup)
     adapter = tmp_path / "adapter.safetensors"
-    assert (
-        main(
-            [
-                "adapt",
-                *model,
-                "--camera",
-                str(camera_file),
-                "--frames",
-                str(frames),
-                "--size",
-                "112",
-                "--steps",
-                "1",
-                "--windows",
-                "2",
-                "--out",
-                str(adapter),
-            ]
-        )
-        == 0
-    )
+    assert main(_one_step_adapt(model, camera_file, frames, 112, adapter)) == 0
     # The same calibration, frames recorded at twice the size: a pure resize of the camera.
     _, large = _write_segment(
         tmp_path / "large", camera, n_frames=3, render_camera=camera.resized(320, 240)
