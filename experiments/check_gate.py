@@ -16,6 +16,10 @@ the gated fit and, beside them, for the reference's 24-frame fit.
     python experiments/check_gate.py [--network NAME | --weights FILE] [--cameras "KB4 120" ...]
         [--sequences 5] [--first-sequence 0] --out runs/check_gate.json
     python experiments/check_gate.py --analyse runs/check_gate.json --reference runs/x/results.json
+        [--veto 0.02]
+
+``--veto`` analyses the second form of the gate on the same rows: the fit is kept unless the
+check's error rises by more than the veto (docs/decisions.md, same section).
 
 The decision it serves: docs/decisions.md, "A held-out check that decides whether a fit is kept".
 """
@@ -79,13 +83,25 @@ def one_sequence(model, spec, scene: str, seed: int, margin: float) -> list[dict
     return [zero, ungated, gated]
 
 
-def analyse(paths: list[str], references: list[str]) -> list[str]:
+def vetoed(rows: dict[str, dict], veto: float) -> dict[str, dict]:
+    """The sequence's rows with the second form of the gate: the fit is kept unless the check's
+    error rises by more than ``veto`` (a check that could not be scored keeps it)."""
+    check = rows[FITTED]["check"]
+    change = check.get("change")
+    kept = change is None or change <= veto
+    chosen = rows[UNGATED] if kept else rows[ZERO]
+    return {**rows, FITTED: {**chosen, "method": FITTED, "check": check, "kept": kept}}
+
+
+def analyse(paths: list[str], references: list[str], veto: float | None = None) -> list[str]:
     """The rule's numbers for the gated fit and the 24-frame reference fit, over the sequences
-    both hold."""
+    both hold; with ``veto``, for the second form of the gate (:func:`vetoed`)."""
     mine: dict[tuple, dict[str, dict]] = {}
     for path in paths:
         for r in json.loads(Path(path).read_text())["sequences"]:
             mine.setdefault((r["camera"], r["scene"], r["seed"]), {})[r["method"]] = r
+    if veto is not None:
+        mine = {key: vetoed(rows, veto) for key, rows in mine.items()}
     reference: dict[tuple, dict[str, dict]] = {}
     for path in references:
         for r in json.loads(Path(path).read_text())["sequences"]:
@@ -127,9 +143,15 @@ def main() -> None:
     parser.add_argument("--out", default="runs/check_gate.json")
     parser.add_argument("--analyse", nargs="+", default=None, help="check_gate JSON files")
     parser.add_argument("--reference", nargs="*", default=[], help="benchmark results.json")
+    parser.add_argument(
+        "--veto",
+        type=float,
+        default=None,
+        help="analyse the second form: keep the fit unless the check rises by more than this",
+    )
     args = parser.parse_args()
     if args.analyse:
-        print("\n".join(analyse(args.analyse, args.reference)))
+        print("\n".join(analyse(args.analyse, args.reference, args.veto)))
         return
     torch.set_num_threads(1)
     if args.weights:
