@@ -2,7 +2,8 @@
 
 ``AdaptConfig.check_frames`` keeps the trailing frames of the last segment out of the fit
 (:func:`split_off_check`); :func:`judge_on_check` scores them after it and, with
-``AdaptConfig.keep_margin``, keeps the fit only when it lowers that error by the margin
+``AdaptConfig.check_veto``, puts the starting tables back when the fit raises that error by
+more than the veto
 (docs/decisions.md, "A held-out check that decides whether a fit is kept").
 
 ``raytun3r adapt`` keeps the last frames of the segment out of the fit (``--check-frames``) and
@@ -179,8 +180,11 @@ def judge_on_check(
 ) -> None:
     """Score the held-out ``check`` frames with the starting tables (``start``; None: zero) and
     the fitted ones, record it in ``adapter.training_info["check"]`` and, with
-    ``config.keep_margin``, put the starting tables back unless the fit lowered the error by at
-    least that fraction (``"kept"`` says which; the verdict becomes ``"not kept"``)."""
+    ``config.check_veto``, put the starting tables back when the fit raised the error by more than
+    that fraction (``"kept"`` says which; the verdict becomes ``"not kept"``). A check that cannot
+    be scored (no moving window among the frames) keeps the fit: it saw no harm. Outdoors the
+    check barely moves whatever the fit does (far matches reproject alike at any depth), so it
+    can veto a fit but not vouch for one (docs/decisions.md)."""
     if start is None:
         start = Adapter.for_model(model, adapter.camera, components=adapter.components)
     result = held_out_reprojection(
@@ -188,24 +192,23 @@ def judge_on_check(
     )
     info = adapter.training_info
     info["check"] = result
-    if config.keep_margin is None:
+    if config.check_veto is None:
         return
     change = result.get("change")
-    kept = change is not None and change <= -config.keep_margin
-    result["kept"], result["keep_margin"] = kept, config.keep_margin
+    kept = change is None or change <= config.check_veto
+    result["kept"], result["check_veto"] = kept, config.check_veto
     if kept:
         return
     with torch.no_grad():
         for table, original in zip(adapter.parameters(), start.parameters(), strict=True):
             table.copy_(original)
-    seen = "could not be scored" if change is None else f"changed it by {100 * change:+.1f} %"
     info["verdict"] = {
         **info["verdict"],
         "status": "not kept",
         "fit_status": info["verdict"]["status"],
         "summary": (
-            f"NOT KEPT: on the {result['frames']} held-out frames the fit {seen} (it must lower "
-            f"the reprojection error by {100 * config.keep_margin:.0f} % to be kept), so the "
-            "adapter keeps its starting tables; the fit said: " + info["verdict"]["summary"]
+            f"NOT KEPT: on the {result['frames']} held-out frames the fit raised the reprojection "
+            f"error by {100 * change:+.1f} % (more than the {100 * config.check_veto:g} % it may), "
+            "so the adapter keeps its starting tables; the fit said: " + info["verdict"]["summary"]
         ),
     }

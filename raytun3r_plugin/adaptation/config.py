@@ -160,11 +160,11 @@ class AdaptConfig:
             ``training_info["check"]``; :mod:`~raytun3r_plugin.adaptation.check`); ``"auto"``: a
             fifth of the segment (at least 3) when it has at least 15 frames, else none; 0 (the
             default): none. Left out of :meth:`to_dict` when 0.
-        keep_margin: with check frames: keep the fit only when it lowers the check's error by
-            at least this fraction (0.02 = 2 %), else put the starting tables back (verdict
-            ``"not kept"``); None: the fit is kept whatever the check says. Left out of
-            :meth:`to_dict` when None. docs/decisions.md, "A held-out check that decides
-            whether a fit is kept".
+        check_veto: with check frames: put the starting tables back when the fit raises the
+            check's error by more than this fraction (0.02 = 2 %; verdict ``"not kept"``); a check
+            that cannot be scored keeps the fit. None: the fit is kept whatever the check says.
+            Left out of :meth:`to_dict` when None. docs/decisions.md, "A held-out check that
+            decides whether a fit is kept".
         refine_intrinsics: before fitting, refine the camera's focal and first distortion term
             jointly with the pairs' relative poses from the adaptation set's matches
             (:func:`~raytun3r_plugin.adaptation.intrinsics.refine_intrinsics`, docs/intrinsics.md)
@@ -230,7 +230,7 @@ class AdaptConfig:
     min_parallax_px: float = 0.3
     pose_gate: float | None = None
     check_frames: int | str = 0
-    keep_margin: float | None = None
+    check_veto: float | None = None
     refine_intrinsics: bool = False
     photo_sigma: float = 1.0
     photo_pixels: int = 4096
@@ -281,11 +281,11 @@ class AdaptConfig:
             ("pose_gate", self.pose_gate is None or self.pose_gate >= 0),
             ("check_frames", _check_frames_ok(self.check_frames)),
             (
-                "keep_margin",
-                self.keep_margin is None
+                "check_veto",
+                self.check_veto is None
                 or (
-                    isinstance(self.keep_margin, (int, float))
-                    and 0 <= self.keep_margin < 1
+                    isinstance(self.check_veto, (int, float))
+                    and 0 <= self.check_veto < 1
                     and self.check_frames not in (0, "0")
                 ),
             ),
@@ -314,7 +314,7 @@ class AdaptConfig:
         )
         expected = {
             "check_frames": "expected 'auto', 0, or a count of at least 3",
-            "keep_margin": "expected None, or a fraction in [0, 1) with check_frames set",
+            "check_veto": "expected None, or a fraction in [0, 1) with check_frames set",
             "teacher_view_weights": (
                 f"expected None or {{view: weight >= 0}} naming exactly the teacher views "
                 f"{self.teacher_views!r}, at least one weight > 0"
@@ -364,8 +364,8 @@ class AdaptConfig:
             del out["pose_gate"]
         if self.check_frames in (0, "0"):
             del out["check_frames"]
-        if self.keep_margin is None:
-            del out["keep_margin"]
+        if self.check_veto is None:
+            del out["check_veto"]
         out["weights"] = self.weights.as_dict()
         if not self.weights.photo and self.scale != "photometric":
             del out["photo_sigma"], out["photo_pixels"]
