@@ -278,43 +278,13 @@ def _fit(
         # Measured with the starting tables, before any checkpoint is restored (as the parallax
         # gate below), so a resumed run makes the same choice.
         config, pose_gate = gate_pose_term(model, adapter, problem, config)
-    teacher = depth is None and config.weights.teacher > 0
-    teacher_record = None
-    if teacher:
-        coverage = teacher_coverage(
-            problem.layout.camera, config.teacher_views, config.teacher_fov_deg
-        )
-        teacher = coverage <= config.teacher_max_coverage
-        teacher_record = {
-            "used": teacher,
-            "coverage": round(coverage, 4),
-            "max_coverage": config.teacher_max_coverage,
-        }
-    if teacher:
-        # The unpatched model on pinhole views of every window: computed once, before the patch.
-        problem.teacher = teacher_targets(
-            model, problem, config.teacher_views, config.teacher_fov_deg, config.seed
-        )
-    parallax = None
-    if depth is None and config.min_parallax_px > 0:
-        # Measured with the starting tables, before any checkpoint is restored, so a resumed run
-        # keeps the same windows.
-        medians = window_parallax(model, adapter, problem, config)
-        # NaN: no evidence. The dense photometric term needs no match to move with depth.
-        signal = [not median < config.min_parallax_px for median in medians]
-        keep = [config.weights.photo > 0 or teacher or ok for ok in signal]
-        parallax = {
-            "min_parallax_px": config.min_parallax_px,
-            "window_median_px": [round(m, 4) if math.isfinite(m) else None for m in medians],
-            "windows_kept": sum(keep),
-            "windows_dropped": len(keep) - sum(keep),
-        }
-        if teacher:
-            # The teacher keeps every window; the matches of a window without depth signal
-            # still leave the reprojection term, as the gate would have left them out.
-            problem.reproject = signal
-            parallax["windows_reprojected"] = sum(signal)
-        problem.windows = [window for window, k in zip(problem.windows, keep, strict=True) if k]
+    teacher_record = _add_teacher(model, problem, config) if depth is None else None
+    teacher = teacher_record is not None and teacher_record["used"]
+    parallax = (
+        _gate_parallax(model, adapter, problem, config, teacher)
+        if depth is None and config.min_parallax_px > 0
+        else None
+    )
     if tune is not None:
         for table in adapter.parameters():
             table.requires_grad_(False)
@@ -377,18 +347,7 @@ def _fit(
         adapter.training_info["teacher"] = teacher_record
     adapter.training_info["verdict"] = fit_verdict(adapter, history, problem, guard, parallax)
     if tune is not None:
-        tuned = {
-            "module": type(tune).__name__,
-            "parameters": sum(p.numel() for p in tune.parameters()),
-        }
-        adapter.training_info["tuned"] = tuned
-        verdict = adapter.training_info["verdict"]
-        if verdict["status"] == "did nothing":  # the tables stay at zero by design here
-            verdict["status"] = "ok"
-            verdict["summary"] = (
-                f"ok: tuned {tuned['module']} ({tuned['parameters']:,} parameters), loss "
-                f"{verdict['first_pass_loss']:.4g} -> {verdict['last_pass_loss']:.4g}"
-            )
+        _record_tuned(adapter, tune)
     if progress:
         print(f"adapt: {adapter.training_info['verdict']['summary']}", file=sys.stderr, flush=True)
     if paths is not None:
@@ -399,6 +358,71 @@ def _fit(
             paths, read_loss_log(paths["log"]) if paths["log"].is_file() else history
         )
     return adapter
+
+
+def _record_tuned(adapter: Adapter, tune: nn.Module) -> None:
+    """A baseline fit (``tune``): what was tuned, and its verdict (the tables stay at zero by
+    design, which is not "did nothing")."""
+    tuned = {"module": type(tune).__name__, "parameters": sum(p.numel() for p in tune.parameters())}
+    adapter.training_info["tuned"] = tuned
+    verdict = adapter.training_info["verdict"]
+    if verdict["status"] == "did nothing":
+        verdict["status"] = "ok"
+        verdict["summary"] = (
+            f"ok: tuned {tuned['module']} ({tuned['parameters']:,} parameters), loss "
+            f"{verdict['first_pass_loss']:.4g} -> {verdict['last_pass_loss']:.4g}"
+        )
+
+
+def _add_teacher(
+    model: nn.Module, problem: AdaptationProblem, config: AdaptConfig
+) -> dict[str, Any] | None:
+    """The lens-gated pinhole-view teacher: on a lens none of its views covers more than
+    ``config.teacher_max_coverage`` of, the unpatched model's depth on the views of every window
+    becomes ``problem.teacher`` (computed once, before the patch). Returns the record (None when
+    the recipe has no teacher term)."""
+    if config.weights.teacher <= 0:
+        return None
+    coverage = teacher_coverage(problem.layout.camera, config.teacher_views, config.teacher_fov_deg)
+    used = coverage <= config.teacher_max_coverage
+    if used:
+        problem.teacher = teacher_targets(
+            model, problem, config.teacher_views, config.teacher_fov_deg, config.seed
+        )
+    return {
+        "used": used,
+        "coverage": round(coverage, 4),
+        "max_coverage": config.teacher_max_coverage,
+    }
+
+
+def _gate_parallax(
+    model: nn.Module,
+    adapter: Adapter,
+    problem: AdaptationProblem,
+    config: AdaptConfig,
+    teacher: bool,
+) -> dict[str, Any]:
+    """The parallax gate: drop the windows whose matches cannot tell near from far (measured with
+    the starting tables, before any checkpoint is restored, so a resumed run keeps the same
+    windows). Returns its record."""
+    medians = window_parallax(model, adapter, problem, config)
+    # NaN: no evidence. The dense photometric term needs no match to move with depth.
+    signal = [not median < config.min_parallax_px for median in medians]
+    keep = [config.weights.photo > 0 or teacher or ok for ok in signal]
+    parallax = {
+        "min_parallax_px": config.min_parallax_px,
+        "window_median_px": [round(m, 4) if math.isfinite(m) else None for m in medians],
+        "windows_kept": sum(keep),
+        "windows_dropped": len(keep) - sum(keep),
+    }
+    if teacher:
+        # The teacher keeps every window; the matches of a window without depth signal still
+        # leave the reprojection term, as the gate would have left them out.
+        problem.reproject = signal
+        parallax["windows_reprojected"] = sum(signal)
+    problem.windows = [window for window, k in zip(problem.windows, keep, strict=True) if k]
+    return parallax
 
 
 def _training_info(
