@@ -197,7 +197,7 @@ def judge_on_check(
     change = result.get("change")
     kept = change is None or change <= config.check_veto
     result["kept"], result["check_veto"] = kept, config.check_veto
-    if kept:
+    if change is None or kept:
         return
     with torch.no_grad():
         for table, original in zip(adapter.parameters(), start.parameters(), strict=True):
