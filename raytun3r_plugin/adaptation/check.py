@@ -2,9 +2,8 @@
 
 ``AdaptConfig.check_frames`` keeps the trailing frames of the last segment out of the fit
 (:func:`split_off_check`); :func:`judge_on_check` scores them after it and, with
-``AdaptConfig.check_veto``, puts the starting tables back when the fit raises that error by
-more than the veto
-(docs/decisions.md, "A held-out check that decides whether a fit is kept").
+``AdaptConfig.check_veto``, puts the starting tables back when the fit raises that error by more
+than the veto (docs/decisions.md, "A held-out check that decides whether a fit is kept").
 
 ``raytun3r adapt`` keeps the last frames of the segment out of the fit (``--check-frames``) and
 scores them with the zero adapter and with the fitted one: matched pixels (the fit's own

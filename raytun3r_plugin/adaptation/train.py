@@ -169,9 +169,11 @@ def adapt(
 
     With ``config.check_frames`` (``"auto"``: a fifth of the last segment when it has at least
     15 frames), the trailing frames of the last segment are kept out of the fit and scored after
-    it with the starting and the fitted tables (:func:`~raytun3r_plugin.adaptation.check.held_out_reprojection`,
-    ``training_info["check"]``); with ``config.check_veto`` a fit that raises that error by more
-    than this fraction is not kept: the adapter goes back to its starting tables (``training_info["check"]["kept"]``, verdict ``"not kept"``).
+    it with the starting and the fitted tables
+    (:func:`~raytun3r_plugin.adaptation.check.held_out_reprojection`, ``training_info["check"]``);
+    with ``config.check_veto`` a fit that raises that error by more than this fraction is not
+    kept: the adapter goes back to its starting tables (``training_info["check"]["kept"]``,
+    verdict ``"not kept"``).
 
     Returns:
         The fitted :class:`Adapter` (camera: the camera of the frames, cropped if the input
