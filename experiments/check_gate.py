@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -55,6 +56,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from experiments.recipe_rule import FITTED, SUPERVISED, ZERO, report  # noqa: E402
 
 SIZE, STEPS, N_FIT, N_CHECK, N_EVAL = 112, 300, 20, 4, 12
+WIDE = ("KB4 185", "DS 195")
 UNGATED = "raytun3r, 20 frames"
 
 
@@ -94,7 +96,45 @@ def vetoed(rows: dict[str, dict], veto: float) -> dict[str, dict]:
     return {**rows, FITTED: {**chosen, "method": FITTED, "check": check, "kept": kept}}
 
 
-def analyse(paths: list[str], references: list[str], veto: float | None = None) -> list[str]:
+def table_gap(table_path: str, rows: dict[tuple, dict[str, dict]]) -> list[str]:
+    """The pooled wide-lens gap closed by ``rows``' fits against a benchmark table's zero-adapter
+    and supervised cell means (docs/results.md's bench block), beside the table's own fit's."""
+    lines = Path(table_path).read_text().splitlines()
+    start = next(
+        k for k, line in enumerate(lines) if line.startswith("| camera | scene | method |")
+    )
+    column = [c.strip() for c in lines[start].strip("|").split("|")].index("abs_rel")
+    end = next((k for k in range(start, len(lines)) if not lines[k].startswith("|")), len(lines))
+    means: dict[tuple[str, str, str], float] = {}
+    for line in lines[start + 2 : end]:  # the first such table: the bench block's
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if line.startswith("| ") and len(cells) > column and cells[0] in WIDE:
+            means[(cells[0], cells[1], cells[2])] = float(cells[column])
+    cells = sorted({(k[0], k[1]) for k in rows if k[0] in WIDE})
+
+    def pooled(method: str) -> float:
+        return sum(means[(c, s, method)] for c, s in cells) / len(cells)
+
+    zero, sup = pooled(ZERO), pooled(SUPERVISED)
+    ours = sum(
+        statistics.mean(r[FITTED]["abs_rel"] for k, r in rows.items() if k[:2] == cell)
+        for cell in cells
+    ) / len(cells)
+    ours_zero = sum(
+        statistics.mean(r[ZERO]["abs_rel"] for k, r in rows.items() if k[:2] == cell)
+        for cell in cells
+    ) / len(cells)
+    return [
+        f"table {table_path}: wide-lens cells {len(cells)}, zero adapter {zero:.4f} (this run "
+        f"{ours_zero:.4f}), supervised {sup:.4f}",
+        f"gap closed: this run's gated fit {(zero - ours) / (zero - sup):.3f}, the table's fit "
+        f"{(zero - pooled(FITTED)) / (zero - sup):.3f}",
+    ]
+
+
+def analyse(
+    paths: list[str], references: list[str], veto: float | None = None, table: str | None = None
+) -> list[str]:
     """The rule's numbers for the gated fit and the 24-frame reference fit, over the sequences
     both hold; with ``veto``, for the second form of the gate (:func:`vetoed`)."""
     mine: dict[tuple, dict[str, dict]] = {}
@@ -130,6 +170,8 @@ def analyse(paths: list[str], references: list[str], veto: float | None = None) 
         kept = sum(rows[FITTED]["kept"] for rows in mine.values())
         worst = max(r[FITTED]["abs_rel"] / r[ZERO]["abs_rel"] - 1 for r in mine.values())
         lines += ["", f"kept {kept}/{len(mine)}; worst AbsRel change vs zero {100 * worst:+.1f} %"]
+    if table:
+        lines += table_gap(table, mine)
     return lines
 
 
@@ -148,6 +190,9 @@ def main() -> None:
     parser.add_argument("--analyse", nargs="+", default=None, help="check_gate JSON files")
     parser.add_argument("--reference", nargs="*", default=[], help="benchmark results.json")
     parser.add_argument(
+        "--table", default=None, help="a bench table (docs/results.md) for the pooled gap"
+    )
+    parser.add_argument(
         "--veto",
         type=float,
         default=None,
@@ -155,7 +200,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     if args.analyse:
-        print("\n".join(analyse(args.analyse, args.reference, args.veto)))
+        print("\n".join(analyse(args.analyse, args.reference, args.veto, args.table)))
         return
     torch.set_num_threads(1)
     if args.weights:
