@@ -53,10 +53,16 @@ from raytun3r_plugin.apps.fits import adapt_config
 from raytun3r_plugin.registry import quiet_upstream
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from experiments.recipe_rule import FITTED, SUPERVISED, ZERO, report  # noqa: E402
+from experiments.recipe_rule import (  # noqa: E402
+    FITTED,
+    SUPERVISED,
+    WIDE,
+    ZERO,
+    by_sequence,
+    report,
+)
 
 SIZE, STEPS, N_FIT, N_CHECK, N_EVAL = 112, 300, 20, 4, 12
-WIDE = ("KB4 185", "DS 195")
 UNGATED = "raytun3r, 20 frames"
 
 
@@ -115,15 +121,14 @@ def table_gap(table_path: str, rows: dict[tuple, dict[str, dict]]) -> list[str]:
     def pooled(method: str) -> float:
         return sum(means[(c, s, method)] for c, s in cells) / len(cells)
 
+    def this_run(method: str) -> float:
+        return sum(
+            statistics.mean(r[method]["abs_rel"] for k, r in rows.items() if k[:2] == cell)
+            for cell in cells
+        ) / len(cells)
+
     zero, sup = pooled(ZERO), pooled(SUPERVISED)
-    ours = sum(
-        statistics.mean(r[FITTED]["abs_rel"] for k, r in rows.items() if k[:2] == cell)
-        for cell in cells
-    ) / len(cells)
-    ours_zero = sum(
-        statistics.mean(r[ZERO]["abs_rel"] for k, r in rows.items() if k[:2] == cell)
-        for cell in cells
-    ) / len(cells)
+    ours, ours_zero = this_run(FITTED), this_run(ZERO)
     return [
         f"table {table_path}: wide-lens cells {len(cells)}, zero adapter {zero:.4f} (this run "
         f"{ours_zero:.4f}), supervised {sup:.4f}",
@@ -137,16 +142,10 @@ def analyse(
 ) -> list[str]:
     """The rule's numbers for the gated fit and the 24-frame reference fit, over the sequences
     both hold; with ``veto``, for the second form of the gate (:func:`vetoed`)."""
-    mine: dict[tuple, dict[str, dict]] = {}
-    for path in paths:
-        for r in json.loads(Path(path).read_text())["sequences"]:
-            mine.setdefault((r["camera"], r["scene"], r["seed"]), {})[r["method"]] = r
+    mine = dict(by_sequence(paths))
     if veto is not None:
         mine = {key: vetoed(rows, veto) for key, rows in mine.items()}
-    reference: dict[tuple, dict[str, dict]] = {}
-    for path in references:
-        for r in json.loads(Path(path).read_text())["sequences"]:
-            reference.setdefault((r["camera"], r["scene"], r["seed"]), {})[r["method"]] = r
+    reference = by_sequence(references)
     lines = []
     for key, rows in sorted(mine.items()):
         check = rows[FITTED]["check"]

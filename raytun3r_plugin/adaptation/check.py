@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from raytun3r_plugin.adaptation.config import AdaptConfig
+from raytun3r_plugin.adaptation.config import AdaptConfig, parse_check_frames
 from raytun3r_plugin.adaptation.losses import LossWeights
 from raytun3r_plugin.adaptation.problem import prepare_problem, split_segments
 from raytun3r_plugin.adaptation.step import objective_value
@@ -53,14 +53,9 @@ def check_frame_count(frames: int, asked: str | int = "auto") -> int:
     :data:`MIN_SEGMENT_FOR_CHECK` frames, else 0. An integer is taken as given, but must leave
     at least 3 frames to fit on and be 0 or at least 3 (a window of 3 frames is scored).
     """
-    if asked == "auto":
+    count = parse_check_frames(asked)
+    if isinstance(count, str):  # "auto"
         return max(3, frames // 5) if frames >= MIN_SEGMENT_FOR_CHECK else 0
-    try:
-        count = int(asked)
-    except (TypeError, ValueError):
-        raise InputError(f"--check-frames must be 'auto' or an integer, got {asked!r}") from None
-    if count != 0 and count < 3:
-        raise InputError(f"--check-frames {count}: 0, or at least 3 frames (one window)")
     if frames - count < 3:
         raise InputError(
             f"--check-frames {count} leaves {frames - count} of {frames} frames to fit on; "

@@ -259,8 +259,11 @@ class AdaptConfig:
             self.teacher_view_weights = None
         if self.cache_dir is not None:
             self.cache_dir = str(self.cache_dir)
-        if isinstance(self.check_frames, str) and self.check_frames.strip().isdigit():
-            self.check_frames = int(self.check_frames)  # "5" from a command line
+        try:
+            self.check_frames = parse_check_frames(self.check_frames)  # "5" from a command line
+            check_frames_ok = True
+        except InputError:
+            check_frames_ok = False
         checks = (
             ("steps", self.steps >= 0),
             ("lr", self.lr > 0),
@@ -279,14 +282,14 @@ class AdaptConfig:
             ("guard_every", self.guard_every >= 1),
             ("min_parallax_px", self.min_parallax_px >= 0),
             ("pose_gate", self.pose_gate is None or self.pose_gate >= 0),
-            ("check_frames", _check_frames_ok(self.check_frames)),
+            ("check_frames", check_frames_ok),
             (
                 "check_veto",
                 self.check_veto is None
                 or (
                     isinstance(self.check_veto, (int, float))
                     and 0 <= self.check_veto < 1
-                    and self.check_frames not in (0, "0")
+                    and self.check_frames != 0
                 ),
             ),
             ("refine_intrinsics", isinstance(self.refine_intrinsics, bool)),
@@ -362,7 +365,7 @@ class AdaptConfig:
             del out["refine_intrinsics"]
         if self.pose_gate is None:
             del out["pose_gate"]
-        if self.check_frames in (0, "0"):
+        if self.check_frames == 0:
             del out["check_frames"]
         if self.check_veto is None:
             del out["check_veto"]
@@ -485,17 +488,24 @@ class AdaptConfig:
 _FIELDS = frozenset(AdaptConfig.__dataclass_fields__)
 
 
-def _check_frames_ok(value: Any) -> bool:
-    """``"auto"``, 0 or a count of at least 3 (a scored window has 3 frames)."""
-    if value == "auto":
-        return True
-    if isinstance(value, bool) or not isinstance(value, (int, str)):
-        return False
+def parse_check_frames(asked: Any) -> str | int:
+    """``"auto"``, or the count of check frames ``asked`` names (``5`` or ``"5"``): 0, or at least
+    3 (a scored window has 3 frames).
+
+    Raises:
+        InputError: anything else.
+    """
+    if asked == "auto":
+        return "auto"
+    if isinstance(asked, bool) or not isinstance(asked, (int, str)):
+        raise InputError(f"--check-frames must be 'auto' or an integer, got {asked!r}")
     try:
-        count = int(value)
+        count = int(asked)
     except ValueError:
-        return False
-    return count == 0 or count >= 3
+        raise InputError(f"--check-frames must be 'auto' or an integer, got {asked!r}") from None
+    if count != 0 and count < 3:
+        raise InputError(f"--check-frames {count}: 0, or at least 3 frames (one window)")
+    return count
 
 
 def _family_changes(model: nn.Module | None, recipe: str) -> Mapping[str, Any]:
