@@ -1,0 +1,207 @@
+"""Patch resampling's local map: the central pinhole's (today) against a pinhole turned to look
+along each patch's own ray (the paper's stated aim, "a pinhole crop from the same viewing
+direction"), measured for rotation and depth on the benchmark's sequences.
+
+Today each patch is resampled with the local inverse Jacobian of the fisheye-to-pinhole map of a
+pinhole on the lens axis (``geometry.patch_resample_grid``). Away from the axis that pinhole
+stretches the image radially by 1/cos^2 of the ray angle, so the local map zooms each rim patch
+in (its singular values clamped at 1/2): a patch samples about a quarter of its own footprint,
+and the content between patches reaches no token. The candidate ``turned`` takes the Jacobian
+against a pinhole of the same focal length turned (by the smallest rotation) to look along the
+patch centre's ray: no perspective stretch, so a rim patch is resampled to the lens's own local
+scale and keeps its content.
+
+    python experiments/patch_resample_map.py --coverage
+    python experiments/patch_resample_map.py [--development] [--cells ...] [--recipes default]
+        [--network v3] [--out runs/resample.json]
+
+The decision it serves: docs/decisions.md, "Patch resampling's local map".
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+
+from raytun3r_plugin import geometry, synthetic
+from raytun3r_plugin.adaptation.train import adapt
+from raytun3r_plugin.apps.benchmark import (
+    CAMERAS,
+    DEVELOPMENT_SEED,
+    HELD_OUT_SEED,
+    SCENES,
+    SEQUENCES_PER_CELL,
+    make_camera,
+    sequence_seed,
+)
+from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, default_network
+from raytun3r_plugin.apps.evaluation import headline, run_method, score
+from raytun3r_plugin.apps.fits import adapt_config
+from raytun3r_plugin.registry import quiet_upstream
+
+SIZE, N_ADAPT, N_EVAL, STEPS = 112, 24, 12, 300
+CENTRAL = geometry.patch_resample_grid
+MAPS = ("central", "turned")
+
+
+def _turned_jacobian(camera, centres: torch.Tensor, step: float = 0.25) -> torch.Tensor:
+    """(n, 2, 2) Jacobian of fisheye pixels -> pixels of a pinhole turned to each centre's ray.
+
+    The turned pinhole has the camera's focal lengths and looks along the ray of the centre
+    (rotation about z x ray, the smallest one), so at its own centre it has no perspective stretch.
+    """
+    rays, _ = camera.unproject(centres)
+    rays = rays.to(torch.float64)
+    axis = torch.stack((-rays[:, 1], rays[:, 0], torch.zeros_like(rays[:, 0])), dim=-1)
+    sin = axis.norm(dim=-1).clamp_min(1e-12)
+    axis = axis / sin[:, None]
+    cos = rays[:, 2]
+    focal = torch.tensor([float(camera.fx), float(camera.fy)], dtype=torch.float64)
+
+    def to_turned(points: torch.Tensor) -> torch.Tensor:
+        r, _ = camera.unproject(points)
+        r = r.to(torch.float64)
+        # Rodrigues with the inverse rotation (angle -a): the ray in the turned camera's frame.
+        cross = torch.cross(axis, r, dim=-1)
+        dot = (axis * r).sum(-1, keepdim=True)
+        local = r * cos[:, None] - cross * sin[:, None] + axis * dot * (1 - cos[:, None])
+        return focal * local[:, :2] / local[:, 2:3].clamp_min(1e-9)
+
+    columns = []
+    for index in range(2):
+        delta = torch.zeros(2, dtype=torch.float64)
+        delta[index] = step
+        columns.append((to_turned(centres + delta) - to_turned(centres - delta)) / (2 * step))
+    return torch.stack(columns, dim=-1)
+
+
+def turned_resample_grid(
+    camera, height: int, width: int, patch: int, knee_deg: float = 60.0, max_stretch: float = 2.0
+) -> torch.Tensor | None:
+    """``patch_resample_grid`` with the turned pinhole's local map (same clamp, same layout)."""
+    centres = geometry.token_centres(height, width, patch)
+    _, valid = camera.unproject(centres)
+    jac = _turned_jacobian(camera, centres)
+    eye = torch.eye(2, dtype=torch.float64).expand_as(jac)
+    jac = torch.where(valid.bool()[:, None, None], jac, eye)
+    u, s, vh = torch.linalg.svd(torch.linalg.inv(jac))
+    local = u @ torch.diag_embed(s.clamp(1.0 / max_stretch, max_stretch)) @ vh
+    offsets_1d = torch.arange(patch, dtype=torch.float64) - (patch - 1) / 2
+    oy, ox = torch.meshgrid(offsets_1d, offsets_1d, indexing="ij")
+    offsets = torch.stack((ox, oy), dim=-1).reshape(-1, 2)
+    displaced = torch.einsum("nij,kj->nki", local, offsets)
+    if (displaced - offsets).abs().max() < geometry.IDENTITY_TOLERANCE_PX:
+        return None
+    sample = centres[:, None, :] + displaced
+    h, w = height // patch, width // patch
+    sample = sample.reshape(h, w, patch, patch, 2).permute(0, 2, 1, 3, 4).reshape(height, width, 2)
+    return torch.stack(
+        ((2 * sample[..., 0] + 1) / width - 1, (2 * sample[..., 1] + 1) / height - 1), dim=-1
+    )[None]
+
+
+@contextmanager
+def local_map(name: str):
+    """Resample patches with the named local map while the block runs."""
+    geometry.patch_resample_grid = CENTRAL if name == "central" else turned_resample_grid
+    try:
+        yield
+    finally:
+        geometry.patch_resample_grid = CENTRAL
+
+
+def coverage(camera, size: int, name: str) -> float:
+    """Fraction of the lens's valid pixels that some patch's bilinear taps read."""
+    grid = (CENTRAL if name == "central" else turned_resample_grid)(camera, size, size, 14)
+    if grid is None:
+        return 1.0
+    x = (grid[0, ..., 0] + 1) * size / 2 - 0.5
+    y = (grid[0, ..., 1] + 1) * size / 2 - 0.5
+    read = torch.zeros(size, size, dtype=torch.bool)
+    for fx in (torch.floor(x), torch.floor(x) + 1):
+        for fy in (torch.floor(y), torch.floor(y) + 1):
+            inside = (fx >= 0) & (fx < size) & (fy >= 0) & (fy < size)
+            read[fy[inside].long(), fx[inside].long()] = True
+    valid = camera.valid_mask().bool()
+    return float((read & valid).sum() / valid.sum())
+
+
+def one_sequence(model, spec, scene: str, seed: int, recipes: list[str]) -> dict:
+    """Rotation (deg), AbsRel and d_reproj (px) of every method on one sequence, per local map."""
+    camera = make_camera(spec, SIZE)
+    seq = synthetic.render_sequence(scene, camera, n_frames=N_ADAPT + N_EVAL, seed=seed)
+    held_out = list(range(N_ADAPT, N_ADAPT + N_EVAL))
+    row: dict[str, dict[str, float]] = {}
+
+    def record(name: str, method: str, **kwargs) -> None:
+        numbers = headline(score(seq, run_method(model, seq, method, frames=held_out, **kwargs)))
+        row[name] = {k: float(numbers[k]) for k in ("rot_deg", "abs_rel", "d_reproj_px")}
+
+    record("vanilla", "vanilla")
+    record("center-ph", "center-ph")
+    for name in MAPS:
+        with local_map(name):
+            record(f"zero adapter, {name}", "raytun3r")
+            for recipe in recipes:
+                config = adapt_config(SIZE, STEPS, recipe=recipe, seed=0)
+                fitted = adapt(model, camera, seq.first_images(N_ADAPT), config, progress=False)
+                record(f"{recipe} recipe, {name}", "raytun3r", adapter=fitted)
+    return row
+
+
+def _print_means(rows: list[dict], cells: list[str]) -> None:
+    methods = [m for m in rows[0] if m not in ("camera", "scene", "seed")]
+    for metric in ("rot_deg", "abs_rel", "d_reproj_px"):
+        print(f"\n{metric}, mean over the cell's sequences")
+        print("| cell | " + " | ".join(methods) + " |")
+        for cell in cells:
+            mine = [r for r in rows if f"{r['camera']} {r['scene']}" == cell]
+            if mine:
+                means = [statistics.mean(r[m][metric] for r in mine) for m in methods]
+                print(f"| {cell} ({len(mine)}) | " + " | ".join(f"{v:.3f}" for v in means) + " |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    cells = [f"{spec.label} {scene}" for spec in CAMERAS for scene in SCENES]
+    parser.add_argument("--coverage", action="store_true", help="print coverage only")
+    parser.add_argument("--cells", nargs="+", default=cells, choices=cells)
+    parser.add_argument("--sequences", type=int, default=SEQUENCES_PER_CELL)
+    parser.add_argument("--development", action="store_true", help="development seeds (80000+)")
+    parser.add_argument("--recipes", nargs="*", default=["default"])
+    parser.add_argument("--network", default=DEFAULT_NETWORK)
+    parser.add_argument("--out", default="runs/resample.json")
+    args = parser.parse_args()
+    if args.coverage:
+        for size in (112, 504):
+            for spec in CAMERAS:
+                camera = make_camera(spec, size)
+                shares = ", ".join(f"{m} {coverage(camera, size, m):.3f}" for m in MAPS)
+                print(f"{spec.label} at {size} px: share of the lens's pixels read: {shares}")
+        return
+    torch.set_num_threads(1)
+    model, _ = default_network(args.network)
+    rows = []
+    with quiet_upstream():
+        for c, spec in enumerate(CAMERAS):
+            for s, scene in enumerate(SCENES):
+                if f"{spec.label} {scene}" not in args.cells:
+                    continue
+                for k in range(args.sequences):
+                    base = DEVELOPMENT_SEED if args.development else HELD_OUT_SEED
+                    seed = sequence_seed(c, s, k, base)
+                    row = one_sequence(model, spec, scene, seed, args.recipes)
+                    rows.append({"camera": spec.label, "scene": scene, "seed": seed, **row})
+                    print(json.dumps(rows[-1]), flush=True)
+                    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+                    Path(args.out).write_text(json.dumps(rows, indent=1))
+    _print_means(rows, args.cells)
+
+
+if __name__ == "__main__":
+    main()
