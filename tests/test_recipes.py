@@ -323,6 +323,30 @@ def test_the_pose_oracle_fits_the_tables_to_the_true_relative_poses(network, seg
         adapt(network, camera, seq.images, poses=seq.cam_from_world, depth=seq.depth)
 
 
+def test_refined_intrinsics_keep_the_pose_oracles_true_targets(network, segment, monkeypatch):
+    """With ``refine_intrinsics``, the problem is prepared again for the refined camera; the true
+    relative poses given to ``adapt`` must be its targets still, not the matches' own."""
+    from types import SimpleNamespace
+
+    from raytun3r_plugin.adaptation import intrinsics
+
+    camera, _ = segment
+    seq = synthetic.render_sequence("indoor", camera, n_frames=8, seed=31)
+    refined = SimpleNamespace(refined=True, to_dict=lambda: {"refined": True})
+    monkeypatch.setattr(intrinsics, "refine_intrinsics", lambda cam, _set: (cam, refined))
+    config = AdaptConfig.from_recipe(
+        "pose-oracle",
+        steps=1,
+        n_windows=3,
+        input_size=112,
+        checkpoint_every=0,
+        refine_intrinsics=True,
+    )
+    adapter = adapt(network, camera, seq.images, config, poses=seq.cam_from_world, progress=False)
+    assert adapter.training_info["intrinsics"] == {"refined": True}
+    assert adapter.training_info["supervision"]["kind"] == "poses"
+
+
 def test_the_trajectory_recipe_is_the_pose_oracle_on_the_matches_own_targets(network, segment):
     """``trajectory``: the oracle's settings, fitted without ground truth (the MAGSAC++ relative
     poses), so a user can run it on their own footage; it moves the tables through the pose term

@@ -258,21 +258,9 @@ def _fit(
         if adapter is None
         else copy.deepcopy(adapter)
     )
-    problem = prepare_problem(camera, frames, config, adapter.patch_size, mask=mask, depth=depth)
-    if poses is not None:
-        with_pose_targets(problem, poses)
-    intrinsics = None
-    if config.refine_intrinsics:
-        from raytun3r_plugin.adaptation.intrinsics import refine_intrinsics
-
-        # Rough calibration first: the matches and targets are then recomputed with the refined
-        # camera, so the rays, targets and the adapter's camera all agree with it.
-        camera, report = refine_intrinsics(camera, problem.adaptation)
-        intrinsics = report.to_dict()
-        if report.refined:
-            problem = prepare_problem(
-                camera, frames, config, adapter.patch_size, mask=mask, depth=depth
-            )
+    problem, intrinsics = _prepared_problem(
+        camera, frames, config, adapter.patch_size, mask=mask, depth=depth, poses=poses
+    )
     problem.pe_scale = regulariser_scale(model, config)
     adapter.camera = problem.layout.native_camera
     requested, pose_gate = config, None
@@ -337,16 +325,14 @@ def _fit(
         config, problem, completed, history, outcome.interrupted, outcome.seconds, start
     )
     adapter.training_info["recipe"] = requested.recipe_record(model)
-    if pose_gate is not None:
-        adapter.training_info["pose_gate"] = pose_gate
-    if intrinsics is not None:
-        adapter.training_info["intrinsics"] = intrinsics
-    if guard is not None:
-        adapter.training_info["guard"] = guard.report()
-    if parallax is not None:
-        adapter.training_info["parallax_gate"] = parallax
-    if teacher_record is not None:
-        adapter.training_info["teacher"] = teacher_record
+    gates = {
+        "pose_gate": pose_gate,
+        "intrinsics": intrinsics,
+        "guard": None if guard is None else guard.report(),
+        "parallax_gate": parallax,
+        "teacher": teacher_record,
+    }
+    adapter.training_info.update({k: v for k, v in gates.items() if v is not None})
     adapter.training_info["verdict"] = fit_verdict(adapter, history, problem, guard, parallax)
     if tune is not None:
         _record_tuned(adapter, tune)
@@ -360,6 +346,34 @@ def _fit(
             paths, read_loss_log(paths["log"]) if paths["log"].is_file() else history
         )
     return adapter
+
+
+def _prepared_problem(
+    camera: Camera,
+    frames: Any,
+    config: AdaptConfig,
+    patch_size: int,
+    *,
+    mask: Any,
+    depth: Any,
+    poses: Any,
+) -> tuple[Any, dict | None]:
+    """The fit's problem (matches, targets, windows), and the intrinsics report when refined."""
+    problem = prepare_problem(camera, frames, config, patch_size, mask=mask, depth=depth)
+    if poses is not None:
+        with_pose_targets(problem, poses)
+    if not config.refine_intrinsics:
+        return problem, None
+    from raytun3r_plugin.adaptation.intrinsics import refine_intrinsics
+
+    # Rough calibration first: the matches and targets are then recomputed with the refined
+    # camera, so the rays, targets and the adapter's camera all agree with it.
+    camera, report = refine_intrinsics(camera, problem.adaptation)
+    if report.refined:
+        problem = prepare_problem(camera, frames, config, patch_size, mask=mask, depth=depth)
+        if poses is not None:
+            with_pose_targets(problem, poses)
+    return problem, report.to_dict()
 
 
 def _record_tuned(adapter: Adapter, tune: nn.Module) -> None:
