@@ -2,14 +2,15 @@
 along each patch's own ray (the paper's stated aim, "a pinhole crop from the same viewing
 direction"), measured for rotation and depth on the benchmark's sequences.
 
-Today each patch is resampled with the local inverse Jacobian of the fisheye-to-pinhole map of a
-pinhole on the lens axis (``geometry.patch_resample_grid``). Away from the axis that pinhole
-stretches the image radially by 1/cos^2 of the ray angle, so the local map zooms each rim patch
-in (its singular values clamped at 1/2): a patch samples about a quarter of its own footprint,
-and the content between patches reaches no token. The candidate ``turned`` takes the Jacobian
-against a pinhole of the same focal length turned (by the smallest rotation) to look along the
-patch centre's ray: no perspective stretch, so a rim patch is resampled to the lens's own local
-scale and keeps its content.
+``central`` resamples each patch with the local inverse Jacobian of the map to a pinhole on the
+lens axis. Away from the axis that pinhole stretches the image radially by 1/cos^2 of the ray
+angle, so the local map zooms each rim patch in (its singular values clamped at 1/2): a patch
+reads about a quarter of its own footprint, and the content between patches reaches no token.
+``turned`` takes the Jacobian against a pinhole of the same focal length turned (by the smallest
+rotation) to look along the patch centre's ray: no perspective stretch, so a rim patch is
+resampled to the lens's own local scale and keeps its content. Both are
+``geometry.patch_resample_grid(..., local_map=NAME)``; every fit and score of a row runs under
+the map it names.
 
     python experiments/patch_resample_map.py --coverage
     python experiments/patch_resample_map.py [--development] [--cells ...] [--recipes default]
@@ -21,6 +22,7 @@ The decision it serves: docs/decisions.md, "Patch resampling's local map".
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import statistics
 from contextlib import contextmanager
@@ -45,79 +47,23 @@ from raytun3r_plugin.apps.fits import adapt_config
 from raytun3r_plugin.registry import quiet_upstream
 
 SIZE, N_ADAPT, N_EVAL, STEPS = 112, 24, 12, 300
-CENTRAL = geometry.patch_resample_grid
+LIBRARY_GRID = geometry.patch_resample_grid
 MAPS = ("central", "turned")
-
-
-def _turned_jacobian(camera, centres: torch.Tensor, step: float = 0.25) -> torch.Tensor:
-    """(n, 2, 2) Jacobian of fisheye pixels -> pixels of a pinhole turned to each centre's ray.
-
-    The turned pinhole has the camera's focal lengths and looks along the ray of the centre
-    (rotation about z x ray, the smallest one), so at its own centre it has no perspective stretch.
-    """
-    rays, _ = camera.unproject(centres)
-    rays = rays.to(torch.float64)
-    axis = torch.stack((-rays[:, 1], rays[:, 0], torch.zeros_like(rays[:, 0])), dim=-1)
-    sin = axis.norm(dim=-1).clamp_min(1e-12)
-    axis = axis / sin[:, None]
-    cos = rays[:, 2]
-    focal = torch.tensor([float(camera.fx), float(camera.fy)], dtype=torch.float64)
-
-    def to_turned(points: torch.Tensor) -> torch.Tensor:
-        r, _ = camera.unproject(points)
-        r = r.to(torch.float64)
-        # Rodrigues with the inverse rotation (angle -a): the ray in the turned camera's frame.
-        cross = torch.cross(axis, r, dim=-1)
-        dot = (axis * r).sum(-1, keepdim=True)
-        local = r * cos[:, None] - cross * sin[:, None] + axis * dot * (1 - cos[:, None])
-        return focal * local[:, :2] / local[:, 2:3].clamp_min(1e-9)
-
-    columns = []
-    for index in range(2):
-        delta = torch.zeros(2, dtype=torch.float64)
-        delta[index] = step
-        columns.append((to_turned(centres + delta) - to_turned(centres - delta)) / (2 * step))
-    return torch.stack(columns, dim=-1)
-
-
-def turned_resample_grid(
-    camera, height: int, width: int, patch: int, knee_deg: float = 60.0, max_stretch: float = 2.0
-) -> torch.Tensor | None:
-    """``patch_resample_grid`` with the turned pinhole's local map (same clamp, same layout)."""
-    centres = geometry.token_centres(height, width, patch)
-    _, valid = camera.unproject(centres)
-    jac = _turned_jacobian(camera, centres)
-    eye = torch.eye(2, dtype=torch.float64).expand_as(jac)
-    jac = torch.where(valid.bool()[:, None, None], jac, eye)
-    u, s, vh = torch.linalg.svd(torch.linalg.inv(jac))
-    local = u @ torch.diag_embed(s.clamp(1.0 / max_stretch, max_stretch)) @ vh
-    offsets_1d = torch.arange(patch, dtype=torch.float64) - (patch - 1) / 2
-    oy, ox = torch.meshgrid(offsets_1d, offsets_1d, indexing="ij")
-    offsets = torch.stack((ox, oy), dim=-1).reshape(-1, 2)
-    displaced = torch.einsum("nij,kj->nki", local, offsets)
-    if (displaced - offsets).abs().max() < geometry.IDENTITY_TOLERANCE_PX:
-        return None
-    sample = centres[:, None, :] + displaced
-    h, w = height // patch, width // patch
-    sample = sample.reshape(h, w, patch, patch, 2).permute(0, 2, 1, 3, 4).reshape(height, width, 2)
-    return torch.stack(
-        ((2 * sample[..., 0] + 1) / width - 1, (2 * sample[..., 1] + 1) / height - 1), dim=-1
-    )[None]
 
 
 @contextmanager
 def local_map(name: str):
     """Resample patches with the named local map while the block runs."""
-    geometry.patch_resample_grid = CENTRAL if name == "central" else turned_resample_grid
+    geometry.patch_resample_grid = functools.partial(LIBRARY_GRID, local_map=name)
     try:
         yield
     finally:
-        geometry.patch_resample_grid = CENTRAL
+        geometry.patch_resample_grid = LIBRARY_GRID
 
 
 def coverage(camera, size: int, name: str) -> float:
     """Fraction of the lens's valid pixels that some patch's bilinear taps read."""
-    grid = (CENTRAL if name == "central" else turned_resample_grid)(camera, size, size, 14)
+    grid = LIBRARY_GRID(camera, size, size, 14, local_map=name)
     if grid is None:
         return 1.0
     x = (grid[0, ..., 0] + 1) * size / 2 - 0.5

@@ -172,6 +172,46 @@ def _jacobian_of_map(
     return torch.stack(columns, dim=-1)
 
 
+def _turned_pinhole_jacobian(
+    camera: Camera, points: torch.Tensor, step: float = 0.25
+) -> torch.Tensor:
+    """(n, 2, 2) Jacobian at ``points`` (n, 2) of the map to a pinhole turned to each point's ray.
+
+    The pinhole has the camera's focal lengths and looks along the ray of the point (turned by
+    the smallest rotation, about z x ray), so at the point it has no perspective stretch: the
+    Jacobian is the lens's own local scale against a pinhole's. Points without a ray get the
+    identity.
+    """
+    rays, valid = camera.unproject(points)
+    rays = rays.to(torch.float64)
+    axis = torch.stack((-rays[:, 1], rays[:, 0], torch.zeros_like(rays[:, 0])), dim=-1)
+    sin = axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    axis = axis / sin
+    cos = rays[:, 2:3]
+    focal = torch.tensor([float(camera.fx), float(camera.fy)], dtype=torch.float64)
+
+    def in_turned_pinhole(uv: torch.Tensor) -> torch.Tensor:
+        ray, _ = camera.unproject(uv)
+        ray = ray.to(torch.float64)
+        # Rodrigues' formula with the inverse rotation: the ray in the turned pinhole's frame.
+        local = (
+            ray * cos
+            - torch.cross(axis, ray, dim=-1) * sin
+            + axis * (axis * ray).sum(-1, keepdim=True) * (1 - cos)
+        )
+        return focal * local[:, :2] / local[:, 2:3].clamp_min(1e-9)
+
+    columns = []
+    for index in range(2):
+        delta = torch.zeros(2, dtype=torch.float64)
+        delta[index] = step
+        plus, minus = in_turned_pinhole(points + delta), in_turned_pinhole(points - delta)
+        columns.append((plus - minus) / (2 * step))
+    jacobian = torch.stack(columns, dim=-1)
+    eye = torch.eye(2, dtype=torch.float64).expand_as(jacobian)
+    return torch.where(valid.bool()[:, None, None], jacobian, eye)
+
+
 def patch_resample_grid(
     camera: Camera,
     height: int,
@@ -179,15 +219,28 @@ def patch_resample_grid(
     patch: int,
     knee_deg: float = DEFAULT_KNEE_DEG,
     max_stretch: float = DEFAULT_MAX_STRETCH,
+    local_map: str = "central",
 ) -> torch.Tensor | None:
     """Normalised ``grid_sample`` grid (1, H, W, 2) that locally undistorts every patch.
 
-    The output pixel at patch centre c plus offset e samples the input at c + A e with
-    A = (dM/dx at c)^-1, singular values clamped to [1/s, s]. Returns None when A is the identity
-    for every patch (then resampling is skipped and upstream tokens are reproduced exactly).
+    The output pixel at patch centre c plus offset e samples the input at c + A e, with A the
+    inverse Jacobian at c of the map to a pinhole, singular values clamped to [1/s, s].
+    ``local_map="central"`` (the default): the map M to the pinhole on the lens axis
+    (``knee_deg``). Its perspective stretch away from the axis zooms rim patches in, so about
+    half of a 185-degree lens reaches no patch, yet indoors the depth error is lower with it.
+    ``"turned"``: a pinhole turned to look along c's ray, so each patch becomes a pinhole crop
+    from its own viewing direction at the lens's local scale and every lens pixel is read; it
+    keeps the network's rotation near vanilla's (docs/decisions.md, "Patch resampling's local
+    map"). Returns None when A is the identity for every patch (then resampling is skipped and
+    upstream tokens are reproduced exactly).
     """
     centres = token_centres(height, width, patch)
-    jac = _jacobian_of_map(camera, centres, knee_deg)
+    if local_map == "turned":
+        jac = _turned_pinhole_jacobian(camera, centres)
+    elif local_map == "central":
+        jac = _jacobian_of_map(camera, centres, knee_deg)
+    else:
+        raise InputError(f"local_map must be 'turned' or 'central', got {local_map!r}")
     inverse = torch.linalg.inv(jac)
     u, s, vh = torch.linalg.svd(inverse)
     s = s.clamp(1.0 / max_stretch, max_stretch)
