@@ -8,9 +8,9 @@ angle, so the local map zooms each rim patch in (its singular values clamped at 
 reads about a quarter of its own footprint, and the content between patches reaches no token.
 ``turned`` takes the Jacobian against a pinhole of the same focal length turned (by the smallest
 rotation) to look along the patch centre's ray: no perspective stretch, so a rim patch is
-resampled to the lens's own local scale and keeps its content. Both are
-``geometry.patch_resample_grid(..., local_map=NAME)``; every fit and score of a row runs under
-the map it names.
+resampled to the lens's own local scale and keeps its content (the components switch
+``"resample_turned"``; both are ``geometry.patch_resample_grid(..., local_map=NAME)``). Every
+fit and score of a row runs under the map it names.
 
     python experiments/patch_resample_map.py --coverage
     python experiments/patch_resample_map.py [--development] [--cells ...] [--recipes default]
@@ -22,16 +22,15 @@ The decision it serves: docs/decisions.md, "Patch resampling's local map".
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import statistics
-from contextlib import contextmanager
 from pathlib import Path
 
 import torch
 
 from raytun3r_plugin import geometry, synthetic
 from raytun3r_plugin.adaptation.train import adapt
+from raytun3r_plugin.adapter import COMPONENTS
 from raytun3r_plugin.apps.benchmark import (
     CAMERAS,
     DEVELOPMENT_SEED,
@@ -47,23 +46,17 @@ from raytun3r_plugin.apps.fits import adapt_config
 from raytun3r_plugin.registry import quiet_upstream
 
 SIZE, N_ADAPT, N_EVAL, STEPS = 112, 24, 12, 300
-LIBRARY_GRID = geometry.patch_resample_grid
 MAPS = ("central", "turned")
 
 
-@contextmanager
-def local_map(name: str):
-    """Resample patches with the named local map while the block runs."""
-    geometry.patch_resample_grid = functools.partial(LIBRARY_GRID, local_map=name)
-    try:
-        yield
-    finally:
-        geometry.patch_resample_grid = LIBRARY_GRID
+def switches(name: str) -> list[str]:
+    """``components=`` of every correction with patch resampling's ``name`` map."""
+    return [*COMPONENTS, "resample_turned"] if name == "turned" else list(COMPONENTS)
 
 
 def coverage(camera, size: int, name: str) -> float:
     """Fraction of the lens's valid pixels that some patch's bilinear taps read."""
-    grid = LIBRARY_GRID(camera, size, size, 14, local_map=name)
+    grid = geometry.patch_resample_grid(camera, size, size, 14, local_map=name)
     if grid is None:
         return 1.0
     x = (grid[0, ..., 0] + 1) * size / 2 - 0.5
@@ -91,12 +84,12 @@ def one_sequence(model, spec, scene: str, seed: int, recipes: list[str]) -> dict
     record("vanilla", "vanilla")
     record("center-ph", "center-ph")
     for name in MAPS:
-        with local_map(name):
-            record(f"zero adapter, {name}", "raytun3r")
-            for recipe in recipes:
-                config = adapt_config(SIZE, STEPS, recipe=recipe, seed=0)
-                fitted = adapt(model, camera, seq.first_images(N_ADAPT), config, progress=False)
-                record(f"{recipe} recipe, {name}", "raytun3r", adapter=fitted)
+        record(f"zero adapter, {name}", "raytun3r", components=switches(name))
+        for recipe in recipes:
+            config = adapt_config(SIZE, STEPS, recipe=recipe, seed=0, components=switches(name))
+            fitted = adapt(model, camera, seq.first_images(N_ADAPT), config, progress=False)
+            # Scored with the components the adapter file records, as ``apply`` uses them.
+            record(f"{recipe} recipe, {name}", "raytun3r", adapter=fitted)
     return row
 
 

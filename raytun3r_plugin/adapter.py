@@ -33,11 +33,14 @@ DEFAULT_N_R_ROPE = 20
 #: Corrections that can be switched on and off (docs/conventions.md section 5); tables are "pe" and "rope".
 #: Each is a key of every components dict (``adapter.components``, ``handle.components``).
 COMPONENTS = ("pe", "rope", "patch_resample", "border_tokens", "grid")
-#: Ablation switches (docs/components.md), off unless named: ``"pe_radial_only"`` applies only the
+#: Switches (docs/components.md), off unless named: ``"pe_radial_only"`` applies only the
 #: radial PE table (needs ``"pe"``); ``"pe_naive_remap"`` samples the backbone's own PE table at
-#: the tokens' perspective (undistorted) positions instead of ``"pe"`` (excludes it). A components
-#: dict carries a switch only while it is on, so files and dicts without one keep their meaning.
-ABLATION_SWITCHES = ("pe_radial_only", "pe_naive_remap")
+#: the tokens' perspective (undistorted) positions instead of ``"pe"`` (excludes it);
+#: ``"resample_turned"`` resamples each patch as a pinhole turned to its own ray instead of the
+#: pinhole on the lens axis (needs ``"patch_resample"``; ``geometry.patch_resample_grid``). A
+#: components dict carries a switch only while it is on, so files and dicts without one keep
+#: their meaning.
+ABLATION_SWITCHES = ("pe_radial_only", "pe_naive_remap", "resample_turned")
 #: Every name ``components=`` accepts.
 KNOWN_COMPONENTS = COMPONENTS + ABLATION_SWITCHES
 
@@ -93,7 +96,8 @@ def normalise_components(
     Raises:
         AdapterError: an unknown name, a value that is not a bool, ``"pe_naive_remap"`` together
             with ``"pe"`` (the remap replaces the PE correction), or ``"pe_radial_only"``
-            without ``"pe"`` (it modifies a correction that is off).
+            without ``"pe"`` or ``"resample_turned"`` without ``"patch_resample"`` (each
+            modifies a correction that is off).
     """
     if components is None:
         return dict.fromkeys(COMPONENTS, True)
@@ -126,6 +130,11 @@ def normalise_components(
         raise AdapterError(
             "component 'pe_radial_only' restricts the 'pe' correction to its radial table, "
             "but 'pe' is off; switch 'pe' on or leave 'pe_radial_only' out"
+        )
+    if result.get("resample_turned") and not result["patch_resample"]:
+        raise AdapterError(
+            "component 'resample_turned' chooses the local map of the 'patch_resample' "
+            "correction, but 'patch_resample' is off; switch it on or leave 'resample_turned' out"
         )
     return result
 

@@ -473,16 +473,24 @@ class SizeGeometry:
 
         return self._get(("rope", n_bins, device, dtype), build)
 
-    def resample_grid(self, device, dtype) -> torch.Tensor | None:
+    def resample_grid(self, device, dtype, local_map: str = "central") -> torch.Tensor | None:
+        """:func:`patch_resample_grid` of this input with ``local_map``, or None (identity)."""
+
         def build():
             if self.identity:
                 return None
             grid = patch_resample_grid(
-                self.camera, self.height, self.width, self.patch, self.knee_deg, self.max_stretch
+                self.camera,
+                self.height,
+                self.width,
+                self.patch,
+                self.knee_deg,
+                self.max_stretch,
+                local_map,
             )
             return None if grid is None else grid.to(device=device, dtype=dtype)
 
-        return self._get(("resample", device, dtype), build)
+        return self._get(("resample", local_map, device, dtype), build)
 
     def valid_pixels(self) -> torch.Tensor:
         def build():

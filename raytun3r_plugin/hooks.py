@@ -117,7 +117,7 @@ def patch_embedding(owner, state):
             return _rig_patch_embedding(state, original, x, resample, border)
         geometry = state.geometry(x.shape[-2], x.shape[-1])
         if resample:
-            grid = geometry.resample_grid(x.device, x.dtype)
+            grid = geometry.resample_grid(x.device, x.dtype, state.resample_map)
             if grid is not None:
                 x = F.grid_sample(
                     x,
@@ -154,7 +154,7 @@ def _rig_patch_embedding(state, original, x, resample: bool, border: bool):
         # view of the rig stays bit-identical to upstream.
         parts = list(x.unbind(0))
         for view, geometry in enumerate(geometries):
-            grid = geometry.resample_grid(x.device, x.dtype)
+            grid = geometry.resample_grid(x.device, x.dtype, state.resample_map)
             rows = (index == view).nonzero().flatten().tolist()
             if grid is None or not rows:
                 continue

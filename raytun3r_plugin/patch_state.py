@@ -190,6 +190,11 @@ class PatchState:
             return self.disabled_blocks == 0
         return id(self) not in _DISABLED.get()
 
+    @property
+    def resample_map(self) -> str:
+        """The local map of patch resampling (``geometry.patch_resample_grid``'s ``local_map``)."""
+        return "turned" if self.components.get("resample_turned", False) else "central"
+
     def uses(self, component: str) -> bool:
         """True when ``component`` is on and the handle is not disabled in this context."""
         if not self.components.get(component, False) or not self.active:

@@ -30,7 +30,7 @@ from raytun3r_plugin.errors import (
 #: Hook kinds of docs/conventions.md section 1 -> the components (adapter.COMPONENTS, and the
 #: ablation switches of adapter.ABLATION_SWITCHES that need a hook of their own) each serves;
 #: a hook is installed when any of its components is on. ``pe_radial_only`` only modifies
-#: ``pe``, so it installs nothing itself.
+#: ``pe`` and ``resample_turned`` only ``patch_resample``, so they install nothing themselves.
 HOOK_COMPONENTS: dict[str, tuple[str, ...]] = {
     "pe": ("pe", "pe_naive_remap"),
     "rope": ("rope",),

@@ -44,6 +44,7 @@ PATCH = 14
 FULL_PE = ["pe"]
 RADIAL_ONLY = ["pe", "pe_radial_only"]
 NAIVE = ["pe_naive_remap"]
+TURNED = ["pe", "patch_resample", "resample_turned"]
 
 
 @pytest.fixture(scope="module")
@@ -107,6 +108,8 @@ def test_switches_appear_only_while_on():
         (["pe_radial_only", "pe_naive_remap"], "'pe' is off"),
         (["pe_angular"], "unknown components \\['pe_angular'\\]"),
         ({"pe_radial_only": 1}, "component 'pe_radial_only' must be True or False"),
+        (["resample_turned"], "'resample_turned' chooses the local map.*'patch_resample' is off"),
+        ({"patch_resample": False, "resample_turned": True}, "'patch_resample' is off"),
     ],
 )
 def test_bad_combinations_are_refused_before_the_model_is_touched(net, camera, components, message):
@@ -314,7 +317,7 @@ def test_files_without_switches_load_with_their_old_meaning(
         assert set(json.loads(handle.metadata()["components"])) == set(COMPONENTS)
 
 
-@pytest.mark.parametrize("switches", [RADIAL_ONLY, NAIVE, [*NAIVE, "rope", "grid"]])
+@pytest.mark.parametrize("switches", [RADIAL_ONLY, NAIVE, [*NAIVE, "rope", "grid"], TURNED])
 def test_files_with_switches_round_trip(net, images, camera, switches, tmp_path):
     adapter = randomise_(rt.Adapter.for_model(net, camera, components=switches))
     loaded = rt.Adapter.load(adapter.save(tmp_path / "a.safetensors"))
@@ -356,12 +359,51 @@ def test_a_false_switch_in_a_file_is_read_as_absent(net, camera, tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------
+# Patch resampling with the turned pinhole's local map
+# ---------------------------------------------------------------------------------------------
+
+
+def _patch_projection_inputs(net, images, camera, components) -> torch.Tensor:
+    """What the patch embedding's convolution receives under ``apply(..., components)``."""
+    (projection,) = [m for n, m in net.named_modules() if n.endswith("patch_embed.proj")]
+    seen = []
+    hook = projection.register_forward_hook(lambda _m, args, _out: seen.append(args[0]))
+    try:
+        _run(net, images, camera, None, components)
+    finally:
+        hook.remove()
+    return torch.cat(seen)
+
+
+@pytest.mark.parametrize(
+    ("components", "local_map"), [(TURNED, "turned"), ([*FULL_PE, "patch_resample"], "central")]
+)
+def test_the_switch_chooses_the_resampling_map(net, images, camera, components, local_map):
+    from raytun3r_plugin.geometry import patch_resample_grid
+
+    # What the convolution gets without resampling: upstream's normalised images.
+    plain = _patch_projection_inputs(net, images, camera, FULL_PE)
+    grid = patch_resample_grid(camera, H, W, PATCH, local_map=local_map).to(torch.float32)
+    expected = torch.nn.functional.grid_sample(
+        plain,
+        grid.expand(len(plain), -1, -1, -1),
+        mode="bilinear",
+        padding_mode="zeros",
+        align_corners=False,
+    )
+    seen = _patch_projection_inputs(net, images, camera, components)
+    assert torch.allclose(seen, expected, atol=1e-5)
+    assert not torch.allclose(seen, plain, atol=1e-2)
+
+
+# ---------------------------------------------------------------------------------------------
 # Removal
 # ---------------------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize(
-    "components", [RADIAL_ONLY, NAIVE, [*NAIVE, "rope", "patch_resample", "border_tokens", "grid"]]
+    "components",
+    [RADIAL_ONLY, NAIVE, [*NAIVE, "rope", "patch_resample", "border_tokens", "grid"], TURNED],
 )
 def test_remove_restores_the_model_bit_for_bit(net, images, camera, reference, components):
     before = snapshot(net)

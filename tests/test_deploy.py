@@ -17,6 +17,7 @@ import pytest
 import torch
 
 import raytun3r_plugin as rt
+from raytun3r_plugin.adapter import COMPONENTS
 from raytun3r_plugin.deploy import SUPPORTED, freeze
 from raytun3r_plugin.deploy.frozen import BUFFER_PREFIX, fixed_size_rope
 from raytun3r_plugin.errors import InputError, UnsupportedUpstreamError
@@ -127,6 +128,22 @@ def test_frozen_model_is_the_patched_model(family, monkeypatch):
     monkeypatch.setattr(adapter.Adapter, "pe_correction", refuse)
     got = _frozen_outputs(frozen, images)
     assert max_relative_difference({k: expected[k] for k in got}, got) < 1e-6
+
+
+def test_frozen_model_keeps_the_turned_resampling():
+    """The frozen grid is the one the live patch uses, also with the ``resample_turned`` switch."""
+    net, (height, width) = _tiny("da3")
+    camera = fisheye(width, height)
+    adapter = randomise_(rt.Adapter.for_model(net, camera))
+    images = _images((height, width))
+    rt.apply(net, camera, adapter)
+    central = outputs(net, images)
+    rt.remove(net)
+    rt.apply(net, camera, adapter, components=[*COMPONENTS, "resample_turned"])
+    turned = outputs(net, images)
+    assert max_relative_difference(central, turned) > 1e-4
+    got = _frozen_outputs(freeze(net, (height, width), views=2), images)
+    assert max_relative_difference({k: turned[k] for k in got}, got) < 1e-6
 
 
 def test_unpatched_freeze_is_upstream():

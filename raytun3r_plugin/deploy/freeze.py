@@ -334,7 +334,7 @@ def _install_patch_embedding(owner, state, size: tuple[int, int]) -> None:
     device = next(owner.parameters()).device
     grid = valid = None
     if state.uses("patch_resample"):
-        sampled = geometry.resample_grid(device, torch.float32)
+        sampled = geometry.resample_grid(device, torch.float32, state.resample_map)
         grid = None if sampled is None else _register(owner, "resample_grid", sampled)
     if state.uses("border_tokens"):
         mask = geometry.token_valid(device)
