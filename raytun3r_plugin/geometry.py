@@ -158,18 +158,22 @@ def angular_weights(theta: torch.Tensor, n_bins: int) -> torch.Tensor:
     return weights
 
 
-def _jacobian_of_map(
-    camera: Camera, points: torch.Tensor, knee_deg: float, step: float = 0.25
-) -> torch.Tensor:
-    """Central-difference Jacobian dM/dx at ``points`` (n, 2) -> (n, 2, 2) (rows: output x, y)."""
+def _central_difference(map_pixels, points: torch.Tensor, step: float) -> torch.Tensor:
+    """Jacobian of ``map_pixels`` ((n, 2) -> (n, 2)) at ``points`` (n, 2) -> (n, 2, 2) (rows:
+    output x, y), by central differences of ``step`` pixels."""
     columns = []
     for axis in range(2):
         delta = torch.zeros(2, dtype=points.dtype)
         delta[axis] = step
-        plus = fisheye_to_pinhole(camera, points + delta, knee_deg)
-        minus = fisheye_to_pinhole(camera, points - delta, knee_deg)
-        columns.append((plus - minus) / (2 * step))
+        columns.append((map_pixels(points + delta) - map_pixels(points - delta)) / (2 * step))
     return torch.stack(columns, dim=-1)
+
+
+def _jacobian_of_map(
+    camera: Camera, points: torch.Tensor, knee_deg: float, step: float = 0.25
+) -> torch.Tensor:
+    """Jacobian dM/dx of the map to the pinhole on the axis at ``points`` (n, 2) -> (n, 2, 2)."""
+    return _central_difference(lambda uv: fisheye_to_pinhole(camera, uv, knee_deg), points, step)
 
 
 def _turned_pinhole_jacobian(
@@ -201,13 +205,7 @@ def _turned_pinhole_jacobian(
         )
         return focal * local[:, :2] / local[:, 2:3].clamp_min(1e-9)
 
-    columns = []
-    for index in range(2):
-        delta = torch.zeros(2, dtype=torch.float64)
-        delta[index] = step
-        plus, minus = in_turned_pinhole(points + delta), in_turned_pinhole(points - delta)
-        columns.append((plus - minus) / (2 * step))
-    jacobian = torch.stack(columns, dim=-1)
+    jacobian = _central_difference(in_turned_pinhole, points, step)
     eye = torch.eye(2, dtype=torch.float64).expand_as(jacobian)
     return torch.where(valid.bool()[:, None, None], jacobian, eye)
 
