@@ -54,22 +54,6 @@ def switches(name: str) -> list[str]:
     return [*COMPONENTS, "resample_turned"] if name == "turned" else list(COMPONENTS)
 
 
-def coverage(camera, size: int, name: str) -> float:
-    """Fraction of the lens's valid pixels that some patch's bilinear taps read."""
-    grid = geometry.patch_resample_grid(camera, size, size, 14, local_map=name)
-    if grid is None:
-        return 1.0
-    x = (grid[0, ..., 0] + 1) * size / 2 - 0.5
-    y = (grid[0, ..., 1] + 1) * size / 2 - 0.5
-    read = torch.zeros(size, size, dtype=torch.bool)
-    for fx in (torch.floor(x), torch.floor(x) + 1):
-        for fy in (torch.floor(y), torch.floor(y) + 1):
-            inside = (fx >= 0) & (fx < size) & (fy >= 0) & (fy < size)
-            read[fy[inside].long(), fx[inside].long()] = True
-    valid = camera.valid_mask().bool()
-    return float((read & valid).sum() / valid.sum())
-
-
 def one_sequence(model, spec, scene: str, seed: int, recipes: list[str]) -> dict:
     """Rotation (deg), AbsRel and d_reproj (px) of every method on one sequence, per local map."""
     camera = make_camera(spec, SIZE)
@@ -120,7 +104,9 @@ def main() -> None:
         for size in (112, 504):
             for spec in CAMERAS:
                 camera = make_camera(spec, size)
-                shares = ", ".join(f"{m} {coverage(camera, size, m):.3f}" for m in MAPS)
+                shares = ", ".join(
+                    f"{m} {geometry.resampled_share(camera, size, size, 14, m):.3f}" for m in MAPS
+                )
                 print(f"{spec.label} at {size} px: share of the lens's pixels read: {shares}")
         return
     torch.set_num_threads(1)

@@ -258,6 +258,27 @@ def patch_resample_grid(
     return normalised[None]
 
 
+def resampled_share(
+    camera: Camera, height: int, width: int, patch: int, local_map: str = "central"
+) -> float:
+    """Fraction of the camera's valid pixels (at ``height`` x ``width``) that the bilinear taps
+    of some patch read under :func:`patch_resample_grid` with ``local_map``; 1.0 when nothing is
+    resampled. What the default map leaves unread: docs/components.md."""
+    camera = camera_for_input(camera, height, width)
+    grid = patch_resample_grid(camera, height, width, patch, local_map=local_map)
+    if grid is None:
+        return 1.0
+    x = (grid[0, ..., 0] + 1) * width / 2 - 0.5
+    y = (grid[0, ..., 1] + 1) * height / 2 - 0.5
+    read = torch.zeros(height, width, dtype=torch.bool)
+    for column in (x.floor(), x.floor() + 1):
+        for row in (y.floor(), y.floor() + 1):
+            inside = (column >= 0) & (column < width) & (row >= 0) & (row < height)
+            read[row[inside].long(), column[inside].long()] = True
+    valid = camera.valid_mask().bool()
+    return float((read & valid).sum() / valid.sum())
+
+
 def naive_pe_positions(
     camera: Camera,
     height: int,

@@ -12,7 +12,7 @@ import torch
 
 from raytun3r_plugin import cameras as C
 from raytun3r_plugin.errors import InputError
-from raytun3r_plugin.geometry import patch_resample_grid, token_centres
+from raytun3r_plugin.geometry import patch_resample_grid, resampled_share, token_centres
 
 SIZE, PATCH = 112, 14
 
@@ -61,21 +61,12 @@ def test_each_patch_is_a_pinhole_crop_from_its_own_viewing_direction():
     ids=["KB4 185", "DS 195"],
 )
 def test_every_lens_pixel_reaches_a_patch(camera):
-    def read_share(local_map: str) -> float:
-        grid = patch_resample_grid(camera, SIZE, SIZE, PATCH, local_map=local_map)
-        assert grid is not None
-        pixels = _pixels(grid).reshape(-1, 2)
-        read = torch.zeros(SIZE, SIZE, dtype=torch.bool)
-        for x in (pixels[:, 0].floor(), pixels[:, 0].floor() + 1):
-            for y in (pixels[:, 1].floor(), pixels[:, 1].floor() + 1):
-                inside = (x >= 0) & (x < SIZE) & (y >= 0) & (y < SIZE)
-                read[y[inside].long(), x[inside].long()] = True
-        lens = camera.valid_mask().bool()
-        return float((read & lens).sum() / lens.sum())
-
-    assert read_share("turned") == 1.0
+    assert resampled_share(camera, SIZE, SIZE, PATCH, "turned") == 1.0
     # The map to the pinhole on the lens axis zooms rim patches in: most of the rim is unread.
-    assert read_share("central") < 0.6
+    assert resampled_share(camera, SIZE, SIZE, PATCH, "central") < 0.6
+    # A pinhole camera is not resampled: all of it is read.
+    lens = C.Pinhole(SIZE, SIZE, [80.0, 80.0, (SIZE - 1) / 2, (SIZE - 1) / 2])
+    assert resampled_share(lens, SIZE, SIZE, PATCH) == 1.0
 
 
 def test_an_unknown_local_map_is_refused():
