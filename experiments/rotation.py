@@ -40,13 +40,12 @@ from raytun3r_plugin import synthetic
 from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.adapter import COMPONENTS
 from raytun3r_plugin.apps.benchmark import (
-    CAMERAS,
     DEVELOPMENT_SEED,
     HELD_OUT_SEED,
     SCENES,
     SEQUENCES_PER_CELL,
+    cell_sequences,
     make_camera,
-    sequence_seed,
 )
 from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, default_network
 from raytun3r_plugin.apps.evaluation import headline, run_method, score
@@ -119,19 +118,12 @@ def main() -> None:
     else:
         model, _ = default_network(DEFAULT_NETWORK)
     rows = []
+    base = DEVELOPMENT_SEED if args.development else HELD_OUT_SEED
     with quiet_upstream():
-        for c, spec in enumerate(CAMERAS):
-            for s, scene in enumerate(SCENES):
-                if f"{spec.label} {scene}" not in args.cells:
-                    continue
-                for k in range(args.sequences):
-                    base = DEVELOPMENT_SEED if args.development else HELD_OUT_SEED
-                    seed = sequence_seed(c, s, k, base)
-                    row = one_sequence(
-                        model, spec, scene, seed, args.recipes, not args.no_components
-                    )
-                    rows.append({"camera": spec.label, "scene": scene, "seed": seed, **row})
-                    print(json.dumps(rows[-1]), flush=True)
+        for spec, scene, seed in cell_sequences(args.cells, args.sequences, base):
+            row = one_sequence(model, spec, scene, seed, args.recipes, not args.no_components)
+            rows.append({"camera": spec.label, "scene": scene, "seed": seed, **row})
+            print(json.dumps(rows[-1]), flush=True)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(rows, indent=1))
     methods = list(rows[0]["abs_rel"])

@@ -56,6 +56,25 @@ def test_seeds_are_held_out_distinct_and_keep_the_first_sequences():
     ]
 
 
+def test_cell_sequences_name_the_cells_and_seeds_of_the_benchmark():
+    from raytun3r_plugin.apps.benchmark import DEVELOPMENT_SEED, cell_sequences
+
+    everything = list(cell_sequences(None, SEQUENCES_PER_CELL))
+    assert [seed for _, _, seed in everything] == [
+        sequence_seed(c, s, k)
+        for c in range(len(CAMERAS))
+        for s in range(len(SCENES))
+        for k in range(SEQUENCES_PER_CELL)
+    ]
+    chosen = list(cell_sequences(["DS 195 outdoor", "KB4 185 indoor"], 2, DEVELOPMENT_SEED))
+    assert [(spec.label, scene, seed) for spec, scene, seed in chosen] == [
+        ("KB4 185", "indoor", sequence_seed(1, 0, 0, DEVELOPMENT_SEED)),
+        ("KB4 185", "indoor", sequence_seed(1, 0, 1, DEVELOPMENT_SEED)),
+        ("DS 195", "outdoor", sequence_seed(2, 1, 0, DEVELOPMENT_SEED)),
+        ("DS 195", "outdoor", sequence_seed(2, 1, 1, DEVELOPMENT_SEED)),
+    ]
+
+
 def test_a_partial_run_scores_the_full_runs_sequences(monkeypatch, tmp_path):
     from raytun3r_plugin.apps import benchmark
 
