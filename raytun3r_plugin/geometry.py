@@ -265,6 +265,9 @@ def resampled_share(
     of some patch read under :func:`patch_resample_grid` with ``local_map``; 1.0 when nothing is
     resampled. What the default map leaves unread: docs/components.md."""
     camera = camera_for_input(camera, height, width)
+    # As the patch does: a camera whose map M is the identity is not resampled by either map.
+    if map_is_identity(camera, DEFAULT_KNEE_DEG):
+        return 1.0
     grid = patch_resample_grid(camera, height, width, patch, local_map=local_map)
     if grid is None:
         return 1.0

@@ -67,6 +67,7 @@ def test_every_lens_pixel_reaches_a_patch(camera):
     # A pinhole camera is not resampled: all of it is read.
     lens = C.Pinhole(SIZE, SIZE, [80.0, 80.0, (SIZE - 1) / 2, (SIZE - 1) / 2])
     assert resampled_share(lens, SIZE, SIZE, PATCH) == 1.0
+    assert resampled_share(lens, SIZE, SIZE, PATCH, "turned") == 1.0
 
 
 def test_an_unknown_local_map_is_refused():
