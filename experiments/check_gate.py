@@ -1,8 +1,9 @@
 """A held-out check that decides whether a fit is kept: does it remove the harm where a fit does
 not carry to later frames, and what does it cost where the fit helps?
 
-Per development sequence (``--held-out``: the benchmark's held-out seeds; frames 0-23 for adaptation, 24-35 scored, as in the benchmark): the
-default recipe fitted on frames 0-19, its held-out reprojection check on frames 20-23
+Per development sequence (``--held-out``: the benchmark's held-out seeds; frames 0-23 for
+adaptation, 24-35 scored, as in the benchmark): the default recipe fitted on frames 0-19, its
+held-out reprojection check on frames 20-23
 (:func:`~raytun3r_plugin.adaptation.check.held_out_reprojection`, the check ``raytun3r adapt``
 prints), and the gated result: the fit when the check's error is at least ``--margin`` lower
 than the zero adapter's, else the zero tables. Rows are written in the benchmark's

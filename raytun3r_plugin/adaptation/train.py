@@ -360,20 +360,20 @@ def _prepared_problem(
 ) -> tuple[Any, dict | None]:
     """The fit's problem (matches, targets, windows), and the intrinsics report when refined."""
     problem = prepare_problem(camera, frames, config, patch_size, mask=mask, depth=depth)
-    if poses is not None:
-        with_pose_targets(problem, poses)
-    if not config.refine_intrinsics:
-        return problem, None
-    from raytun3r_plugin.adaptation.intrinsics import refine_intrinsics
+    intrinsics = None
+    if config.refine_intrinsics:
+        from raytun3r_plugin.adaptation.intrinsics import refine_intrinsics
 
-    # Rough calibration first: the matches and targets are then recomputed with the refined
-    # camera, so the rays, targets and the adapter's camera all agree with it.
-    camera, report = refine_intrinsics(camera, problem.adaptation)
-    if report.refined:
-        problem = prepare_problem(camera, frames, config, patch_size, mask=mask, depth=depth)
-        if poses is not None:
-            with_pose_targets(problem, poses)
-    return problem, report.to_dict()
+        # Rough calibration first: the matches and targets are then recomputed with the refined
+        # camera, so the rays, targets and the adapter's camera all agree with it.
+        camera, report = refine_intrinsics(camera, problem.adaptation)
+        intrinsics = report.to_dict()
+        if report.refined:
+            problem = prepare_problem(camera, frames, config, patch_size, mask=mask, depth=depth)
+    if poses is not None:
+        # The true relative poses replace the targets of whichever problem is fitted.
+        with_pose_targets(problem, poses)
+    return problem, intrinsics
 
 
 def _record_tuned(adapter: Adapter, tune: nn.Module) -> None:
