@@ -19,7 +19,7 @@ import argparse
 import re
 from pathlib import Path
 
-from raytun3r_plugin.adaptation.config import POSE_SOURCES
+from raytun3r_plugin.adaptation.config import POSE_SOURCES, POSE_WINDOWS
 from raytun3r_plugin.adaptation.recipes import recipe_names
 from raytun3r_plugin.apps.benchmark import (
     BASELINES,
@@ -50,6 +50,8 @@ def fit_changes(args: argparse.Namespace) -> dict:
         changes["weights"] = weights
     if args.pose_source:
         changes["pose_source"] = args.pose_source
+    if args.pose_windows:
+        changes["pose_windows"] = args.pose_windows
     if args.teacher_views:
         changes["teacher_views"] = tuple(args.teacher_views)
     view_weights = parse_view_weights(args.teacher_view_weights)
@@ -130,6 +132,12 @@ def main() -> None:
     )
     parser.add_argument(
         "--pose-weight", type=float, default=None, help="change the recipe's pose-term weight"
+    )
+    parser.add_argument(
+        "--pose-windows",
+        default=None,
+        choices=POSE_WINDOWS,
+        help="change which windows the recipe's pose term scores",
     )
     parser.add_argument(
         "--teacher-weight",

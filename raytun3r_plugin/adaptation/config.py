@@ -25,6 +25,7 @@ __all__ = [
     "DEFAULT_WEIGHTS",
     "PE_REGULARISERS",
     "POSE_SOURCES",
+    "POSE_WINDOWS",
     "SCALES",
     "SELF_SUPERVISED_WEIGHTS",
     "SUPERVISED_WEIGHTS",
@@ -40,6 +41,9 @@ POSE_SOURCES = ("model", "targets", "hybrid", "both")
 MODEL_REPROJECTION_SOURCES = ("model", "both")
 TARGET_REPROJECTION_SOURCES = ("targets", "hybrid", "both")
 POSE_TERM_SOURCES = ("model", "hybrid", "both")
+#: Which windows the pose term scores: every window, or only those whose matches the parallax
+#: gate leaves out of the reprojection term (``AdaptConfig.pose_windows``).
+POSE_WINDOWS = ("all", "unreprojected")
 SCALES = ("pixel", "least_squares", "photometric")
 PE_REGULARISERS = ("relative", "absolute")
 TERMS = ("reproj", "smooth", "l2", "tv", "pose", "depth", "photo", "teacher")
@@ -155,6 +159,13 @@ class AdaptConfig:
             making a head at chance reproduce the targets. ``training_info["pose_gate"]``
             records the measurement. None: no gate (left out of :meth:`to_dict`, so existing
             identities are unchanged). docs/decisions.md, "The pose gate, second form".
+        pose_windows: ``"all"`` (default): the pose term scores every window's pairs;
+            ``"unreprojected"`` (only with ``pose_source="hybrid"``): only the windows whose
+            matches the parallax gate leaves out of the reprojection term (kept for the
+            teacher), so the term stands in for the reprojection where the matches carry no
+            depth signal and leaves the tables to the targets' reprojection where they do.
+            Left out of :meth:`to_dict` when ``"all"``. docs/decisions.md, "The pose term where
+            the matches carry no depth".
         check_frames: trailing frames of the last segment kept out of the fit and scored after
             it with the starting and the fitted tables (the held-out reprojection check,
             ``training_info["check"]``; :mod:`~raytun3r_plugin.adaptation.check`); ``"auto"``: a
@@ -229,6 +240,7 @@ class AdaptConfig:
     guard_every: int = 25
     min_parallax_px: float = 0.3
     pose_gate: float | None = None
+    pose_windows: str = "all"
     check_frames: int | str = 0
     check_veto: float | None = None
     refine_intrinsics: bool = False
@@ -282,6 +294,11 @@ class AdaptConfig:
             ("guard_every", self.guard_every >= 1),
             ("min_parallax_px", self.min_parallax_px >= 0),
             ("pose_gate", self.pose_gate is None or self.pose_gate >= 0),
+            (
+                "pose_windows",
+                self.pose_windows == "all"
+                or (self.pose_windows in POSE_WINDOWS and self.pose_source == "hybrid"),
+            ),
             ("check_frames", check_frames_ok),
             (
                 "check_veto",
@@ -317,6 +334,9 @@ class AdaptConfig:
         )
         expected = {
             "check_frames": "expected 'auto', 0, or a count of at least 3",
+            "pose_windows": (
+                f"expected one of {POSE_WINDOWS}; 'unreprojected' only with pose_source='hybrid'"
+            ),
             "check_veto": "expected None, or a fraction in [0, 1) with check_frames set",
             "teacher_view_weights": (
                 f"expected None or {{view: weight >= 0}} naming exactly the teacher views "
@@ -365,6 +385,8 @@ class AdaptConfig:
             del out["refine_intrinsics"]
         if self.pose_gate is None:
             del out["pose_gate"]
+        if self.pose_windows == "all":
+            del out["pose_windows"]
         if self.check_frames == 0:
             del out["check_frames"]
         if self.check_veto is None:

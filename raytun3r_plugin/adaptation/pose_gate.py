@@ -109,5 +109,5 @@ def gate_pose_term(
     switch = bool(agreement["responsiveness"] < config.pose_gate)  # NaN < x is False
     record = {**agreement, "threshold": config.pose_gate, "pose_term": not switch}
     if switch:
-        config = dataclasses.replace(config, pose_source="targets")
+        config = dataclasses.replace(config, pose_source="targets", pose_windows="all")
     return config, record

@@ -106,7 +106,8 @@ def window_terms(
             (K,))`` of the pinhole-view teacher; adds the ``teacher`` term
             (:func:`grouped_silog_loss`, one scale per view).
         reproject: False leaves the window's matches out of the reprojection term (the
-            parallax gate found no depth signal in them); the pose term stays.
+            parallax gate found no depth signal in them); the pose term stays (and with
+            ``config.pose_windows="unreprojected"`` is scored only on such windows).
 
     Returns:
         (terms, counts): 0-d tensors per term name (pose absent with ``pose_source="targets"``) and the
@@ -175,11 +176,14 @@ def prediction_terms(
     )
     # Without a weight on the match terms (a teacher-only fit) the pairs are not visited.
     matched = config.weights.reproj > 0 or config.weights.pose > 0 or config.weights.photo > 0
+    # ``pose_windows="unreprojected"``: where the matches enter the reprojection, the pose term
+    # is left out; it scores only the windows the parallax gate keeps for the teacher alone.
+    pose_scored = config.pose_windows == "all" or not reproject
     for pair in pairs if matched else []:
         relatives = []
         if config.pose_source in POSE_TERM_SOURCES:
             relative = relative_pose(poses, pair.a, pair.b)
-            if pair.rotation is not None:
+            if pair.rotation is not None and pose_scored:
                 pose_terms.append(pose_loss(relative, pair.rotation, pair.direction))
             if config.pose_source in MODEL_REPROJECTION_SOURCES:
                 relatives.append(relative)
