@@ -47,6 +47,7 @@ import json
 import math
 import os
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -72,7 +73,7 @@ from raytun3r_plugin.adaptation.guard import (
     _CollapseGuard,
     fit_verdict,
 )
-from raytun3r_plugin.adaptation.loop import run_fit_loop
+from raytun3r_plugin.adaptation.loop import LoopOutcome, run_fit_loop
 from raytun3r_plugin.adaptation.parallax import window_parallax
 from raytun3r_plugin.adaptation.pose_gate import gate_pose_term
 from raytun3r_plugin.adaptation.problem import (
@@ -263,38 +264,14 @@ def _fit(
     )
     problem.pe_scale = regulariser_scale(model, config)
     adapter.camera = problem.layout.native_camera
-    requested, pose_gate = config, None
-    if depth is None and poses is None:
-        # Measured with the starting tables, before any checkpoint is restored (as the parallax
-        # gate below), so a resumed run makes the same choice.
-        config, pose_gate = gate_pose_term(model, adapter, problem, config)
-    teacher_record = _add_teacher(model, problem, config) if depth is None else None
-    teacher = teacher_record is not None and teacher_record["used"]
-    parallax = (
-        _gate_parallax(model, adapter, problem, config, teacher)
-        if depth is None and config.min_parallax_px > 0
-        else None
+    requested = config
+    config, gates = _gated(
+        model, adapter, problem, config, supervised=depth is not None, posed=poses is not None
     )
-    if tune is not None:
-        for table in adapter.parameters():
-            table.requires_grad_(False)
-    trainable = list(adapter.parameters()) if tune is None else list(tune.parameters())
-    optimizer = torch.optim.Adam(trainable, lr=config.lr)
-
-    paths = artifact_paths(out_path) if out_path is not None else None
-    identity = {
-        "config": config.identity(),
-        "adaptation_set": problem.adaptation.cache_key,
-        "backbone": adapter.backbone,
-        "pe_fingerprint": adapter.pe_fingerprint,
-    }
-    start = 0
-    if paths is not None and resume and tune is None and paths["checkpoint"].is_file():
-        start = _restore_checkpoint(paths["checkpoint"], adapter, optimizer, identity)
-    metadata = {
-        **identity,
-        "config_json": json.dumps(config.to_dict(), sort_keys=True, default=str),
-    }
+    gates["intrinsics"] = intrinsics
+    optimizer, paths, start, metadata = _optimiser_and_files(
+        adapter, problem, config, out_path=out_path, resume=resume, tune=tune
+    )
     # The thresholds are read here, at call time, so patching this module's constants takes effect.
     guard = (
         _CollapseGuard(problem, GUARD_MIN_CORRELATION, GUARD_SPREAD_RANGE)
@@ -320,22 +297,8 @@ def _fit(
         checkpoint_every=config.checkpoint_every,
     )
     completed, history = outcome.completed, outcome.history
-
-    adapter.training_info = _training_info(
-        config, problem, completed, history, outcome.interrupted, outcome.seconds, start
-    )
-    adapter.training_info["recipe"] = requested.recipe_record(model)
-    gates = {
-        "pose_gate": pose_gate,
-        "intrinsics": intrinsics,
-        "guard": None if guard is None else guard.report(),
-        "parallax_gate": parallax,
-        "teacher": teacher_record,
-    }
-    adapter.training_info.update({k: v for k, v in gates.items() if v is not None})
-    adapter.training_info["verdict"] = fit_verdict(adapter, history, problem, guard, parallax)
-    if tune is not None:
-        _record_tuned(adapter, tune)
+    gates["guard"] = None if guard is None else guard.report()
+    _record_fit(adapter, model, requested, config, problem, outcome, start, gates, guard, tune)
     if progress:
         print(f"adapt: {adapter.training_info['verdict']['summary']}", file=sys.stderr, flush=True)
     if paths is not None:
@@ -346,6 +309,100 @@ def _fit(
             paths, read_loss_log(paths["log"]) if paths["log"].is_file() else history
         )
     return adapter
+
+
+def _optimiser_and_files(
+    adapter: Adapter,
+    problem: AdaptationProblem,
+    config: AdaptConfig,
+    *,
+    out_path: str | os.PathLike | None,
+    resume: bool,
+    tune: nn.Module | None,
+) -> tuple[torch.optim.Optimizer, dict[str, Path] | None, int, dict[str, str]]:
+    """The fit's optimiser over what it trains (the tables, or tune mode's module), its files,
+    the step it starts from (a resumed checkpoint's, else 0) and the metadata every checkpoint
+    carries."""
+    if tune is not None:
+        for table in adapter.parameters():
+            table.requires_grad_(False)
+    trainable = list(adapter.parameters()) if tune is None else list(tune.parameters())
+    optimizer = torch.optim.Adam(trainable, lr=config.lr)
+    paths = artifact_paths(out_path) if out_path is not None else None
+    identity = {
+        "config": config.identity(),
+        "adaptation_set": problem.adaptation.cache_key,
+        "backbone": adapter.backbone,
+        "pe_fingerprint": adapter.pe_fingerprint,
+    }
+    start = 0
+    if paths is not None and resume and tune is None and paths["checkpoint"].is_file():
+        start = _restore_checkpoint(paths["checkpoint"], adapter, optimizer, identity)
+    metadata = {
+        **identity,
+        "config_json": json.dumps(config.to_dict(), sort_keys=True, default=str),
+    }
+    return optimizer, paths, start, metadata
+
+
+def _record_fit(
+    adapter: Adapter,
+    model: nn.Module,
+    requested: AdaptConfig,
+    config: AdaptConfig,
+    problem: AdaptationProblem,
+    outcome: LoopOutcome,
+    start: int,
+    gates: dict[str, Any],
+    guard: _CollapseGuard | None,
+    tune: nn.Module | None,
+) -> None:
+    """Write what the fit did into ``adapter.training_info``: the settings (``config``, after
+    the gates) and the recipe asked for (``requested``), the loop's ``outcome``, the gates'
+    records and the verdict."""
+    adapter.training_info = _training_info(
+        config,
+        problem,
+        outcome.completed,
+        outcome.history,
+        outcome.interrupted,
+        outcome.seconds,
+        start,
+    )
+    adapter.training_info["recipe"] = requested.recipe_record(model)
+    order = ("pose_gate", "intrinsics", "guard", "parallax_gate", "teacher")
+    adapter.training_info.update({k: gates[k] for k in order if gates[k] is not None})
+    adapter.training_info["verdict"] = fit_verdict(
+        adapter, outcome.history, problem, guard, gates["parallax_gate"]
+    )
+    if tune is not None:
+        _record_tuned(adapter, tune)
+
+
+def _gated(
+    model: nn.Module,
+    adapter: Adapter,
+    problem: AdaptationProblem,
+    config: AdaptConfig,
+    *,
+    supervised: bool,
+    posed: bool,
+) -> tuple[AdaptConfig, dict[str, Any]]:
+    """The settings a fit runs with after its gates, and the gates' records (None where a gate
+    does not apply): the pose gate (self-supervised fits without true poses), the pinhole-view
+    teacher's lens gate and the parallax gate (self-supervised fits)."""
+    gates: dict[str, Any] = {"pose_gate": None, "teacher": None, "parallax_gate": None}
+    if supervised:
+        return config, gates
+    if not posed:
+        # Measured with the starting tables, before any checkpoint is restored (as the parallax
+        # gate below), so a resumed run makes the same choice.
+        config, gates["pose_gate"] = gate_pose_term(model, adapter, problem, config)
+    gates["teacher"] = _add_teacher(model, problem, config)
+    teacher = gates["teacher"] is not None and gates["teacher"]["used"]
+    if config.min_parallax_px > 0:
+        gates["parallax_gate"] = _gate_parallax(model, adapter, problem, config, teacher)
+    return config, gates
 
 
 def _prepared_problem(
