@@ -12,6 +12,12 @@ print what the rule checks, so the verdict is computed, not typed.
   (vanilla / zero adapter / fitted), and the slowest fit.
 
     python experiments/recipe_rule.py runs/dev_vggt_wide/results.json [runs/dev_vggt_narrow/results.json]
+
+With ``--reference FILE ...`` the fits of an earlier run of the same sequences (a benchmark's
+``results.json``, or the rows of ``experiments/patch_resample_map.py``, whose method
+``--reference-method`` names) are compared with these, against this run's zero adapter and
+supervised fit: per cell and pooled AbsRel, the gap each closes, the sequences each makes more
+than 2 % worse than the zero adapter, and the rotation above the zero adapter's per cell.
 """
 
 from __future__ import annotations
@@ -82,11 +88,90 @@ def report(table: dict[tuple, dict[str, dict]], wide: tuple[str, ...] = WIDE) ->
     return lines
 
 
+def reference_rows(paths: list[str], method: str) -> dict[tuple, dict]:
+    """(camera, scene, seed) -> the row of ``method`` in benchmark results or in the rows of
+    ``experiments/patch_resample_map.py`` (a list of per-sequence dicts keyed by method)."""
+    rows: dict[tuple, dict] = {}
+    for path in paths:
+        with open(path) as handle:
+            data = json.load(handle)
+        if isinstance(data, dict):
+            for row in data["sequences"]:
+                if row["method"] == method:
+                    rows[(row["camera"], row["scene"], row["seed"])] = row
+        else:
+            for row in data:
+                rows[(row["camera"], row["scene"], row["seed"])] = row[method]
+    return rows
+
+
+def compare(
+    table: dict[tuple, dict[str, dict]], reference: dict[tuple, dict], wide: tuple[str, ...] = WIDE
+) -> list[str]:
+    """This run's fits against ``reference``'s on the sequences both hold (see the module)."""
+    keys = sorted(k for k in table if k in reference)
+    missing = sorted(k for k in table if k not in reference)
+    lines = [
+        f"compared on {len(keys)} sequences" + (f"; no reference for {missing}" if missing else "")
+    ]
+
+    def pooled(rows: list[tuple], source: str) -> tuple[float, float]:
+        fitted = statistics.mean(
+            (reference[k] if source == "reference" else table[k][FITTED])["abs_rel"] for k in rows
+        )
+        zero = statistics.mean(table[k][ZERO]["abs_rel"] for k in rows)
+        sup = statistics.mean(table[k][SUPERVISED]["abs_rel"] for k in rows)
+        return fitted, (zero - fitted) / (zero - sup)
+
+    wide_keys = [k for k in keys if k[0] in wide]
+    if wide_keys:
+        for source in ("reference", "this run"):
+            value, closed = pooled(wide_keys, source)
+            lines.append(f"{source}: pooled wide-lens AbsRel {value:.4f}, gap closed {closed:.3f}")
+    for source in ("reference", "this run"):
+        worse = [
+            k
+            for k in keys
+            if (reference[k] if source == "reference" else table[k][FITTED])["abs_rel"]
+            > 1.02 * table[k][ZERO]["abs_rel"]
+        ]
+        lines.append(
+            f"{source}: {len(worse)} sequences worse than the zero adapter by > 2 %: {worse}"
+        )
+    cells = collections.defaultdict(list)
+    for k in keys:
+        cells[(k[0], k[1])].append(k)
+    for (camera, scene), rows in sorted(cells.items()):
+        ref, _ = pooled(rows, "reference")
+        new, _ = pooled(rows, "this run")
+        rot = statistics.mean(table[k][FITTED]["rot_deg"] for k in rows)
+        zero_rot = statistics.mean(table[k][ZERO]["rot_deg"] for k in rows)
+        lines.append(
+            f"{camera} {scene} (n={len(rows)}): AbsRel reference {ref:.4f} this run {new:.4f} "
+            f"({100 * (new / ref - 1):+.1f} %) | rotation this run {rot:.2f} zero adapter "
+            f"{zero_rot:.2f} ({rot - zero_rot:+.2f}) reference "
+            f"{statistics.mean(reference[k]['rot_deg'] for k in rows):.2f}"
+        )
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("results", nargs="+", help="results.json files of benchmark runs")
+    parser.add_argument(
+        "--reference", nargs="+", default=None, help="an earlier run's fits of the same sequences"
+    )
+    parser.add_argument(
+        "--reference-method",
+        default=FITTED,
+        help=f"the reference's method (default {FITTED!r}; for patch_resample_map.py rows, "
+        "e.g. 'default recipe, central')",
+    )
     args = parser.parse_args()
-    print("\n".join(report(by_sequence(args.results))))
+    table = by_sequence(args.results)
+    print("\n".join(report(table)))
+    if args.reference:
+        print("\n".join(compare(table, reference_rows(args.reference, args.reference_method))))
 
 
 if __name__ == "__main__":
