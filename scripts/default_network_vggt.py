@@ -40,24 +40,22 @@ VGGT_KWARGS = dict(
         seed=0,
     ),
 )
-#: Smoke tests only.
-VGGT_TINY_KWARGS = dict(
-    img_size=518,
-    patch_size=14,
-    embed_dim=32,
-    sizes=dict(
-        aggregator_depth=2,
-        aggregator_num_heads=2,
-        dino_depth=1,
-        dino_num_heads=2,
-        camera_trunk_depth=1,
-        camera_num_heads=2,
-        dpt_features=8,
-        dpt_out_channels=[8, 8, 16, 16],
-        dpt_intermediate_layer_idx=[0, 0, 1, 1],
-        seed=0,
-    ),
-)
+#: Smoke tests only: the same network, narrower and shallower.
+VGGT_TINY_KWARGS = {
+    **VGGT_KWARGS,
+    "embed_dim": 32,
+    "sizes": {
+        **VGGT_KWARGS["sizes"],
+        "aggregator_depth": 2,
+        "aggregator_num_heads": 2,
+        "dino_depth": 1,
+        "dino_num_heads": 2,
+        "camera_num_heads": 2,
+        "dpt_features": 8,
+        "dpt_out_channels": [8, 8, 16, 16],
+        "dpt_intermediate_layer_idx": [0, 0, 1, 1],
+    },
+}
 
 
 def require_vggt() -> None:
