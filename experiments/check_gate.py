@@ -45,8 +45,8 @@ from raytun3r_plugin.apps.benchmark import (
     HELD_OUT_SEED,
     SCENES,
     SEQUENCES_PER_CELL,
+    cell_sequences,
     make_camera,
-    sequence_seed,
 )
 from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, default_network
 from raytun3r_plugin.apps.evaluation import headline, run_method, score
@@ -211,17 +211,13 @@ def main() -> None:
         model, _ = default_network(args.network)
     rows: list[dict] = []
     with quiet_upstream():
-        for c, spec in enumerate(CAMERAS):
-            if spec.label not in args.cameras:
-                continue
-            for s, scene in enumerate(SCENES):
-                for k in range(args.first_sequence, args.first_sequence + args.sequences):
-                    base = HELD_OUT_SEED if args.held_out else DEVELOPMENT_SEED
-                    seed = sequence_seed(c, s, k, base)
-                    rows += one_sequence(model, spec, scene, seed, args.margin)
-                    print(json.dumps(rows[-1]), flush=True)
-                    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-                    Path(args.out).write_text(json.dumps({"sequences": rows}, indent=1))
+        cells = [f"{label} {scene}" for label in args.cameras for scene in SCENES]
+        base = HELD_OUT_SEED if args.held_out else DEVELOPMENT_SEED
+        for spec, scene, seed in cell_sequences(cells, args.sequences, base, args.first_sequence):
+            rows += one_sequence(model, spec, scene, seed, args.margin)
+            print(json.dumps(rows[-1]), flush=True)
+            Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.out).write_text(json.dumps({"sequences": rows}, indent=1))
     print("\n".join(analyse([args.out], [])))
 
 

@@ -73,6 +73,11 @@ def test_cell_sequences_name_the_cells_and_seeds_of_the_benchmark():
         ("DS 195", "outdoor", sequence_seed(2, 1, 0, DEVELOPMENT_SEED)),
         ("DS 195", "outdoor", sequence_seed(2, 1, 1, DEVELOPMENT_SEED)),
     ]
+    # From the k-th sequence on: the seeds a run with more sequences gives those sequences.
+    later = list(cell_sequences(["KB4 185 indoor"], 2, DEVELOPMENT_SEED, first=3))
+    assert [seed for _, _, seed in later] == [
+        sequence_seed(1, 0, k, DEVELOPMENT_SEED) for k in (3, 4)
+    ]
 
 
 def test_a_partial_run_scores_the_full_runs_sequences(monkeypatch, tmp_path):

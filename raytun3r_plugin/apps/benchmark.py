@@ -122,14 +122,14 @@ def sequence_seed(camera_index: int, scene_index: int, k: int, base: int = HELD_
     return base + 100 * k + 10 * camera_index + scene_index
 
 
-def cell_sequences(cells, sequences: int, base: int = HELD_OUT_SEED):
-    """``(camera spec, scene, seed)`` of the first ``sequences`` of each cell named in ``cells``
-    (``"LABEL scene"``, e.g. ``"KB4 185 indoor"``; None: every cell), in the benchmark's order;
-    ``base`` as in :func:`sequence_seed`."""
+def cell_sequences(cells, sequences: int, base: int = HELD_OUT_SEED, first: int = 0):
+    """``(camera spec, scene, seed)`` of ``sequences`` sequences of each cell named in ``cells``
+    (``"LABEL scene"``, e.g. ``"KB4 185 indoor"``; None: every cell) from its ``first``-th on,
+    in the benchmark's order; ``base`` as in :func:`sequence_seed`."""
     for c, spec in enumerate(CAMERAS):
         for s, scene in enumerate(SCENES):
             if cells is None or f"{spec.label} {scene}" in cells:
-                for k in range(sequences):
+                for k in range(first, first + sequences):
                     yield spec, scene, sequence_seed(c, s, k, base)
 
 
