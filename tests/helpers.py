@@ -24,6 +24,33 @@ def fisheye(width: int = 84, height: int = 70, fov_deg: float = 190.0, k1: float
     return build((width, height), fov_deg, "kb4", k=(k1, 0.0, 0.0, 0.0))
 
 
+def small_kb4():
+    """The 84 x 70 equidistant KB4 of 190 degrees the small fit tests render their rooms with."""
+    from raytun3r_plugin.cameras import KannalaBrandt4
+
+    return KannalaBrandt4(84, 70, [22.0, 22.0, 41.5, 34.5, 0.0, 0.0, 0.0, 0.0], max_fov_deg=190.0)
+
+
+def small_fit_config(tmp_path, recipe: str, **changes):
+    """A few-step fit of the tiny networks at 84 px on 2 windows, cached under ``tmp_path``,
+    unguarded and without checkpoints: ``recipe``'s settings with ``changes`` on top."""
+    from raytun3r_plugin.adaptation.config import AdaptConfig
+
+    settings = {
+        "steps": 4,
+        "input_size": 84,
+        "n_windows": 2,
+        "checkpoint_every": 0,
+        "cache_dir": str(tmp_path),
+        "matcher_options": {"border_px": 2},
+        "seed": 0,
+        "guard": False,
+        "teacher_views": ("centre",),
+        **changes,
+    }
+    return AdaptConfig.from_recipe(recipe, **settings)
+
+
 def outputs(model, images):
     from raytun3r_plugin import predict
 

@@ -30,6 +30,7 @@ from raytun3r_plugin.adaptation.photometric import (
 from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.cameras import KannalaBrandt4
 from raytun3r_plugin.errors import InputError
+from tests.helpers import small_kb4
 
 
 @pytest.fixture(scope="module")
@@ -155,7 +156,7 @@ def test_bad_photometric_settings_are_refused(change):
 
 def _tiny_fit(tmp_path, **changes):
     """(camera, frames, config) of a two-step fit of the tiny DA3 network on a 5-frame room."""
-    camera = KannalaBrandt4(84, 70, [22.0, 22.0, 41.5, 34.5, 0.0, 0.0, 0.0, 0.0], max_fov_deg=190.0)
+    camera = small_kb4()
     frames = synthetic.render_sequence("indoor", camera, n_frames=5, seed=7).images
     config = AdaptConfig.from_recipe(
         "matches",

@@ -18,32 +18,24 @@ from raytun3r_plugin.patches.da3_networks import build_tiny_network
 from raytun3r_plugin import synthetic
 from raytun3r_plugin.adaptation.config import AdaptConfig
 from raytun3r_plugin.adaptation.train import adapt
-from raytun3r_plugin.cameras import KannalaBrandt4
 from raytun3r_plugin.errors import InputError
+from tests.helpers import small_fit_config, small_kb4
 
 
 @pytest.fixture(scope="module")
 def room():
-    camera = KannalaBrandt4(84, 70, [22.0, 22.0, 41.5, 34.5, 0.0, 0.0, 0.0, 0.0], max_fov_deg=190.0)
+    camera = small_kb4()
     return camera, synthetic.render_sequence("indoor", camera, n_frames=6, seed=7)
 
 
 def _config(tmp_path, **changes) -> AdaptConfig:
-    settings = {
-        "steps": 4,
-        "input_size": 84,
-        "n_windows": 2,
-        "checkpoint_every": 0,
-        "cache_dir": str(tmp_path),
-        "matcher_options": {"border_px": 2},
-        "seed": 0,
-        "guard": False,
-        "teacher_views": ("centre",),
-        "teacher_max_coverage": 1.0,
-        "lr": 3e-2,
-        **changes,
-    }
-    return AdaptConfig.from_recipe("default", **settings)
+    """The default recipe on the small room, its teacher on whatever the lens."""
+    return small_fit_config(tmp_path, "default", teacher_max_coverage=1.0, lr=3e-2, **changes)
+
+
+def _fit(room, config, out=None):
+    camera, seq = room
+    return adapt(build_tiny_network(), camera, seq.images, config, progress=False, out_path=out)
 
 
 def _records(path) -> list[dict]:
@@ -71,26 +63,13 @@ def test_pose_windows_is_validated_and_out_of_the_identity_when_all():
 def test_where_every_window_reprojects_the_pose_term_is_left_out(room, tmp_path):
     """No parallax gate: every window's matches reproject, so the pose term scores none of them
     and the fit is the targets fit (reprojection through the targets and the teacher)."""
-    camera, seq = room
     base = _config(tmp_path, min_parallax_px=0.0)
-    windowed = dataclasses.replace(base, pose_windows="unreprojected")
-    fitted = adapt(
-        build_tiny_network(), camera, seq.images, windowed, progress=False, out_path=tmp_path / "w"
-    )
+    fitted = _fit(room, dataclasses.replace(base, pose_windows="unreprojected"), tmp_path / "w")
     records = _records(tmp_path / "w.log.jsonl")
     assert len(records) == 4
     assert all(r["n_pose"] == 0 and r["pose"] == 0.0 and r["n_matches"] > 0 for r in records)
-    targets = adapt(
-        build_tiny_network(),
-        camera,
-        seq.images,
-        dataclasses.replace(base, pose_source="targets"),
-        progress=False,
-    )
-    assert _same_tables(fitted, targets)
-    everywhere = adapt(
-        build_tiny_network(), camera, seq.images, base, progress=False, out_path=tmp_path / "a"
-    )
+    assert _same_tables(fitted, _fit(room, dataclasses.replace(base, pose_source="targets")))
+    everywhere = _fit(room, base, tmp_path / "a")
     assert all(r["n_pose"] > 0 for r in _records(tmp_path / "a.log.jsonl"))
     assert not _same_tables(fitted, everywhere)
     assert fitted.training_info["config"]["pose_windows"] == "unreprojected"
@@ -99,26 +78,16 @@ def test_where_every_window_reprojects_the_pose_term_is_left_out(room, tmp_path)
 def test_where_no_window_reprojects_the_fit_is_the_default_one(room, tmp_path):
     """A gate no window passes, with the teacher on: every window keeps the pose term, so the
     fit is the one with ``pose_windows="all"``, table for table."""
-    camera, seq = room
     base = _config(tmp_path, min_parallax_px=1e6)
-    windowed = adapt(
-        build_tiny_network(),
-        camera,
-        seq.images,
-        dataclasses.replace(base, pose_windows="unreprojected"),
-        progress=False,
-        out_path=tmp_path / "w",
-    )
+    windowed = _fit(room, dataclasses.replace(base, pose_windows="unreprojected"), tmp_path / "w")
     assert windowed.training_info["parallax_gate"]["windows_reprojected"] == 0
     assert all(r["n_pose"] > 0 and r["reproj"] == 0.0 for r in _records(tmp_path / "w.log.jsonl"))
-    everywhere = adapt(build_tiny_network(), camera, seq.images, base, progress=False)
-    assert _same_tables(windowed, everywhere)
+    assert _same_tables(windowed, _fit(room, base))
 
 
 def test_the_pose_gate_drops_the_setting_with_the_term(room, tmp_path):
     """A pose gate that switches the fit to the targets takes ``pose_windows`` back to
     ``"all"`` with it, instead of refusing its own switch."""
-    camera, seq = room
     config = _config(tmp_path, min_parallax_px=0.0, pose_windows="unreprojected", pose_gate=1e9)
-    fitted = adapt(build_tiny_network(), camera, seq.images, config, progress=False)
+    fitted = _fit(room, config)
     assert fitted.training_info["pose_gate"]["pose_term"] is False

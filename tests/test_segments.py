@@ -15,13 +15,13 @@ from raytun3r_plugin.adaptation.step import objective_value
 from raytun3r_plugin.adaptation.train import adapt
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.apps.adapter_report import describe_file
-from raytun3r_plugin.cameras import KannalaBrandt4
 from raytun3r_plugin.errors import InputError, Raytun3rError
+from tests.helpers import small_kb4
 
 
 @pytest.fixture(scope="module")
 def camera():
-    return KannalaBrandt4(84, 70, [22.0, 22.0, 41.5, 34.5, 0.0, 0.0, 0.0, 0.0], max_fov_deg=190.0)
+    return small_kb4()
 
 
 @pytest.fixture(scope="module")

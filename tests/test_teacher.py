@@ -28,30 +28,19 @@ from raytun3r_plugin.apps.adapter_report import describe_file
 from raytun3r_plugin.apps.evaluation import center_pinhole, run_method
 from raytun3r_plugin.cameras import KannalaBrandt4
 from raytun3r_plugin.errors import AlreadyAppliedError, InputError
+from tests.helpers import small_fit_config, small_kb4
 
 TEACHER_ONLY = LossWeights(**TEACHER_WEIGHTS)
 
 
 @pytest.fixture(scope="module")
 def room():
-    camera = KannalaBrandt4(84, 70, [22.0, 22.0, 41.5, 34.5, 0.0, 0.0, 0.0, 0.0], max_fov_deg=190.0)
+    camera = small_kb4()
     return camera, synthetic.render_sequence("indoor", camera, n_frames=6, seed=7)
 
 
 def _config(tmp_path, **changes) -> AdaptConfig:
-    settings = {
-        "steps": 4,
-        "input_size": 84,
-        "n_windows": 2,
-        "checkpoint_every": 0,
-        "cache_dir": str(tmp_path),
-        "matcher_options": {"border_px": 2},
-        "seed": 0,
-        "guard": False,
-        "teacher_views": ("centre",),
-        **changes,
-    }
-    return AdaptConfig.from_recipe("matches", **settings)
+    return small_fit_config(tmp_path, "matches", **changes)
 
 
 def test_grouped_silog_leaves_one_scale_per_group():
