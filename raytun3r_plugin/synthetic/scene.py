@@ -17,9 +17,8 @@ A :class:`Scene` is a handful of primitive arrays (float64, world frame):
 
 Every object has its own material (row of :attr:`Scene.materials`, columns ``MAT_*``), so ids
 double as object ids. :func:`make_indoor_scene` / :func:`make_outdoor_scene` build a random scene
-around a camera path, deterministic for a seed. Ray casting lives in
-:mod:`raytun3r_plugin.synthetic.raycast`; its names (:func:`intersect`, :class:`Hit`,
-:class:`RayTiles`) are re-exported here.
+around a camera path, deterministic for a seed. Ray casting against a scene
+lives in :mod:`raytun3r_plugin.synthetic.raycast`.
 """
 
 from __future__ import annotations
@@ -31,13 +30,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from raytun3r_plugin.errors import InputError
-from raytun3r_plugin.synthetic.raycast import Hit, RayTiles, intersect
 
 __all__ = [
-    "Hit",
-    "RayTiles",
     "Scene",
-    "intersect",
     "make_indoor_scene",
     "make_outdoor_scene",
     "make_scene",
