@@ -297,7 +297,6 @@ def _fit(
         checkpoint_every=config.checkpoint_every,
     )
     completed, history = outcome.completed, outcome.history
-    gates["guard"] = None if guard is None else guard.report()
     _record_fit(adapter, model, requested, config, problem, outcome, start, gates, guard, tune)
     if progress:
         print(f"adapt: {adapter.training_info['verdict']['summary']}", file=sys.stderr, flush=True)
@@ -359,7 +358,8 @@ def _record_fit(
 ) -> None:
     """Write what the fit did into ``adapter.training_info``: the settings (``config``, after
     the gates) and the recipe asked for (``requested``), the loop's ``outcome``, the gates'
-    records and the verdict."""
+    records (``guard``'s added to ``gates``) and the verdict."""
+    gates["guard"] = None if guard is None else guard.report()
     adapter.training_info = _training_info(
         config,
         problem,
