@@ -115,26 +115,23 @@ def compare(
         f"compared on {len(keys)} sequences" + (f"; no reference for {missing}" if missing else "")
     ]
 
+    fits = {
+        "reference": {k: reference[k] for k in keys},
+        "this run": {k: table[k][FITTED] for k in keys},
+    }
+
     def pooled(rows: list[tuple], source: str) -> tuple[float, float]:
-        fitted = statistics.mean(
-            (reference[k] if source == "reference" else table[k][FITTED])["abs_rel"] for k in rows
-        )
+        fitted = statistics.mean(fits[source][k]["abs_rel"] for k in rows)
         zero = statistics.mean(table[k][ZERO]["abs_rel"] for k in rows)
         sup = statistics.mean(table[k][SUPERVISED]["abs_rel"] for k in rows)
         return fitted, (zero - fitted) / (zero - sup)
 
     wide_keys = [k for k in keys if k[0] in wide]
-    if wide_keys:
-        for source in ("reference", "this run"):
-            value, closed = pooled(wide_keys, source)
-            lines.append(f"{source}: pooled wide-lens AbsRel {value:.4f}, gap closed {closed:.3f}")
-    for source in ("reference", "this run"):
-        worse = [
-            k
-            for k in keys
-            if (reference[k] if source == "reference" else table[k][FITTED])["abs_rel"]
-            > 1.02 * table[k][ZERO]["abs_rel"]
-        ]
+    for source in fits if wide_keys else ():
+        value, closed = pooled(wide_keys, source)
+        lines.append(f"{source}: pooled wide-lens AbsRel {value:.4f}, gap closed {closed:.3f}")
+    for source, fitted in fits.items():
+        worse = [k for k in keys if fitted[k]["abs_rel"] > 1.02 * table[k][ZERO]["abs_rel"]]
         lines.append(
             f"{source}: {len(worse)} sequences worse than the zero adapter by > 2 %: {worse}"
         )

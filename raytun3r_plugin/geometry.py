@@ -232,6 +232,26 @@ def patch_resample_grid(
     map"). Returns None when A is the identity for every patch (then resampling is skipped and
     upstream tokens are reproduced exactly).
     """
+    sample = _patch_sample_pixels(camera, height, width, patch, knee_deg, max_stretch, local_map)
+    if sample is None:
+        return None
+    normalised = torch.stack(
+        ((2 * sample[..., 0] + 1) / width - 1, (2 * sample[..., 1] + 1) / height - 1), dim=-1
+    )
+    return normalised[None]
+
+
+def _patch_sample_pixels(
+    camera: Camera,
+    height: int,
+    width: int,
+    patch: int,
+    knee_deg: float,
+    max_stretch: float,
+    local_map: str,
+) -> torch.Tensor | None:
+    """The input pixel (x, y) each output pixel of :func:`patch_resample_grid` samples, (H, W,
+    2), or None when the resampling is the identity."""
     centres = token_centres(height, width, patch)
     if local_map == "turned":
         jac = _turned_pinhole_jacobian(camera, centres)
@@ -251,11 +271,7 @@ def patch_resample_grid(
         return None
     sample = centres[:, None, :] + displaced
     h, w = height // patch, width // patch
-    sample = sample.reshape(h, w, patch, patch, 2).permute(0, 2, 1, 3, 4).reshape(height, width, 2)
-    normalised = torch.stack(
-        ((2 * sample[..., 0] + 1) / width - 1, (2 * sample[..., 1] + 1) / height - 1), dim=-1
-    )
-    return normalised[None]
+    return sample.reshape(h, w, patch, patch, 2).permute(0, 2, 1, 3, 4).reshape(height, width, 2)
 
 
 def resampled_share(
@@ -268,11 +284,12 @@ def resampled_share(
     # As the patch does: a camera whose map M is the identity is not resampled by either map.
     if map_is_identity(camera, DEFAULT_KNEE_DEG):
         return 1.0
-    grid = patch_resample_grid(camera, height, width, patch, local_map=local_map)
-    if grid is None:
+    sample = _patch_sample_pixels(
+        camera, height, width, patch, DEFAULT_KNEE_DEG, DEFAULT_MAX_STRETCH, local_map
+    )
+    if sample is None:
         return 1.0
-    x = (grid[0, ..., 0] + 1) * width / 2 - 0.5
-    y = (grid[0, ..., 1] + 1) * height / 2 - 0.5
+    x, y = sample[..., 0], sample[..., 1]
     read = torch.zeros(height, width, dtype=torch.bool)
     for column in (x.floor(), x.floor() + 1):
         for row in (y.floor(), y.floor() + 1):
