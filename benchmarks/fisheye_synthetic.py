@@ -52,6 +52,8 @@ def fit_changes(args: argparse.Namespace) -> dict:
         changes["pose_source"] = args.pose_source
     if args.pose_windows:
         changes["pose_windows"] = args.pose_windows
+    if args.lr is not None:
+        changes["lr"] = args.lr
     if args.teacher_views:
         changes["teacher_views"] = tuple(args.teacher_views)
     view_weights = parse_view_weights(args.teacher_view_weights)
@@ -138,6 +140,9 @@ def main() -> None:
         default=None,
         choices=POSE_WINDOWS,
         help="change which windows the recipe's pose term scores",
+    )
+    parser.add_argument(
+        "--lr", type=float, default=None, help="change the recipe's Adam learning rate"
     )
     parser.add_argument(
         "--teacher-weight",
