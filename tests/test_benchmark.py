@@ -145,6 +145,33 @@ def test_run_benchmark_passes_the_recipe_and_its_changes_to_every_sequences_fit(
     assert changed.recipe_record()["changes"] == {"steps": [300, 1], "input_size": [None, 112]}
 
 
+def test_benchmark_script_turns_its_options_into_the_recipes_changes():
+    """``--lr``, ``--teacher-weight`` and ``--pose-windows`` become ``AdaptConfig`` changes that
+    the fit records against its recipe; options left out change nothing."""
+    import argparse
+    import importlib.util
+    from pathlib import Path
+
+    from raytun3r_plugin.apps import benchmark
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "fisheye_synthetic.py"
+    spec = importlib.util.spec_from_file_location("fisheye_synthetic", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    unset = dict.fromkeys(
+        ("pose_weight", "teacher_weight", "pose_source", "pose_windows", "lr", "teacher_views"),
+    )
+    options = argparse.Namespace(**unset, teacher_view_weights=None)
+    assert script.fit_changes(options) == {}
+    options.lr, options.teacher_weight, options.pose_windows = 0.01, 5.0, "unreprojected"
+    changes = script.fit_changes(options)
+    assert changes == {"lr": 0.01, "weights": {"teacher": 5.0}, "pose_windows": "unreprojected"}
+    record = benchmark.adapt_config(112, 1, recipe="default", **changes).recipe_record()
+    assert record["changes"]["lr"] == [3e-3, 0.01]
+    # "all" is left out of the fit's identity, so the recipe side of the record is empty.
+    assert record["changes"]["pose_windows"] == [None, "unreprojected"]
+
+
 def test_summarise_means_per_cell_and_counts_paired_wins():
     rows = [
         row("KB4 120", "indoor", "vanilla", 1, 1.0, 0.20),
