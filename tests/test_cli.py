@@ -21,6 +21,26 @@ def setup(tmp_path_factory):
     return build_cli_setup(tmp_path_factory.mktemp("cli"))
 
 
+def test_adapt_fits_with_the_backbone_familys_declared_changes(setup, capsys, monkeypatch):
+    """A change the backbone's family declares for the recipe reaches ``raytun3r adapt``'s fit,
+    its message and its file's record."""
+    import dataclasses
+
+    from raytun3r_plugin import registry
+
+    spec = registry.specs()["da3"]
+    declared = dataclasses.replace(spec, recipe_changes={"default": {"guard_every": 7}})
+    monkeypatch.setitem(registry._SPECS, spec.family, declared)
+    adapter = setup["folder"] / "family.safetensors"
+    words = ["adapt", *model_args(setup), "--camera", str(setup["camera"]), *frame_args(setup)]
+    assert main([*words, "--steps", "2", "--windows", "2", "--out", str(adapter)]) == 0
+    assert "the backbone family's: guard_every 7" in capsys.readouterr().err
+    info = Adapter.load(adapter).training_info
+    assert info["config"]["guard_every"] == 7
+    assert info["recipe"]["backbone_changes"] == {"guard_every": 7}
+    assert "guard_every" not in info["recipe"]["changes"]
+
+
 def test_adapt_inspect_infer(setup, capsys):
     folder = setup["folder"]
     adapter = folder / "adapter.safetensors"

@@ -133,6 +133,36 @@ def test_a_backbone_familys_declared_changes_apply_and_are_recorded(network, mon
     assert AdaptConfig.from_recipe("paper", model=network).lr == 1e-3
 
 
+def test_every_path_that_fits_takes_the_familys_declared_changes(network, monkeypatch):
+    """``raytun3r adapt`` and ``adapt-rig``, the fleet, the demo and the benchmark build their
+    settings with the model, so a family's declared change reaches them as it reaches
+    ``adapt()`` without a config; a user's option still wins."""
+    from raytun3r_plugin.apps import cli_adapt, fleet
+    from raytun3r_plugin.apps.cli import build_parser
+    from raytun3r_plugin.apps.fits import adapt_config, fit_description
+
+    spec, _ = registry.spec_for(network)
+    declared = {"lr": 0.01, "n_windows": 12}
+    changed = dataclasses.replace(spec, recipe_changes={"default": declared})
+    monkeypatch.setitem(registry._SPECS, spec.family, changed)
+    words = ["adapt", "--backbone", "da3-small", "--camera", "c.yaml", "--frames", "f"]
+    words += ["--out", "a.safetensors"]
+    args = build_parser().parse_args(words)
+    settings = cli_adapt._adapt_settings(args)
+    assert cli_adapt._adapt_config(args, settings, False, model=network).lr == 0.01
+    assert cli_adapt._adapt_config(args, settings, False).lr == 3e-3  # no model: the recipe's
+    mine = build_parser().parse_args([*words, "--windows", "20"])
+    config = cli_adapt._adapt_config(mine, cli_adapt._adapt_settings(mine), False, network)
+    assert (config.lr, config.n_windows) == (0.01, 20)
+    record = {"recipe": "default", "recipe_changes": {}, "size": 112}
+    assert fleet._config(record, False, network).lr == 0.01
+    assert fleet._config(record, True, network).lr == AdaptConfig.supervised().lr
+    fit = adapt_config(112, 3, model=network)
+    assert fit.lr == 0.01 and fit.recipe_record(network)["changes"] == {"steps": [300, 3]}
+    assert "the backbone family's: lr 0.01, n_windows 12" in fit_description(fit, network)
+    assert "changed: steps 3" in fit_description(fit, network)
+
+
 def test_adapt_without_a_config_fits_the_default_recipe_at_the_backbones_size(
     network, segment, short_default, capsys
 ):

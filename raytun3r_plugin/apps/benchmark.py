@@ -303,7 +303,7 @@ def sequence_rows(
         cell,
         n_adapt,
         METHOD_KEYS,
-        fit=adapt_config(size, steps, seed=0, recipe=recipe, **(fit_changes or {})),
+        fit=adapt_config(size, steps, seed=0, recipe=recipe, model=model, **(fit_changes or {})),
         supervised_fit=supervised_config(size, steps),
         adapter_path=path,
         progress=progress,
@@ -314,7 +314,15 @@ def sequence_rows(
             camera,
             seq.first_images(n_adapt),
             name,
-            adapt_config(size, steps, seed=0, components=[], recipe=recipe, **(fit_changes or {})),
+            adapt_config(
+                size,
+                steps,
+                seed=0,
+                components=[],
+                recipe=recipe,
+                model=model,
+                **(fit_changes or {}),
+            ),
             out_path=path.with_name(f"{path.stem}_{name}.safetensors"),
             progress=progress,
         ) as (module, seconds):
@@ -496,11 +504,11 @@ def run_benchmark(
     table = format_table(
         summary, COLUMNS + ["gap_closed", "lower_than_vanilla", f"lower_than_{ZERO_ADAPTER}"]
     )
-    fit = adapt_config(size, steps, recipe=recipe, **(fit_changes or {}))
+    fit = adapt_config(size, steps, recipe=recipe, model=model, **(fit_changes or {}))
     header = (
         f"Network: {network or 'see model card'}; input {size}x{size} px; {sequences} {'held-out' if base_seed == HELD_OUT_SEED else 'development'} sequences per camera and scene "
         f"(seeds {base_seed} + 100 k + 10 camera + scene); per sequence {n_adapt} adaptation frames "
-        f"(30 windows, {fit_description(fit)}) and {n_eval} scored frames"
+        f"(30 windows, {fit_description(fit, model)}) and {n_eval} scored frames"
         + (
             f"; {jobs} Ray workers of one thread each (timings are one thread's beside the other workers)"
             if not spec.in_process

@@ -102,10 +102,10 @@ def _recipe_name(args: argparse.Namespace, supervised: bool) -> str:
     return name
 
 
-def _adapt_config(args: argparse.Namespace, settings: dict, supervised: bool):
+def _adapt_config(args: argparse.Namespace, settings: dict, supervised: bool, model=None):
     """The ``AdaptConfig`` of ``raytun3r adapt``: the recipe (``--recipe``; ``supervised`` with
-    ``--depth``, ``teacher-only`` with ``--teacher-only``, else ``default``), changed by the
-    options given."""
+    ``--depth``, ``teacher-only`` with ``--teacher-only``, else ``default``), with the changes
+    ``model``'s backbone family declares for it, changed by the options given."""
     from raytun3r_plugin.adaptation.config import AdaptConfig
 
     teacher = {
@@ -128,7 +128,8 @@ def _adapt_config(args: argparse.Namespace, settings: dict, supervised: bool):
             "--teacher-only fits the teacher term alone: leave out --teacher and --pose-weight"
         )
     name = _recipe_name(args, supervised)
-    weight = AdaptConfig.from_recipe(name).weights.teacher if args.teacher is None else args.teacher
+    recipe = AdaptConfig.from_recipe(name, model=model)
+    weight = recipe.weights.teacher if args.teacher is None else args.teacher
     if teacher and not weight:
         raise InputError(
             f"--teacher-views, --teacher-view-weights and --teacher-fov change the teacher term, "
@@ -137,7 +138,7 @@ def _adapt_config(args: argparse.Namespace, settings: dict, supervised: bool):
     changes = {**settings, **teacher}
     if args.teacher is not None:
         changes["weights"] = {**changes.get("weights", {}), "teacher": float(args.teacher)}
-    return AdaptConfig.from_recipe(name, **changes)
+    return AdaptConfig.from_recipe(name, model=model, **changes)
 
 
 def cmd_adapt(args: argparse.Namespace) -> int:
@@ -148,7 +149,7 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     from raytun3r_plugin.images import read_depth_maps, read_frames, read_mask
 
     settings = _adapt_settings(args)
-    config = _adapt_config(args, settings, supervised=bool(args.depth))
+    _adapt_config(args, settings, supervised=bool(args.depth))  # refuses bad options up front
     if args.depth and len(args.depth) != len(args.frames):
         raise InputError(
             f"--depth needs one folder per --frames segment: {len(args.frames)} segments, "
@@ -170,12 +171,17 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     depth = (depths if len(segments) > 1 else depths[0]) if depths else None
     model = _load_model(args.backbone, args.weights)
     held_out = check_frame_count(len(segments[-1]), args.check_frames)  # refuses a bad value
+    config = _adapt_config(args, settings, supervised=bool(args.depth), model=model)
     # The check frames are the fit's own setting (adapt keeps them out and scores them).
     config = dataclasses.replace(config.sized_for(model), check_frames=args.check_frames)
     recipe = config.recipe_record(model)
     changed = ", ".join(f"{key} {new}" for key, (_, new) in recipe["changes"].items())
+    family = ", ".join(
+        f"{key} {value}" for key, value in recipe.get("backbone_changes", {}).items()
+    )
     print(
         f"fitting with the recipe '{recipe['name']}' (v{recipe['version']})"
+        + (f", the backbone family's: {family}" if family else "")
         + (f", changed: {changed}" if changed else "")
         + f"; input {config.input_size} px; "
         + (
@@ -241,7 +247,7 @@ def cmd_adapt_rig(args: argparse.Namespace) -> int:
         instants = instants[: args.max_frames]
     rig = rig.subset(list(instants))
     model = _load_model(args.backbone, args.weights)
-    config = AdaptConfig.from_recipe(args.recipe or "rig", **_adapt_settings(args))
+    config = AdaptConfig.from_recipe(args.recipe or "rig", model=model, **_adapt_settings(args))
     adapters = adapt_rig(
         model,
         rig,

@@ -98,7 +98,9 @@ def score_sequence(model, k: int, seed: int, size: int, steps: int, out: Path, l
         )
     fits = {
         "adapted": (
-            adapt_config(size, steps, lr=DEMO_LR, seed=seed, cache_dir=str(out / "cache")),
+            adapt_config(
+                size, steps, lr=DEMO_LR, seed=seed, model=model, cache_dir=str(out / "cache")
+            ),
             None,
         ),
         "supervised": (
@@ -160,11 +162,11 @@ def run_demo(args: argparse.Namespace) -> int:
     jobs = min(jobs, count)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    description = _built_in_network()[1]
+    model, description = _built_in_network()
     print(f"network: {description}")
     camera = demo_camera(size)
     print(f"camera:  {camera!r}, field of view {camera.fov_deg:.0f} deg")
-    print(f"fits:    {fit_description(adapt_config(size, steps, lr=DEMO_LR))}")
+    print(f"fits:    {fit_description(adapt_config(size, steps, lr=DEMO_LR, model=model), model)}")
     print(
         f"jobs:    {jobs} process{'es' if jobs > 1 else ''}"
         + (", 1 thread each" if jobs > 1 else "")

@@ -12,6 +12,7 @@ def adapt_config(
     recipe: str = "default",
     pose_weight: float | None = None,
     teacher_weight: float | None = None,
+    model=None,
     **changes,
 ):
     """The recipe ``recipe`` (:mod:`raytun3r_plugin.adaptation.recipes`) at input ``size`` px
@@ -20,7 +21,9 @@ def adapt_config(
 
     ``pose_weight`` and ``teacher_weight`` change only that loss term's weight
     (``weights={"pose": ...}``); ``changes`` change any other field. Everything not given is the
-    recipe's, whatever the network.
+    recipe's, with the changes ``model``'s backbone family declares for it
+    (``BackboneSpec.recipe_changes``) when ``model`` is given, as ``adapt()`` fits it: nothing
+    is keyed by a network's name.
     """
     from raytun3r_plugin.adaptation.config import AdaptConfig
     from raytun3r_plugin.errors import InputError
@@ -42,20 +45,27 @@ def adapt_config(
     if "teacher_views" in changes:
         changes["teacher_views"] = tuple(changes["teacher_views"])
     return AdaptConfig.from_recipe(
-        recipe, **{"steps": steps, "input_size": size, "checkpoint_every": 0, **changes}
+        recipe,
+        model=model,
+        **{"steps": steps, "input_size": size, "checkpoint_every": 0, **changes},
     )
 
 
-def fit_description(config) -> str:
-    """A fit's settings in one line for the demo's and the benchmark's headers: the recipe, what
-    was changed from it, and the teacher in words."""
-    record = config.recipe_record()
+def fit_description(config, model=None) -> str:
+    """A fit's settings in one line for the demo's and the benchmark's headers: the recipe, the
+    changes ``model``'s backbone family declares for it, what was changed from both, and the
+    teacher in words."""
+    record = config.recipe_record(model)
     changed = ", ".join(
         f"{key} {new}" for key, (_, new) in record["changes"].items() if key != "input_size"
+    )
+    family = ", ".join(
+        f"{key} {value}" for key, value in record.get("backbone_changes", {}).items()
     )
     teacher = teacher_settings(config)
     return (
         f"recipe '{record['name']}' v{record['version']}"
+        + (f" (the backbone family's: {family})" if family else "")
         + (f" (changed: {changed})" if changed else "")
         + f", pose source '{config.pose_source}', pose weight {config.weights.pose:g}"
         + (f", {teacher}" if teacher else "")

@@ -238,12 +238,14 @@ def _load_segment(segment: dict, camera, size: int):
     return seq, depth, seq.camera
 
 
-def _config(record: dict, supervised: bool):
+def _config(record: dict, supervised: bool, model=None):
+    """One camera's fit settings: its recipe with the backbone family's declared changes
+    (``model``), then the manifest's."""
     from raytun3r_plugin.adaptation.train import AdaptConfig
 
     recipe = "supervised" if supervised else record["recipe"]
     changes = {**record["recipe_changes"], "input_size": record["size"], "checkpoint_every": 0}
-    return AdaptConfig.from_recipe(recipe, **changes)
+    return AdaptConfig.from_recipe(recipe, model=model, **changes)
 
 
 def _adapt(model, record: dict, staging: Path) -> dict:
@@ -259,7 +261,7 @@ def _adapt(model, record: dict, staging: Path) -> dict:
     if camera is None:  # read_manifest gives every camera a calibration or a dataset
         raise InputError(f"{record['camera']}: no calibration and no dataset camera")
     supervised = all(depth is not None for depth in depths)
-    config = _config(record, supervised)
+    config = _config(record, supervised, model)
     started = time.perf_counter()
     adapter = adapt(
         model,
@@ -303,8 +305,8 @@ def _evaluate(model, record: dict, staging: Path) -> dict:
         {"camera": record["camera"], "scene": segment["scene"], "seed": segment["name"]},
         n_adapt,
         record["methods"],
-        fit=_config(record, supervised=False),
-        supervised_fit=_config(record, supervised=True),
+        fit=_config(record, False, model),
+        supervised_fit=_config(record, True, model),
         adapter_path=staging / "adapter.safetensors",
         adapter=None if given is None else Adapter.load(given["path"]),
     )
