@@ -97,7 +97,13 @@ def baseline_rows(model, seq, held_out: list[int], n_adapt: int, cache: str) -> 
         }
     ]
     config = adapt_config(
-        seq.camera.width, DEMO_STEPS, lr=DEMO_LR, seed=0, cache_dir=cache, components=[]
+        seq.camera.width,
+        DEMO_STEPS,
+        lr=DEMO_LR,
+        seed=0,
+        cache_dir=cache,
+        components=[],
+        model=model,
     )
     for label, name in (
         ("LoRA (r = 8, alpha = 16)", "lora"),
@@ -147,7 +153,13 @@ def ablation_rows(model, seed: int, refit: bool, baselines: bool = False) -> lis
         def fit(components):
             began = time.perf_counter()
             config = adapt_config(
-                size, DEMO_STEPS, lr=DEMO_LR, seed=0, cache_dir=cache, components=components
+                size,
+                DEMO_STEPS,
+                lr=DEMO_LR,
+                seed=0,
+                cache_dir=cache,
+                components=components,
+                model=model,
             )
             adapter = adapt(model, seq.camera, seq.images[:n_adapt], config, progress=False)
             print(

@@ -46,7 +46,13 @@ def fit_one(model, seed: int, size: int, steps: int, frames: int) -> float:
     camera = make_camera(CAMERAS[1], size)
     seq = synthetic.render_sequence("indoor", camera, n_frames=frames, seed=seed)
     start = time.perf_counter()
-    adapt(model, camera, seq.first_images(frames), adapt_config(size, steps), progress=False)
+    adapt(
+        model,
+        camera,
+        seq.first_images(frames),
+        adapt_config(size, steps, model=model),
+        progress=False,
+    )
     return time.perf_counter() - start
 
 

@@ -115,7 +115,7 @@ def one_rig(
     names, lenses = rig.names, rig.cameras
     # adapt_rig has no teacher term yet (it refuses one), so neither rig fit takes it: the
     # per-camera fits and the joint one differ only in how they fit, like with like.
-    config = adapt_config(SIZE, steps, seed=0, recipe=recipe, teacher_weight=0.0)
+    config = adapt_config(SIZE, steps, seed=0, recipe=recipe, teacher_weight=0.0, model=model)
     fitted: dict[str, list | None] = {"vanilla": None, ZERO_ADAPTER: [None, None]}
     seconds: dict[str, float] = {"vanilla": 0.0, ZERO_ADAPTER: 0.0}
     began = time.perf_counter()
@@ -191,7 +191,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     model, description = default_network(args.network)
-    fitting = adapt_config(SIZE, args.steps, recipe=args.recipe, teacher_weight=0.0)
+    fitting = adapt_config(SIZE, args.steps, recipe=args.recipe, teacher_weight=0.0, model=model)
     base = RIG_HELD_OUT_SEED if args.held_out else RIG_SEED
     print(
         f"network: {description}; recipe '{args.recipe}', pose source '{fitting.pose_source}', "

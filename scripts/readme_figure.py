@@ -38,7 +38,11 @@ def main() -> None:
     model, _ = default_network(DEFAULT_NETWORK)
     with quiet_upstream():
         adapter = adapt(
-            model, camera, seq.first_images(24), adapt_config(size, 300, seed=0), progress=False
+            model,
+            camera,
+            seq.first_images(24),
+            adapt_config(size, 300, seed=0, model=model),
+            progress=False,
         )
         frames = [args.frame - 1, args.frame, args.frame + 1]
         outputs = {

@@ -42,7 +42,7 @@ def main() -> None:
     camera = demo_camera(size)
     seq = synthetic.render_sequence("indoor", camera, n_frames=36, seed=1000)
     model, _ = default_network()
-    config = adapt_config(size, DEMO_STEPS, lr=DEMO_LR, seed=0)
+    config = adapt_config(size, DEMO_STEPS, lr=DEMO_LR, seed=0, model=model)
     out = Path(args.out).resolve()
     page = Path(args.html).resolve() if args.html else None
     home = Path.cwd()
