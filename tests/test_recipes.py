@@ -133,7 +133,7 @@ def test_a_backbone_familys_declared_changes_apply_and_are_recorded(network, mon
     assert AdaptConfig.from_recipe("paper", model=network).lr == 1e-3
 
 
-def test_every_path_that_fits_takes_the_familys_declared_changes(network, monkeypatch):
+def test_every_path_that_fits_takes_the_familys_declared_changes(network, monkeypatch, capsys):
     """``raytun3r adapt`` and ``adapt-rig``, the fleet, the demo and the benchmark build their
     settings with the model, so a family's declared change reaches them as it reaches
     ``adapt()`` without a config; a user's option still wins."""
@@ -161,6 +161,11 @@ def test_every_path_that_fits_takes_the_familys_declared_changes(network, monkey
     assert fit.lr == 0.01 and fit.recipe_record(network)["changes"] == {"steps": [300, 3]}
     assert "the backbone family's: lr 0.01, n_windows 12" in fit_description(fit, network)
     assert "changed: steps 3" in fit_description(fit, network)
+    from raytun3r_plugin.apps.cli import main
+
+    assert main(["recipes"]) == 0  # the listing names what each family changes
+    listing = capsys.readouterr().out
+    assert f"backbone family {spec.family!r} changes 'default': lr 0.01, n_windows 12" in listing
 
 
 def test_adapt_without_a_config_fits_the_default_recipe_at_the_backbones_size(

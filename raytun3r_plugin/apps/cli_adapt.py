@@ -291,6 +291,12 @@ def cmd_recipes(args: argparse.Namespace) -> int:
                 if key != "recipe":
                     print(f"    {key}: {settings[key]}")
             print(f"    chosen by: {recipe.evidence}")
+    from raytun3r_plugin.registry import specs
+
+    for family, spec in specs().items():
+        for name, changes in spec.recipe_changes.items():
+            settings = ", ".join(f"{key} {value}" for key, value in changes.items())
+            print(f"backbone family {family!r} changes {name!r}: {settings}")
     return 0
 
 
