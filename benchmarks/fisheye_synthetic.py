@@ -54,6 +54,8 @@ def fit_changes(args: argparse.Namespace) -> dict:
         changes["pose_windows"] = args.pose_windows
     if args.lr is not None:
         changes["lr"] = args.lr
+    if args.lr_without_teacher is not None:
+        changes["lr_without_teacher"] = args.lr_without_teacher
     if args.teacher_views:
         changes["teacher_views"] = tuple(args.teacher_views)
     view_weights = parse_view_weights(args.teacher_view_weights)
@@ -143,6 +145,12 @@ def main() -> None:
     )
     parser.add_argument(
         "--lr", type=float, default=None, help="change the recipe's Adam learning rate"
+    )
+    parser.add_argument(
+        "--lr-without-teacher",
+        type=float,
+        default=None,
+        help="the step size of fits whose teacher term is off (AdaptConfig.lr_without_teacher)",
     )
     parser.add_argument(
         "--teacher-weight",

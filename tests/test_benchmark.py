@@ -159,7 +159,10 @@ def test_benchmark_script_turns_its_options_into_the_recipes_changes():
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     unset = dict.fromkeys(
-        ("pose_weight", "teacher_weight", "pose_source", "pose_windows", "lr", "teacher_views"),
+        (
+            *("pose_weight", "teacher_weight", "pose_source", "pose_windows", "lr"),
+            *("lr_without_teacher", "teacher_views"),
+        ),
     )
     options = argparse.Namespace(**unset, teacher_view_weights=None)
     assert script.fit_changes(options) == {}

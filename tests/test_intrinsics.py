@@ -221,6 +221,7 @@ def test_config_field_is_off_by_default_and_out_of_the_identity():
         "check_frames",
         "check_veto",
         "pose_windows",
+        "lr_without_teacher",
     )
     legacy = {k: v for k, v in asdict(off).items() if k not in (*later, "recipe")}
     del legacy["weights"]["photo"], legacy["weights"]["teacher"]

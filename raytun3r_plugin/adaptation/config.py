@@ -176,6 +176,13 @@ class AdaptConfig:
             that cannot be scored keeps the fit. None: the fit is kept whatever the check says.
             Left out of :meth:`to_dict` when None. docs/decisions.md, "A held-out check that
             decides whether a fit is kept".
+        lr_without_teacher: the Adam step size of a self-supervised fit whose teacher term is
+            off (the lens gate turned it off, or its weight is 0), in place of ``lr``; the
+            fit's recorded settings show the step it ran with. A larger ``lr`` can then be
+            used where the teacher's dense targets anchor the fit while the matches alone keep
+            a smaller one. None (the default): ``lr`` whatever the teacher; left out of
+            :meth:`to_dict` when None. docs/decisions.md, "The step size where the teacher is
+            on".
         refine_intrinsics: before fitting, refine the camera's focal and first distortion term
             jointly with the pairs' relative poses from the adaptation set's matches
             (:func:`~raytun3r_plugin.adaptation.intrinsics.refine_intrinsics`, docs/intrinsics.md)
@@ -243,6 +250,7 @@ class AdaptConfig:
     pose_windows: str = "all"
     check_frames: int | str = 0
     check_veto: float | None = None
+    lr_without_teacher: float | None = None
     refine_intrinsics: bool = False
     photo_sigma: float = 1.0
     photo_pixels: int = 4096
@@ -279,6 +287,15 @@ class AdaptConfig:
         checks = (
             ("steps", self.steps >= 0),
             ("lr", self.lr > 0),
+            (
+                "lr_without_teacher",
+                self.lr_without_teacher is None
+                or (
+                    isinstance(self.lr_without_teacher, (int, float))
+                    and math.isfinite(self.lr_without_teacher)
+                    and self.lr_without_teacher > 0
+                ),
+            ),
             ("clip", self.clip is None or self.clip > 0),
             ("input_size", self.input_size is None or self.input_size >= 1),
             ("n_windows", self.n_windows >= 1),
@@ -338,6 +355,7 @@ class AdaptConfig:
                 f"expected one of {POSE_WINDOWS}; 'unreprojected' only with pose_source='hybrid'"
             ),
             "check_veto": "expected None, or a fraction in [0, 1) with check_frames set",
+            "lr_without_teacher": "expected None, or a step size > 0",
             "teacher_view_weights": (
                 f"expected None or {{view: weight >= 0}} naming exactly the teacher views "
                 f"{self.teacher_views!r}, at least one weight > 0"
@@ -391,6 +409,8 @@ class AdaptConfig:
             del out["check_frames"]
         if self.check_veto is None:
             del out["check_veto"]
+        if self.lr_without_teacher is None:
+            del out["lr_without_teacher"]
         out["weights"] = self.weights.as_dict()
         if not self.weights.photo and self.scale != "photometric":
             del out["photo_sigma"], out["photo_pixels"]

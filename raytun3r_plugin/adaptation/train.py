@@ -43,6 +43,7 @@ The run is split at its seams; each name lives in one module and is imported fro
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import os
@@ -390,7 +391,8 @@ def _gated(
 ) -> tuple[AdaptConfig, dict[str, Any]]:
     """The settings a fit runs with after its gates, and the gates' records (None where a gate
     does not apply): the pose gate (self-supervised fits without true poses), the pinhole-view
-    teacher's lens gate and the parallax gate (self-supervised fits)."""
+    teacher's lens gate (and with it ``lr_without_teacher``) and the parallax gate
+    (self-supervised fits)."""
     gates: dict[str, Any] = {"pose_gate": None, "teacher": None, "parallax_gate": None}
     if supervised:
         return config, gates
@@ -400,6 +402,11 @@ def _gated(
         config, gates["pose_gate"] = gate_pose_term(model, adapter, problem, config)
     gates["teacher"] = _add_teacher(model, problem, config)
     teacher = gates["teacher"] is not None and gates["teacher"]["used"]
+    if not teacher and config.lr_without_teacher is not None:
+        # Without the teacher's dense targets the matches alone carry the fit, and a step
+        # sized for the teacher overfits them (docs/decisions.md, "The step size where the
+        # teacher is on").
+        config = dataclasses.replace(config, lr=config.lr_without_teacher)
     if config.min_parallax_px > 0:
         gates["parallax_gate"] = _gate_parallax(model, adapter, problem, config, teacher)
     return config, gates
