@@ -7,6 +7,7 @@ import argparse
 import dataclasses
 import sys
 
+from raytun3r_plugin.apps.fits import settings_text
 from raytun3r_plugin.errors import InputError
 
 
@@ -175,10 +176,8 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     # The check frames are the fit's own setting (adapt keeps them out and scores them).
     config = dataclasses.replace(config.sized_for(model), check_frames=args.check_frames)
     recipe = config.recipe_record(model)
-    changed = ", ".join(f"{key} {new}" for key, (_, new) in recipe["changes"].items())
-    family = ", ".join(
-        f"{key} {value}" for key, value in recipe.get("backbone_changes", {}).items()
-    )
+    changed = settings_text({key: new for key, (_, new) in recipe["changes"].items()})
+    family = settings_text(recipe.get("backbone_changes", {}))
     print(
         f"fitting with the recipe '{recipe['name']}' (v{recipe['version']})"
         + (f", the backbone family's: {family}" if family else "")
@@ -295,8 +294,7 @@ def cmd_recipes(args: argparse.Namespace) -> int:
 
     for family, spec in specs().items():
         for name, changes in spec.recipe_changes.items():
-            settings = ", ".join(f"{key} {value}" for key, value in changes.items())
-            print(f"backbone family {family!r} changes {name!r}: {settings}")
+            print(f"backbone family {family!r} changes {name!r}: {settings_text(changes)}")
     return 0
 
 

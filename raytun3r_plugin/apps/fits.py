@@ -4,6 +4,9 @@ headers. One home, so the demo and the benchmark cannot drift apart."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 
 def adapt_config(
     size: int,
@@ -56,12 +59,10 @@ def fit_description(config, model=None) -> str:
     changes ``model``'s backbone family declares for it, what was changed from both, and the
     teacher in words."""
     record = config.recipe_record(model)
-    changed = ", ".join(
-        f"{key} {new}" for key, (_, new) in record["changes"].items() if key != "input_size"
+    changed = settings_text(
+        {key: new for key, (_, new) in record["changes"].items() if key != "input_size"}
     )
-    family = ", ".join(
-        f"{key} {value}" for key, value in record.get("backbone_changes", {}).items()
-    )
+    family = settings_text(record.get("backbone_changes", {}))
     teacher = teacher_settings(config)
     return (
         f"recipe '{record['name']}' v{record['version']}"
@@ -70,6 +71,11 @@ def fit_description(config, model=None) -> str:
         + f", pose source '{config.pose_source}', pose weight {config.weights.pose:g}"
         + (f", {teacher}" if teacher else "")
     )
+
+
+def settings_text(settings: Mapping[str, Any]) -> str:
+    """Fit settings in a line of text: ``{"lr": 0.01, "steps": 3}`` -> ``"lr 0.01, steps 3"``."""
+    return ", ".join(f"{key} {value}" for key, value in settings.items())
 
 
 def teacher_settings(config) -> str:
