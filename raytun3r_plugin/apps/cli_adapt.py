@@ -129,8 +129,8 @@ def _adapt_config(args: argparse.Namespace, settings: dict, supervised: bool, mo
             "--teacher-only fits the teacher term alone: leave out --teacher and --pose-weight"
         )
     name = _recipe_name(args, supervised)
-    recipe = AdaptConfig.from_recipe(name, model=model)
-    weight = recipe.weights.teacher if args.teacher is None else args.teacher
+    unchanged = AdaptConfig.from_recipe(name, model=model)
+    weight = unchanged.weights.teacher if args.teacher is None else args.teacher
     if teacher and not weight:
         raise InputError(
             f"--teacher-views, --teacher-view-weights and --teacher-fov change the teacher term, "
