@@ -27,6 +27,7 @@ CHECKED = [
     "raytun3r_plugin/hooks.py",
     "raytun3r_plugin/adapter.py",
     "raytun3r_plugin/geometry.py",
+    "raytun3r_plugin/size_geometry.py",
     "raytun3r_plugin/cameras/",
     "raytun3r_plugin/datasets/rig.py",
     "raytun3r_plugin/adaptation/rig.py",
