@@ -22,6 +22,7 @@ CHECKED = [
     "raytun3r_plugin/preprocess.py",
     "raytun3r_plugin/registry.py",
     "raytun3r_plugin/patching.py",
+    "raytun3r_plugin/patch_wrapper.py",
     "raytun3r_plugin/patch_state.py",
     "raytun3r_plugin/patch_checks.py",
     "raytun3r_plugin/hooks.py",
