@@ -421,7 +421,7 @@ class Adapter(nn.Module):
         the same matmuls. Differentiable in the tables.
 
         Args:
-            geometry: a :class:`raytun3r_plugin.geometry.SizeGeometry` (camera at the input
+            geometry: a :class:`raytun3r_plugin.size_geometry.SizeGeometry` (camera at the input
                 size), whose interpolation matrices spread the tables over the token grid.
             device: of the result (default: the tables' device).
             dtype: of the result (default: float32).

@@ -16,8 +16,8 @@ from torch import nn
 
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import InputError, PatchedCopyError
-from raytun3r_plugin.geometry import GeometryCache, SizeGeometry
 from raytun3r_plugin.registry import BackboneInfo, BackboneSpec
+from raytun3r_plugin.size_geometry import GeometryCache, SizeGeometry
 
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera

@@ -5,7 +5,8 @@ installed as an instance attribute (so other instances of the same class are unt
 undone in reverse order. ``apply`` validates everything first and mutates last; a failure while
 installing rolls back what was installed, so the model is never left half patched.
 
-Lifetime, as accelerate's ``add_hook_to_module``: an installed :class:`_Wrapper` holds its owner
+Lifetime, as accelerate's ``add_hook_to_module``: an installed
+:class:`~raytun3r_plugin.patch_wrapper.PatchWrapper` holds its owner
 by weak reference and looks the original method up *at call time*, and the handle holds the
 model by weak reference, so a patched model is freed like any other. The handle itself lives on
 the model (the one attribute of :data:`ADDED_ATTRIBUTES`), which is what lets ``copy.deepcopy``
@@ -16,12 +17,9 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import functools
-import inspect
 import threading
-import types
 import weakref
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -50,6 +48,7 @@ from raytun3r_plugin.patch_state import (  # the state the wrappers read; re-exp
     _DISABLED,
     PatchState,
 )
+from raytun3r_plugin.patch_wrapper import NOT_SET, WRAPPER_MARK, PatchWrapper
 from raytun3r_plugin.registry import (
     HOOK_COMPONENTS,
     BackboneInfo,
@@ -63,8 +62,6 @@ from raytun3r_plugin.registry import (
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
 
-#: Class attribute that identifies an installed raytun3r wrapper.
-WRAPPER_MARK = "__raytun3r_wrapper__"
 #: Where the live handle is kept on the model given to :func:`apply`.
 HANDLE_ATTRIBUTE = "_raytun3r_handle"
 #: Every attribute ``apply`` adds to the model object itself (accelerate's
@@ -85,109 +82,6 @@ def _release() -> None:
     """Release every level of :data:`_LOCK` this thread holds (none: nothing)."""
     while _LOCK._is_owned():  # type: ignore[attr-defined]
         _LOCK.release()
-
-
-class _NotSet:
-    """Marks a wrapper whose owner had no instance attribute of its own (the class method runs)."""
-
-    def __repr__(self) -> str:
-        return "<not set>"
-
-    def __deepcopy__(self, memo: dict) -> _NotSet:
-        return self
-
-
-_NOTSET = _NotSet()
-
-
-class _Wrapper:
-    """The callable installed in place of one upstream method on one owner instance.
-
-    It holds the owner by weak reference and resolves the original method on every call (the
-    class method bound to the owner, or the instance attribute it shadowed), so it never pins
-    the model and a deep copy rebinds to the copied owner; the behaviour comes from
-    ``target.build(owner, state)`` and is rebuilt for a copy. ``__wrapped__``, ``__name__`` and
-    ``__signature__`` are the original's, so ``inspect`` sees the upstream method.
-    """
-
-    __raytun3r_wrapper__ = True
-
-    def __init__(
-        self,
-        owner: Any,
-        target: PatchTarget,
-        state: PatchState,
-        previous: Any = _NOTSET,
-        *,
-        build: bool = True,
-    ):
-        self._owner = weakref.ref(owner)
-        self._target = target
-        self._state = state
-        self._previous = previous
-        self._lock = threading.Lock()
-        self._behaviour = target.build(owner, state) if build else None
-        named = getattr(type(owner), target.attribute) if previous is _NOTSET else previous
-        self.__name__ = getattr(named, "__name__", target.attribute)
-        self.__qualname__ = getattr(named, "__qualname__", target.attribute)
-        self.__doc__ = getattr(named, "__doc__", None)
-        self.__module__ = getattr(named, "__module__", type(owner).__module__)
-
-    def _original(self, bound: bool = False) -> Callable:
-        """Upstream's method for this owner: the class function with the owner as a partial
-        (what a call runs), or, with ``bound``, a bound method (what introspection sees)."""
-        owner = self._owner()
-        if owner is None:
-            raise NotAppliedError(
-                f"the module owning {self._target.attribute} was garbage-collected"
-            )
-        if self._previous is not _NOTSET:
-            return self._previous
-        method = getattr(type(owner), self._target.attribute)
-        if isinstance(method, types.FunctionType) and not bound:
-            # Not ``method.__get__(owner)``: torch.compile rebuilds a bound method after a graph
-            # break as ``owner.<attribute>``, which finds this wrapper again (endless recursion).
-            return functools.partial(method, owner)
-        return method.__get__(owner, type(owner))
-
-    def _built(self) -> Callable:
-        with self._lock:
-            if self._behaviour is None:
-                self._behaviour = self._target.build(self._owner(), self._state)
-            return self._behaviour
-
-    def __call__(self, *args, **kwargs):
-        behaviour = self._behaviour or self._built()
-        return behaviour(self._original(), *args, **kwargs)
-
-    @property
-    def __wrapped__(self) -> Callable:
-        return self._original(bound=True)
-
-    @property
-    def __signature__(self) -> inspect.Signature:
-        return inspect.signature(self._original(bound=True))
-
-    def __deepcopy__(self, memo: dict) -> _Wrapper:
-        state = copy.deepcopy(self._state, memo)  # refuses a copy of only a part of the model
-        owner = copy.deepcopy(self._owner(), memo)  # already in memo: the copy being built
-        # The copied owner is still empty here (deepcopy is filling its __dict__), so the
-        # behaviour, which may read it, is built on the copy's first call.
-        twin = _Wrapper(
-            owner, self._target, state, copy.deepcopy(self._previous, memo), build=False
-        )
-        memo[id(self)] = twin
-        return twin
-
-    def __reduce_ex__(self, protocol):
-        raise PatchedCopyError(
-            "a patched model cannot be pickled: call handle.remove() first (apply() again after loading)"
-        )
-
-    def __repr__(self) -> str:
-        owner = self._owner()
-        where = type(owner).__qualname__ if owner is not None else "<freed>"
-        return f"<raytun3r wrapper of {where}.{self._target.attribute}>"
 
 
 @dataclass
@@ -523,8 +417,8 @@ def _apply_locked(
     # Build every replacement before installing any, so a build error changes nothing.
     planned = []
     for target, _path, owner, state in resolved:
-        previous = owner.__dict__.get(target.attribute, _NOTSET)
-        planned.append((owner, target.attribute, _Wrapper(owner, target, state, previous)))
+        previous = owner.__dict__.get(target.attribute, NOT_SET)
+        planned.append((owner, target.attribute, PatchWrapper(owner, target, state, previous)))
 
     # From here on the model changes: everything up to the return is inside the rollback's
     # scope (the installs, the handle's construction and its registration on the model), and

@@ -222,7 +222,7 @@ class BackboneSpec:
         recipe_changes: ``{recipe name: {AdaptConfig field: value}}``: the settings this family
             needs that differ from a fit recipe's (:mod:`raytun3r_plugin.adaptation.recipes`),
             applied by ``AdaptConfig.from_recipe(name, model=...)``. Each entry must be justified
-            by a measurement written beside it. Empty for every family today.
+            by a measurement written beside it (the DA3 family's, ``patches/da3.py``).
         composites: specs of models made of several networks of this family (DA3's nested
             model), each with ``branches``. They are part of the family, not families of their
             own: :func:`specs` lists the family once, :func:`spec_for` tries them before the

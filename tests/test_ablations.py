@@ -18,12 +18,8 @@ from safetensors.torch import save_file
 import raytun3r_plugin as rt
 from raytun3r_plugin.adapter import ABLATION_SWITCHES, COMPONENTS, normalise_components
 from raytun3r_plugin.errors import AdapterError, InputError, Raytun3rError
-from raytun3r_plugin.geometry import (
-    NAIVE_MAX_ANGLE_DEG,
-    GeometryCache,
-    naive_pe_positions,
-    token_centres,
-)
+from raytun3r_plugin.geometry import NAIVE_MAX_ANGLE_DEG, naive_pe_positions, token_centres
+from raytun3r_plugin.size_geometry import GeometryCache
 from tests.helpers import (
     assert_same_snapshot,
     fisheye,

@@ -125,7 +125,7 @@ def test_no_valid_pixel_is_refused():
 # ------------------------------------------------------------------------ domain boundaries
 def _patched_geometry_is_finite(camera: C.Camera, patch: int = 14) -> None:
     """Build everything the patched forward builds from the camera, at the camera's size."""
-    from raytun3r_plugin.geometry import SizeGeometry
+    from raytun3r_plugin.size_geometry import SizeGeometry
 
     geometry = SizeGeometry(camera, camera.height, camera.width, patch, None, 80.0, 2.0)
     polar = geometry.polar

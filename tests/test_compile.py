@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 import raytun3r_plugin as rt
-from raytun3r_plugin import patching
+from raytun3r_plugin.patch_wrapper import PatchWrapper
 from raytun3r_plugin.registry import PatchTarget
 from tests.backbones import CASE, make
 from tests.compile_checks import check_compiled_lifecycle, counter
@@ -61,7 +61,7 @@ def test_a_graph_break_inside_a_wrapper_does_not_recurse():
         owner_classes=("_Doubler",),
         build=_breaking,
     )
-    wrapper = patching._Wrapper(model, target, state=None)
+    wrapper = PatchWrapper(model, target, state=None)
     object.__setattr__(model, "scale", wrapper)
     count = counter("eager")
     x = torch.arange(3.0)

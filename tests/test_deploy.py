@@ -119,12 +119,12 @@ def test_frozen_model_is_the_patched_model(family, monkeypatch):
     assert any("interpolate_pos_encoding" in name for name in names)
     assert any("resample_grid" in name for name in names)
     # It runs without the camera model, the geometry cache or the adapter.
-    from raytun3r_plugin import adapter, geometry
+    from raytun3r_plugin import adapter, size_geometry
 
     def refuse(*args, **kwargs):
         raise AssertionError("the frozen model called raytun3r's camera code")
 
-    monkeypatch.setattr(geometry.GeometryCache, "at", refuse)
+    monkeypatch.setattr(size_geometry.GeometryCache, "at", refuse)
     monkeypatch.setattr(adapter.Adapter, "pe_correction", refuse)
     got = _frozen_outputs(frozen, images)
     assert max_relative_difference({k: expected[k] for k in got}, got) < 1e-6

@@ -18,6 +18,7 @@ import torch
 import raytun3r_plugin as rt
 from raytun3r_plugin import patching
 from raytun3r_plugin.errors import NotAppliedError, PatchedCopyError, Raytun3rError
+from raytun3r_plugin.patch_wrapper import WRAPPER_MARK
 from raytun3r_plugin.registry import resolve_targets, spec_for
 from tests.backbones import CASE, CASES, make
 from tests.helpers import fisheye, outputs, randomise_
@@ -127,9 +128,7 @@ def test_removing_a_deepcopy_restores_it_exactly(kind):
     assert rt.handle_of(twin) is None and rt.handle_of(model) is not None
     assert not any(name in vars(twin) for name in patching.ADDED_ATTRIBUTES)
     for module in twin.modules():
-        assert not any(
-            getattr(value, patching.WRAPPER_MARK, False) for value in vars(module).values()
-        )
+        assert not any(getattr(value, WRAPPER_MARK, False) for value in vars(module).values())
     expected, found = outputs(plain_twin, images), outputs(twin, images)
     for key in expected:
         assert torch.equal(expected[key], found[key]), key
@@ -160,7 +159,7 @@ def test_wrapped_methods_keep_name_and_signature_while_patched(kind):
         for owner, attribute in handle.wrapped():
             wrapped = vars(owner)[attribute]
             upstream = getattr(type(owner), attribute).__get__(owner, type(owner))
-            assert getattr(wrapped, patching.WRAPPER_MARK, False), attribute
+            assert getattr(wrapped, WRAPPER_MARK, False), attribute
             assert wrapped.__name__ == upstream.__name__ == attribute
             assert inspect.signature(wrapped) == inspect.signature(upstream), attribute
             assert wrapped.__wrapped__ == upstream

@@ -31,7 +31,7 @@ from raytun3r_plugin.adaptation.pose_terms import (
     translation_angle,
 )
 from raytun3r_plugin.adapter import Adapter
-from raytun3r_plugin.geometry import GeometryCache
+from raytun3r_plugin.size_geometry import GeometryCache
 from tests.helpers import fisheye, randomise_
 
 ROOM_LO = np.array([-2.0, -1.6, -2.5])

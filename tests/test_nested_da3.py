@@ -23,7 +23,8 @@ import raytun3r_plugin as rt  # noqa: E402
 from raytun3r_plugin import registry  # noqa: E402
 from raytun3r_plugin.apps.cli import main  # noqa: E402
 from raytun3r_plugin.errors import AdapterError, InputError, UnsupportedUpstreamError  # noqa: E402
-from raytun3r_plugin.patching import WRAPPER_MARK, handle_of  # noqa: E402
+from raytun3r_plugin.patch_wrapper import WRAPPER_MARK  # noqa: E402
+from raytun3r_plugin.patching import handle_of  # noqa: E402
 from raytun3r_plugin.registry import spec_for  # noqa: E402
 from raytun3r_plugin.weights import describe_checkpoint  # noqa: E402
 from tests.helpers import (  # noqa: E402

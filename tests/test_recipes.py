@@ -168,6 +168,19 @@ def test_every_path_that_fits_takes_the_familys_declared_changes(network, monkey
     assert f"backbone family {spec.family!r} changes 'default': lr 0.01, n_windows 12" in listing
 
 
+def test_the_da3_family_declares_its_step_for_both_of_its_specs(network):
+    """Depth Anything 3's measured change (patches/da3.py): Adam's step 1e-2 where the teacher is
+    on, the recipe's 3e-3 where it is off; the nested model is the same family."""
+    from raytun3r_plugin.patches import da3
+
+    config = AdaptConfig.from_recipe("default", model=network)
+    assert (config.lr, config.lr_without_teacher) == (1e-2, 3e-3)
+    assert da3.NESTED_SPEC.recipe_changes == da3.SPEC.recipe_changes
+    # Only the default recipe is changed: another recipe, or no model, is the recipe's own.
+    assert AdaptConfig.from_recipe("paper", model=network).lr == 1e-3
+    assert AdaptConfig.from_recipe("default").lr_without_teacher is None
+
+
 def test_adapt_without_a_config_fits_the_default_recipe_at_the_backbones_size(
     network, segment, short_default, capsys
 ):
@@ -175,9 +188,15 @@ def test_adapt_without_a_config_fits_the_default_recipe_at_the_backbones_size(
     before = {k: v.clone() for k, v in network.state_dict().items()}
     adapter = adapt(network, camera, frames[:9], progress=False)
     info = adapter.training_info
-    assert info["recipe"] == {"name": "default", "version": short_default.version, "changes": {}}
+    assert info["recipe"] == {
+        "name": "default",
+        "version": short_default.version,
+        "changes": {},
+        "backbone_changes": {"lr": 0.01, "lr_without_teacher": 0.003},  # the DA3 family's
+    }
     assert info["config"]["input_size"] == 112 and info["input"]["long_side"] == 112
     assert info["config"]["pose_source"] == "hybrid" and info["teacher"]["used"] is True
+    assert info["config"]["lr"] == 0.01  # the teacher is on: the family's larger step
     assert info["steps"] == 3
     assert all(torch.equal(before[k], v) for k, v in network.state_dict().items())
 

@@ -499,7 +499,7 @@ def pe_correction_grid(
 
     Args:
         adapter: a :class:`raytun3r_plugin.adapter.Adapter`.
-        geometry: a :class:`raytun3r_plugin.geometry.SizeGeometry` (camera at the input size).
+        geometry: a :class:`raytun3r_plugin.size_geometry.SizeGeometry` (camera at the input size).
         device, dtype: of the result (default: the adapter's device, float32).
 
     Returns:

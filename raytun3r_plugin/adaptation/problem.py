@@ -19,8 +19,8 @@ from raytun3r_plugin.adaptation.losses import inside_mask, to_input_pixels
 from raytun3r_plugin.adaptation.matchers import get_matcher
 from raytun3r_plugin.adaptation.windows import AdaptationSet, Window, prepare_adaptation_set
 from raytun3r_plugin.errors import InputError
-from raytun3r_plugin.geometry import GeometryCache
 from raytun3r_plugin.preprocess import InputLayout, input_layout
+from raytun3r_plugin.size_geometry import GeometryCache
 
 if TYPE_CHECKING:  # annotations only: `import raytun3r_plugin` should not load the camera models
     from raytun3r_plugin.cameras.base import Camera
@@ -154,7 +154,7 @@ class AdaptationProblem:
         windows: ``[(window, pairs)]`` with the pairs filtered to usable matches.
         inputs: ``{frame index: (3, h, w) network input in [0, 1]}`` for every used frame.
         valid: (h, w) bool valid region at the input size.
-        geometry: :class:`raytun3r_plugin.geometry.SizeGeometry` at the input size.
+        geometry: :class:`raytun3r_plugin.size_geometry.SizeGeometry` at the input size.
         segment: description of the frames (name, count, size).
         mask: the user mask of the (cropped) native frames, (H, W) bool, or None; the model is
             patched with it during adaptation.

@@ -9,7 +9,8 @@ adapter file records the recipe's name and version and every setting that differ
 (``training_info["recipe"]``, shown by ``raytun3r inspect``).
 
 Where a backbone family needs other settings, its :class:`~raytun3r_plugin.registry.BackboneSpec`
-declares them as data (``recipe_changes``, with the measurement beside it); none does today.
+declares them as data (``recipe_changes``, with the measurement beside it): the DA3 family's
+``default`` fits take a larger step where the pinhole-view teacher is on.
 Nothing here is keyed by the name of a particular network.
 
 How each recipe was chosen, with the numbers and the rules written before each held-out run:

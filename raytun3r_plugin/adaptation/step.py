@@ -97,7 +97,7 @@ def window_terms(
         images: (S, 3, h, w) network input in [0, 1].
         pairs: the window's ordered pairs (network-input pixels).
         valid: (h, w) bool valid region at the input size.
-        geometry: :class:`raytun3r_plugin.geometry.SizeGeometry` at the input size.
+        geometry: :class:`raytun3r_plugin.size_geometry.SizeGeometry` at the input size.
         pe_scale: divisor of the L2 and TV terms (the backbone's PE energy for
             ``pe_regulariser="relative"``, 1 for ``"absolute"``).
         depth_targets: supervised mode: per frame of the window ``(uv (K, 2) input pixels,

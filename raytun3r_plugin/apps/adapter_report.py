@@ -229,8 +229,8 @@ def pe_correction_field(adapter: Adapter, long_side: int = 504):
     import numpy as np
 
     from raytun3r_plugin.adaptation.losses import pe_correction_grid
-    from raytun3r_plugin.geometry import GeometryCache
     from raytun3r_plugin.preprocess import fitted_source_camera, input_layout
+    from raytun3r_plugin.size_geometry import GeometryCache
 
     if adapter.camera is None:
         raise AdapterError(
