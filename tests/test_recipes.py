@@ -113,9 +113,10 @@ def test_the_input_size_is_the_backbones_own(network):
 
     assert native_input_size(build_network("da3-small")) == 504
     # A size given to the backbone's own is no change from the recipe.
-    at_own = AdaptConfig(input_size=112)
+    at_own = AdaptConfig.from_recipe("default", model=network, input_size=112)
     assert at_own.recipe_record(network)["changes"] == {}
-    assert AdaptConfig(input_size=84).recipe_record(network)["changes"] == {"input_size": [112, 84]}
+    other = AdaptConfig.from_recipe("default", model=network, input_size=84)
+    assert other.recipe_record(network)["changes"] == {"input_size": [112, 84]}
 
 
 def test_a_backbone_familys_declared_changes_apply_and_are_recorded(network, monkeypatch):
@@ -203,20 +204,23 @@ def test_adapt_without_a_config_fits_the_default_recipe_at_the_backbones_size(
 
 def test_the_recipe_survives_the_file_and_inspect_shows_it(network, segment, tmp_path):
     camera, frames = segment
-    config = AdaptConfig(steps=2, n_windows=2, lr=1e-2, checkpoint_every=0)
+    config = AdaptConfig.from_recipe(
+        "default", model=network, steps=2, n_windows=2, lr=2e-2, checkpoint_every=0
+    )
     out = tmp_path / "cam.safetensors"
     adapter = adapt(network, camera, frames[:6], config, out_path=out, progress=False)
     loaded = Adapter.load(out)
     assert loaded.training_info["recipe"] == adapter.training_info["recipe"]
     assert loaded.training_info["recipe"]["changes"] == {
-        "lr": [0.003, 0.01],
+        "lr": [0.01, 0.02],  # against the DA3 family's step, which the file also records
         "n_windows": [30, 2],
         "steps": [300, 2],
     }
     text = describe_file(out)
-    assert "recipe 'default' v1, changed: lr 0.003 -> 0.01; n_windows 30 -> 2; steps 300 -> 2" in (
-        " ".join(text.split())
-    )
+    assert (
+        "recipe 'default' v1, the backbone family's: lr 0.01, lr_without_teacher 0.003,"
+        " changed: lr 0.01 -> 0.02; n_windows 30 -> 2; steps 300 -> 2"
+    ) in (" ".join(text.split()))
 
 
 def test_progress_off_a_terminal_is_lines_not_one_long_line(network, segment, capsys, monkeypatch):
@@ -287,7 +291,10 @@ def test_the_command_line_fits_the_default_recipe_and_reports_the_check(
     base += ["--camera", str(tmp_path / "camera.json")]
     assert main([*base, "--out", str(out)]) == 0
     captured = capsys.readouterr()
-    assert "fitting with the recipe 'default' (v1); input 112 px" in captured.err
+    assert (
+        "fitting with the recipe 'default' (v1), the backbone family's: lr 0.01,"
+        " lr_without_teacher 0.003; input 112 px"
+    ) in captured.err
     assert "the last 3 frames held out" in captured.err
     assert "recipe 'default' v1" in captured.out
     assert "check on the last 3 frames (not fitted): reprojection error" in captured.out

@@ -81,16 +81,24 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
     recipe = training.get("recipe")
     if isinstance(recipe, Mapping) and recipe.get("name"):
         changes = recipe.get("changes") or {}
+        family = recipe.get("backbone_changes") or {}
+        # In the order they apply: the recipe, its backbone family's settings, the fit's changes.
         text = f"recipe '{recipe['name']}' v{recipe.get('version')}" + (
+            ", the backbone family's: "
+            + ", ".join(f"{key} {_setting(value)}" for key, value in family.items())
+            if family
+            else ""
+        )
+        text += (
             ", changed: "
             + "; ".join(
                 f"{key} {_setting(old)} -> {_setting(new)}" for key, (old, new) in changes.items()
             )
             if isinstance(changes, Mapping) and changes
+            else ", nothing else changed"
+            if family
             else ", as the recipe is"
         )
-        for key, value in (recipe.get("backbone_changes") or {}).items():
-            text += f"; the backbone family sets {key} {_setting(value)}"
         lines.extend(f"{indent}{part}" for part in _wrap(text, 100 - len(indent)))
     elif training:
         lines.append(f"{indent}recipe: not recorded (fitted before recipes existed)")
