@@ -51,7 +51,7 @@ class PatchWrapper:
     ``__signature__`` are the original's, so ``inspect`` sees the upstream method.
     """
 
-    __raytun3r_wrapper__ = True
+    __raytun3r_wrapper__ = True  # the attribute WRAPPER_MARK names
 
     def __init__(
         self,

@@ -5,10 +5,10 @@ installed as an instance attribute (so other instances of the same class are unt
 undone in reverse order. ``apply`` validates everything first and mutates last; a failure while
 installing rolls back what was installed, so the model is never left half patched.
 
-Lifetime, as accelerate's ``add_hook_to_module``: an installed
-:class:`~raytun3r_plugin.patch_wrapper.PatchWrapper` holds its owner
-by weak reference and looks the original method up *at call time*, and the handle holds the
-model by weak reference, so a patched model is freed like any other. The handle itself lives on
+Lifetime, as accelerate's ``add_hook_to_module``: an installed wrapper
+(:class:`~raytun3r_plugin.patch_wrapper.PatchWrapper`) holds its owner by weak reference and
+looks the original method up *at call time*, and the handle holds the model by weak reference,
+so a patched model is freed like any other. The handle itself lives on
 the model (the one attribute of :data:`ADDED_ATTRIBUTES`), which is what lets ``copy.deepcopy``
 of a patched model give a patched copy with its own handle that runs its own weights.
 """
