@@ -177,6 +177,15 @@ def test_the_da3_family_declares_its_step_for_both_of_its_specs(network):
     config = AdaptConfig.from_recipe("default", model=network)
     assert (config.lr, config.lr_without_teacher) == (1e-2, 3e-3)
     assert da3.NESTED_SPEC.recipe_changes == da3.SPEC.recipe_changes
+    # A step the user chooses is the step everywhere, unless they give the other one too.
+    mine = AdaptConfig.from_recipe("default", model=network, lr=2e-2)
+    assert (mine.lr, mine.lr_without_teacher) == (2e-2, None)
+    assert mine.recipe_record(network)["changes"] == {
+        "lr": [0.01, 0.02],
+        "lr_without_teacher": [0.003, None],
+    }
+    both = AdaptConfig.from_recipe("default", model=network, lr=2e-2, lr_without_teacher=1e-3)
+    assert (both.lr, both.lr_without_teacher) == (2e-2, 1e-3)
     # Only the default recipe is changed: another recipe, or no model, is the recipe's own.
     assert AdaptConfig.from_recipe("paper", model=network).lr == 1e-3
     assert AdaptConfig.from_recipe("default").lr_without_teacher is None

@@ -181,8 +181,10 @@ class AdaptConfig:
             fit's recorded settings show the step it ran with. A larger ``lr`` can then be
             used where the teacher's dense targets anchor the fit while the matches alone keep
             a smaller one. None (the default): ``lr`` whatever the teacher; left out of
-            :meth:`to_dict` when None. docs/decisions.md, "The step size where the teacher is
-            on".
+            :meth:`to_dict` when None. The DA3 family's ``default`` fits set it (3e-3, with
+            ``lr`` 1e-2); :meth:`from_recipe` given an ``lr`` without it drops it, so a step
+            the user chooses is the step everywhere. docs/decisions.md, "The step size where
+            the teacher is on".
         refine_intrinsics: before fitting, refine the camera's focal and first distortion term
             jointly with the pairs' relative poses from the adaptation set's matches
             (:func:`~raytun3r_plugin.adaptation.intrinsics.refine_intrinsics`, docs/intrinsics.md)
@@ -434,7 +436,9 @@ class AdaptConfig:
             model: the backbone to fit, when known: its family's declared changes to this recipe
                 (``BackboneSpec.recipe_changes``) apply between the recipe and ``changes``.
             changes: any field. ``weights`` given as a mapping changes only the terms it names
-                (``weights={"pose": 1.0}``); a :class:`LossWeights` replaces them all.
+                (``weights={"pose": 1.0}``); a :class:`LossWeights` replaces them all. An ``lr``
+                without ``lr_without_teacher`` is the step of every fit: the recipe's or the
+                family's ``lr_without_teacher`` is dropped with it.
 
         Raises:
             InputError: an unknown recipe or field, or a value the fields refuse.
@@ -455,6 +459,10 @@ class AdaptConfig:
                     base = base.as_dict() if isinstance(base, LossWeights) else dict(base)
                     value = {**base, **value}
                 settings[key] = value
+        if "lr" in changes and "lr_without_teacher" not in changes:
+            # A step the user chose is not to be undone, where the teacher is off, by a
+            # smaller one the family declared beside its own larger ``lr``.
+            settings.pop("lr_without_teacher", None)
         return cls(**{**settings, "recipe": recipe.name})
 
     @classmethod
