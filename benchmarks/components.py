@@ -46,6 +46,8 @@ SETS = (
 )
 METRICS = ("d_reproj_px", "abs_rel", "delta_1.25")
 DEV_SEED = 80_000
+#: The step of every fit here (the demo's when this was measured, on every lens).
+LR = 1e-2
 #: (label, components, has learned tables) of the paper's component ablation, in its order.
 ABLATION_ROWS = (
     ("patch undistortion alone", ["patch_resample"], False),
@@ -84,7 +86,7 @@ def baseline_rows(model, seq, held_out: list[int], n_adapt: int, cache: str) -> 
     """Multi-PH, and LoRA and calibration tokens fitted like raytun3r's tables (the demo's
     configuration, ``components=[]``: the unpatched model), scored on ``held_out``."""
     from raytun3r_plugin.apps.benchmark import fitted_baseline
-    from raytun3r_plugin.apps.demo import DEMO_LR, DEMO_STEPS
+    from raytun3r_plugin.apps.demo import DEMO_STEPS
     from raytun3r_plugin.apps.fits import adapt_config
 
     rows = [
@@ -99,7 +101,7 @@ def baseline_rows(model, seq, held_out: list[int], n_adapt: int, cache: str) -> 
     config = adapt_config(
         seq.camera.width,
         DEMO_STEPS,
-        lr=DEMO_LR,
+        lr=LR,
         seed=0,
         cache_dir=cache,
         components=[],
@@ -126,7 +128,7 @@ def baseline_rows(model, seq, held_out: list[int], n_adapt: int, cache: str) -> 
 def ablation_rows(model, seed: int, refit: bool, baselines: bool = False) -> list[dict]:
     """The ``--ablations`` rows on one demo sequence (frames 0-23 fitted, 24-35 scored)."""
     from raytun3r_plugin.adaptation.train import adapt
-    from raytun3r_plugin.apps.demo import DEMO_LR, DEMO_STEPS
+    from raytun3r_plugin.apps.demo import DEMO_STEPS
     from raytun3r_plugin.apps.fits import adapt_config
 
     size, n_adapt = 112, 24
@@ -155,7 +157,7 @@ def ablation_rows(model, seed: int, refit: bool, baselines: bool = False) -> lis
             config = adapt_config(
                 size,
                 DEMO_STEPS,
-                lr=DEMO_LR,
+                lr=LR,
                 seed=0,
                 cache_dir=cache,
                 components=components,

@@ -3,8 +3,8 @@ headless Chromium.
 
 The demo's first sequence (render seed 1000: a synthetic room through the demo's 190-degree KB4
 lens at 112 px) and the built-in network: an adapter is fitted as ``raytun3r demo`` fits it (the
-default recipe at the demo's budget, :data:`~raytun3r_plugin.apps.demo.DEMO_STEPS` steps at lr
-:data:`~raytun3r_plugin.apps.demo.DEMO_LR`) on frames 0-23, checked on frames 24-35 as
+default recipe at the demo's budget, :data:`~raytun3r_plugin.apps.demo.DEMO_STEPS` steps) on
+frames 0-23, checked on frames 24-35 as
 ``raytun3r adapt --check-frames`` checks, and the page shows frame 30 (not fitted) before and
 after. Needs the ``viz`` extra and Chromium.
 
@@ -26,7 +26,7 @@ def main() -> None:
     from raytun3r_plugin.adaptation.check import held_out_reprojection
     from raytun3r_plugin.adaptation.train import adapt
     from raytun3r_plugin.apps.browser import render_page
-    from raytun3r_plugin.apps.demo import DEMO_LR, DEMO_STEPS, default_network, demo_camera
+    from raytun3r_plugin.apps.demo import DEMO_STEPS, default_network, demo_camera
     from raytun3r_plugin.apps.fits import adapt_config
     from raytun3r_plugin.apps.report import DepthSource, write_report
     from raytun3r_plugin.registry import quiet_upstream
@@ -42,7 +42,7 @@ def main() -> None:
     camera = demo_camera(size)
     seq = synthetic.render_sequence("indoor", camera, n_frames=36, seed=1000)
     model, _ = default_network()
-    config = adapt_config(size, DEMO_STEPS, lr=DEMO_LR, seed=0, model=model)
+    config = adapt_config(size, DEMO_STEPS, seed=0, model=model)
     out = Path(args.out).resolve()
     page = Path(args.html).resolve() if args.html else None
     home = Path.cwd()

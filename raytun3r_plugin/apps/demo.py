@@ -10,11 +10,11 @@
    ground-truth depth (the upper bound of the same tables), and score both on the other 12;
 4. print the mean over the sequences with per-sequence win counts, and save everything.
 
-The demo's fits are the library's ``default`` recipe at a third of its budget, 100 steps at lr
-1e-2 instead of 300 at 3e-3 (:data:`DEMO_STEPS`, :data:`DEMO_LR`; the header says so), to finish
-in about a minute on two cores: with the whole budget (``raytun3r demo --steps 300``, lr 1e-2)
-the same four sequences take 225 s and reach AbsRel 0.193 against 0.198 (docs/results.md, "The
-demo").
+The demo's fits are the library's ``default`` recipe, with the DA3 family's step (1e-2 on the
+demo's 190-degree lens, where the teacher is on), at a third of its budget: 100 steps instead of
+300 (:data:`DEMO_STEPS`; the header says so), to finish in about a minute on two cores. With the
+whole budget (``raytun3r demo --steps 300``) the same four sequences take 225 s and reach AbsRel
+0.193 against 0.198 (docs/results.md, "The demo").
 """
 
 from __future__ import annotations
@@ -35,7 +35,6 @@ from raytun3r_plugin.apps.fits import adapt_config, fit_description, supervised_
 #: (v2) stays loadable under its name, and docs/results.md says which tables it measured.
 DEFAULT_NETWORK = "raytun3r-da3-tiny-v3"
 DEMO_STEPS = 100
-DEMO_LR = 1e-2
 DEMO_SEQUENCES = 4
 #: The built-in networks (``patches/da3_default.py``). Every one is fitted with the same recipes:
 #: nothing in a fit is keyed by a network's name.
@@ -98,9 +97,7 @@ def score_sequence(model, k: int, seed: int, size: int, steps: int, out: Path, l
         )
     fits = {
         "adapted": (
-            adapt_config(
-                size, steps, lr=DEMO_LR, seed=seed, model=model, cache_dir=str(out / "cache")
-            ),
+            adapt_config(size, steps, seed=seed, model=model, cache_dir=str(out / "cache")),
             None,
         ),
         "supervised": (
@@ -166,7 +163,7 @@ def run_demo(args: argparse.Namespace) -> int:
     print(f"network: {description}")
     camera = demo_camera(size)
     print(f"camera:  {camera!r}, field of view {camera.fov_deg:.0f} deg")
-    print(f"fits:    {fit_description(adapt_config(size, steps, lr=DEMO_LR, model=model), model)}")
+    print(f"fits:    {fit_description(adapt_config(size, steps, model=model), model)}")
     print(
         f"jobs:    {jobs} process{'es' if jobs > 1 else ''}"
         + (", 1 thread each" if jobs > 1 else "")
