@@ -300,6 +300,13 @@ def test_bench_rows_have_params_and_time_relative_to_vanilla(tiny_bench):
     inject_calibration_tokens(model).remove()
 
 
+def test_the_text_a_document_gets_is_the_results_file_with_its_rotation_table(tiny_bench):
+    _, results, tables = tiny_bench
+    _, out = results["plain"]
+    assert (out / "results.md").read_text() == tables["plain"] + "\n"
+    assert "Rotation error (deg) of the network's own pose" in tables["plain"]
+
+
 def test_baselines_are_off_by_default_and_change_neither_targets_nor_gap(tiny_bench):
     _, results, tables = tiny_bench
     plain, with_baselines = results["plain"][0], results["baselines"][0]

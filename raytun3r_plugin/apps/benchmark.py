@@ -537,14 +537,15 @@ def run_benchmark(
         + ".\n"
     )
     rotation = rotation_effect(rows)
-    (out / "results.md").write_text(
+    # The file and the returned text (what --results writes into a document) are the same.
+    text = (
         header
         + "\n"
         + table
         + "\n\nRotation error (deg) of the network's own pose, per cell (rotation_effect):\n\n"
         + format_table(rotation, list(rotation[0]))
-        + "\n"
     )
+    (out / "results.md").write_text(text + "\n")
     (out / "results.json").write_text(
         json.dumps(
             {
@@ -558,4 +559,4 @@ def run_benchmark(
             default=float,
         )
     )
-    return header + "\n" + table
+    return text
