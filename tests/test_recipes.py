@@ -222,13 +222,15 @@ def test_the_recipe_survives_the_file_and_inspect_shows_it(network, segment, tmp
     assert loaded.training_info["recipe"] == adapter.training_info["recipe"]
     assert loaded.training_info["recipe"]["changes"] == {
         "lr": [0.01, 0.02],  # against the DA3 family's step, which the file also records
+        "lr_without_teacher": [0.003, None],  # the user's step is the whole fit's
         "n_windows": [30, 2],
         "steps": [300, 2],
     }
     text = describe_file(out)
     assert (
         "recipe 'default' v1, the backbone family's: lr 0.01, lr_without_teacher 0.003,"
-        " changed: lr 0.01 -> 0.02; n_windows 30 -> 2; steps 300 -> 2"
+        " changed: lr 0.01 -> 0.02; lr_without_teacher 0.003 -> None; n_windows 30 -> 2;"
+        " steps 300 -> 2"
     ) in (" ".join(text.split()))
 
 
