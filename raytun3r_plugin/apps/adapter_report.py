@@ -78,6 +78,8 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
     if "wall_time_s" in training:
         head += f", {float(training['wall_time_s']):.1f} s"
     lines = [f"training:        {training.get('method', 'unknown method')}: {head}"]
+    from raytun3r_plugin.apps.fits import settings_text
+
     recipe = training.get("recipe")
     if isinstance(recipe, Mapping) and recipe.get("name"):
         changes = recipe.get("changes") or {}
@@ -85,7 +87,7 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
         # In the order they apply: the recipe, its backbone family's settings, the fit's changes.
         text = f"recipe '{recipe['name']}' v{recipe.get('version')}" + (
             ", the backbone family's: "
-            + ", ".join(f"{key} {_setting(value)}" for key, value in family.items())
+            + settings_text({key: _setting(value) for key, value in family.items()})
             if family
             else ""
         )
