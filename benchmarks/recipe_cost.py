@@ -57,7 +57,15 @@ def timed_fit(model: torch.nn.Module, size: int, steps: int) -> dict:
     images = synthetic.render_sequence("indoor", camera, n_frames=FRAMES, seed=0).images
     with tempfile.TemporaryDirectory(prefix="raytun3r-recipe-cost-") as folder:
         out = Path(folder) / "adapter.safetensors"
-        config = AdaptConfig(input_size=size, steps=steps, cache_dir=folder, checkpoint_every=0)
+        # The fit a user gets: the recipe with the model's backbone family's changes.
+        config = AdaptConfig.from_recipe(
+            "default",
+            model=model,
+            input_size=size,
+            steps=steps,
+            cache_dir=folder,
+            checkpoint_every=0,
+        )
         began = time.perf_counter()
         adapter = adapt(model, camera, images, config, out_path=out, progress=False)
         total = time.perf_counter() - began

@@ -133,18 +133,20 @@ def outputs_from_threads(models: dict, images, repeats: int = 1) -> dict:
     return results
 
 
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+REPO = Path(__file__).resolve().parents[1]
 
 
-def load_script(name: str):
-    """``scripts/<name>.py`` as a module (its siblings in scripts/ importable while it loads)."""
-    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+def load_script(name: str, folder: str = "scripts"):
+    """``<folder>/<name>.py`` of the repository (``scripts``, ``benchmarks``, ``experiments``)
+    as a module, its siblings importable while it loads."""
+    where = REPO / folder
+    spec = importlib.util.spec_from_file_location(name, where / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
-    sys.path.insert(0, str(SCRIPTS))
+    sys.path.insert(0, str(where))
     try:
         spec.loader.exec_module(module)
     finally:
-        sys.path.remove(str(SCRIPTS))
+        sys.path.remove(str(where))
     return module
 
 

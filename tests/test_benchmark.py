@@ -16,6 +16,7 @@ from raytun3r_plugin.apps.benchmark import (
     summarise,
     targets_met,
 )
+from tests.helpers import load_script
 
 
 def row(
@@ -149,15 +150,10 @@ def test_benchmark_script_turns_its_options_into_the_recipes_changes():
     """``--lr``, ``--teacher-weight`` and ``--pose-windows`` become ``AdaptConfig`` changes that
     the fit records against its recipe; options left out change nothing."""
     import argparse
-    import importlib.util
-    from pathlib import Path
 
     from raytun3r_plugin.apps import benchmark
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "fisheye_synthetic.py"
-    spec = importlib.util.spec_from_file_location("fisheye_synthetic", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("fisheye_synthetic", "benchmarks")
     unset = dict.fromkeys(
         (
             *("pose_weight", "teacher_weight", "pose_source", "pose_windows", "lr"),

@@ -3,7 +3,6 @@ held-out sanity check and the training script's smoke run + resume."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import re
@@ -439,9 +438,7 @@ def test_adapt_config_pose_weight_replaces_only_the_pose_term():
 def test_the_rig_benchmark_fits_without_the_teacher_that_adapt_rig_refuses(monkeypatch):
     """benchmarks/rig.py fits with the rig recipe; adapt_rig has no teacher term yet and
     refuses one, so both rig fits leave it out (before, the script stopped at that refusal)."""
-    spec = importlib.util.spec_from_file_location("rig_bench", ROOT / "benchmarks" / "rig.py")
-    rig_bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(rig_bench)
+    rig_bench = load_script("rig", "benchmarks")
     seen = []
 
     class Stop(Exception):

@@ -4,7 +4,6 @@ loaded back for the benchmark by ``apps.trained_networks``."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 import sys
@@ -204,11 +203,7 @@ def test_the_benchmark_fits_and_scores_a_trained_vggt_network(tmp_path):
 def test_benchmark_script_refuses_weights_with_a_network_and_unknown_cameras(
     tmp_path, monkeypatch, capsys
 ):
-    spec = importlib.util.spec_from_file_location(
-        "fisheye_synthetic", ROOT / "benchmarks" / "fisheye_synthetic.py"
-    )
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_script("fisheye_synthetic", "benchmarks")
     for extra, message in (
         (["--weights", "x.safetensors", "--network", "raytun3r-da3-tiny"], "no --network"),
         (["--cameras", "KB4 999"], "unknown ['KB4 999']"),

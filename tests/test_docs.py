@@ -3,7 +3,6 @@ exist, and the command-line reference is the parser's own text."""
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import re
 import shutil
@@ -13,18 +12,13 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers import load_script
+
 ROOT = Path(__file__).parent.parent
 
 
-def _script(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_the_command_line_reference_is_the_parsers_text():
-    reference = _script("cli_reference").reference()
+    reference = load_script("cli_reference").reference()
     assert (ROOT / "docs" / "cli.md").read_text() == reference, (
         "docs/cli.md is stale: run `python scripts/cli_reference.py`"
     )

@@ -4,6 +4,7 @@ and in the editable install, and the shipped network's files are package data.""
 from __future__ import annotations
 
 import importlib
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -20,25 +21,35 @@ def test_editable_install_maps_patches_into_the_package():
     )
 
 
+# What a build of the tree leaves or needs none of: the wheel is built from a copy, so the build's
+# own build/ and egg-info land in tmp_path, not in the working tree.
+_NOT_SOURCE = shutil.ignore_patterns(
+    ".git", "build", "dist", "*.egg-info", "__pycache__", ".*_cache", "runs", "outputs", "site"
+)
+
+
 def test_wheel_contains_patches_under_the_package(tmp_path):
+    source = tmp_path / "source"
+    shutil.copytree(ROOT, source, ignore=_NOT_SOURCE)
+    out = tmp_path / "wheel"
     subprocess.run(
         [
             sys.executable,
             "-m",
             "pip",
             "wheel",
-            str(ROOT),
+            str(source),
             "--no-deps",
             "--no-build-isolation",
             "-q",
             "-w",
-            str(tmp_path),
+            str(out),
         ],
         check=True,
         capture_output=True,
         text=True,
     )
-    wheel = next(tmp_path.glob("raytun3r-*.whl"))
+    wheel = next(out.glob("raytun3r-*.whl"))
     names = set(zipfile.ZipFile(wheel).namelist())
     for module in ("da3", "da3_networks", "vggt", "pi3", "da3_default", "__init__"):
         assert f"raytun3r_plugin/patches/{module}.py" in names

@@ -3,23 +3,19 @@ the arithmetic that decides them is checked here on rows whose answers are known
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+
+from tests.helpers import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def rule():
-    spec = importlib.util.spec_from_file_location(
-        "recipe_rule", ROOT / "experiments/recipe_rule.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("recipe_rule", "experiments")
 
 
 def _row(method, camera, scene, seed, abs_rel, rot=1.0, d_reproj=1.0):

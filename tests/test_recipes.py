@@ -228,9 +228,9 @@ def test_the_recipe_survives_the_file_and_inspect_shows_it(network, segment, tmp
     }
     text = describe_file(out)
     assert (
-        "recipe 'default' v1, the backbone family's: lr 0.01, lr_without_teacher 0.003,"
-        " changed: lr 0.01 -> 0.02; lr_without_teacher 0.003 -> None; n_windows 30 -> 2;"
-        " steps 300 -> 2"
+        "recipe 'default' v1 (the backbone family's: lr 0.01, lr_without_teacher 0.003)"
+        " (changed: lr 0.01 -> 0.02; lr_without_teacher 0.003 -> None; n_windows 30 -> 2;"
+        " steps 300 -> 2)"
     ) in (" ".join(text.split()))
 
 
@@ -303,8 +303,8 @@ def test_the_command_line_fits_the_default_recipe_and_reports_the_check(
     assert main([*base, "--out", str(out)]) == 0
     captured = capsys.readouterr()
     assert (
-        "fitting with the recipe 'default' (v1), the backbone family's: lr 0.01,"
-        " lr_without_teacher 0.003; input 112 px"
+        "fitting with recipe 'default' v1 (the backbone family's: lr 0.01,"
+        " lr_without_teacher 0.003); input 112 px"
     ) in captured.err
     assert "the last 3 frames held out" in captured.err
     assert "recipe 'default' v1" in captured.out

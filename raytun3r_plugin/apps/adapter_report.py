@@ -41,15 +41,6 @@ def describe_record(path: str | os.PathLike) -> dict[str, Any]:
     return record
 
 
-def _setting(value: Any) -> str:
-    """A recipe setting in a line: numbers short, lists and mappings written out."""
-    if isinstance(value, float):
-        return f"{value:.3g}"
-    if isinstance(value, (list, tuple, dict)):
-        return json.dumps(value, sort_keys=True)
-    return str(value)
-
-
 def _short(value: Any) -> str:
     if isinstance(value, float):
         return f"{value:.3g}"
@@ -78,29 +69,11 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
     if "wall_time_s" in training:
         head += f", {float(training['wall_time_s']):.1f} s"
     lines = [f"training:        {training.get('method', 'unknown method')}: {head}"]
-    from raytun3r_plugin.apps.fits import settings_text
+    from raytun3r_plugin.apps.fits import recipe_text, setting_text
 
     recipe = training.get("recipe")
     if isinstance(recipe, Mapping) and recipe.get("name"):
-        changes = recipe.get("changes") or {}
-        family = recipe.get("backbone_changes") or {}
-        # In the order they apply: the recipe, its backbone family's settings, the fit's changes.
-        text = f"recipe '{recipe['name']}' v{recipe.get('version')}" + (
-            ", the backbone family's: "
-            + settings_text({key: _setting(value) for key, value in family.items()})
-            if family
-            else ""
-        )
-        text += (
-            ", changed: "
-            + "; ".join(
-                f"{key} {_setting(old)} -> {_setting(new)}" for key, (old, new) in changes.items()
-            )
-            if isinstance(changes, Mapping) and changes
-            else ", nothing else changed"
-            if family
-            else ", as the recipe is"
-        )
+        text = recipe_text(recipe, with_old=True)
         lines.extend(f"{indent}{part}" for part in _wrap(text, 100 - len(indent)))
     elif training:
         lines.append(f"{indent}recipe: not recorded (fitted before recipes existed)")
@@ -108,8 +81,8 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
     if isinstance(gate, Mapping) and "pose_term" in gate:
         verdict = "kept" if gate["pose_term"] else "dropped: the head does not turn"
         lines.append(
-            f"{indent}pose gate: responsiveness {_setting(gate.get('responsiveness'))} against "
-            f"{_setting(gate.get('threshold'))}, pose term {verdict}"
+            f"{indent}pose gate: responsiveness {setting_text(gate.get('responsiveness'))} against "
+            f"{setting_text(gate.get('threshold'))}, pose term {verdict}"
         )
     losses = training.get("final_losses") or {}
     if losses:

@@ -7,7 +7,7 @@ import argparse
 import dataclasses
 import sys
 
-from raytun3r_plugin.apps.fits import settings_text
+from raytun3r_plugin.apps.fits import recipe_text, settings_text
 from raytun3r_plugin.errors import InputError
 
 
@@ -176,12 +176,8 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     # The check frames are the fit's own setting (adapt keeps them out and scores them).
     config = dataclasses.replace(config.sized_for(model), check_frames=args.check_frames)
     recipe = config.recipe_record(model)
-    changed = settings_text({key: new for key, (_, new) in recipe["changes"].items()})
-    family = settings_text(recipe.get("backbone_changes", {}))
     print(
-        f"fitting with the recipe '{recipe['name']}' (v{recipe['version']})"
-        + (f", the backbone family's: {family}" if family else "")
-        + (f", changed: {changed}" if changed else "")
+        f"fitting with {recipe_text(recipe, leave_out=('input_size',))}"
         + f"; input {config.input_size} px; "
         + (
             f"the last {held_out} frames held out for the check"

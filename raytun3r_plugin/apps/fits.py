@@ -4,6 +4,7 @@ headers. One home, so the demo and the benchmark cannot drift apart."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
 from typing import Any
 
@@ -58,24 +59,51 @@ def fit_description(config, model=None) -> str:
     """A fit's settings in one line for the demo's and the benchmark's headers: the recipe, the
     changes ``model``'s backbone family declares for it, what was changed from both, and the
     teacher in words."""
-    record = config.recipe_record(model)
-    changed = settings_text(
-        {key: new for key, (_, new) in record["changes"].items() if key != "input_size"}
-    )
-    family = settings_text(record.get("backbone_changes", {}))
     teacher = teacher_settings(config)
     return (
-        f"recipe '{record['name']}' v{record['version']}"
-        + (f" (the backbone family's: {family})" if family else "")
-        + (f" (changed: {changed})" if changed else "")
+        recipe_text(config.recipe_record(model), leave_out=("input_size",))
         + f", pose source '{config.pose_source}', pose weight {config.weights.pose:g}"
         + (f", {teacher}" if teacher else "")
     )
 
 
+def recipe_text(
+    record: Mapping[str, Any], *, with_old: bool = False, leave_out: tuple[str, ...] = ()
+) -> str:
+    """A fit's recipe record (``AdaptConfig.recipe_record``, ``training_info["recipe"]``) in one
+    line, in the order the settings apply: ``recipe 'default' v1 (the backbone family's: lr 0.01)
+    (changed: steps 100)``. ``with_old`` writes each change as ``old -> new`` and says so when
+    nothing changed; ``leave_out`` names changes not to write."""
+    changes = {
+        key: pair for key, pair in (record.get("changes") or {}).items() if key not in leave_out
+    }
+    family = record.get("backbone_changes") or {}
+    text = f"recipe '{record['name']}' v{record.get('version')}"
+    if family:
+        text += f" (the backbone family's: {settings_text(family)})"
+    if with_old:
+        changed = "; ".join(
+            f"{key} {setting_text(old)} -> {setting_text(new)}"
+            for key, (old, new) in changes.items()
+        )
+        quiet = "nothing else changed" if family else "as the recipe is"
+        return text + f" ({'changed: ' + changed if changed else quiet})"
+    changed = settings_text({key: new for key, (_, new) in changes.items()})
+    return text + (f" (changed: {changed})" if changed else "")
+
+
+def setting_text(value: Any) -> str:
+    """One fit setting's value in a line: numbers short, lists and mappings written out."""
+    if isinstance(value, float):
+        return f"{value:.3g}"
+    if isinstance(value, (list, tuple, dict)):
+        return json.dumps(value, sort_keys=True)
+    return str(value)
+
+
 def settings_text(settings: Mapping[str, Any]) -> str:
     """Fit settings in a line of text: ``{"lr": 0.01, "steps": 3}`` -> ``"lr 0.01, steps 3"``."""
-    return ", ".join(f"{key} {value}" for key, value in settings.items())
+    return ", ".join(f"{key} {setting_text(value)}" for key, value in settings.items())
 
 
 def teacher_settings(config) -> str:
