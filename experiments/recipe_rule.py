@@ -27,8 +27,11 @@ import collections
 import json
 import statistics
 
+from raytun3r_plugin.apps.benchmark import CAMERAS, NEW_LENSES
+
 ZERO, FITTED, SUPERVISED = "raytun3r, no adapter", "raytun3r", "raytun3r, supervised"
-WIDE = ("KB4 185", "DS 195")
+#: The issue's wide lenses, 185 degrees and wider: the benchmark's and the new lens models.
+WIDE = tuple(lens.label for lens in (*CAMERAS, *NEW_LENSES) if lens.fov_deg >= 185.0)
 
 
 def by_sequence(paths: list[str]) -> dict[tuple, dict[str, dict]]:

@@ -63,6 +63,24 @@ def test_gap_and_worse_sequences_are_counted_against_this_runs_zero_adapter(rule
     assert any("AbsRel reference 0.2000 this run 0.1500 (-25.0 %)" in line for line in compared)
 
 
+def test_the_wide_lenses_are_every_benchmark_lens_of_185_degrees_and_wider(rule):
+    """The new lens models count as wide (a new-lens run gets (a) and (b)); KB4 120 does not."""
+    assert set(rule.WIDE) == {"KB4 185", "DS 195", "UCM 200", "EUCM 210"}
+    rows = []
+    for method, abs_rel in (
+        ("vanilla", 0.3),
+        ("raytun3r, no adapter", 0.2),
+        ("raytun3r, supervised", 0.1),
+        ("raytun3r", 0.15),
+    ):
+        rows.append(_row(method, "UCM 200", "outdoor", 1, abs_rel))
+        rows.append(_row(method, "KB4 120", "indoor", 2, abs_rel + 0.1))
+    table = {(r["camera"], r["scene"], r["seed"]): {} for r in rows}
+    for r in rows:
+        table[(r["camera"], r["scene"], r["seed"])][r["method"]] = r
+    assert rule.report(table)[0] == "(a) pooled wide-lens gap closed: 0.500 over 1"
+
+
 def test_reference_rows_read_the_resample_scripts_rows(rule, tmp_path):
     path = tmp_path / "rows.json"
     rows = [
