@@ -49,7 +49,7 @@ from raytun3r_plugin.adaptation.guard import (
     GUARD_SPREAD_RANGE,
     _CollapseGuard,
 )
-from raytun3r_plugin.adaptation.loop import run_fit_loop
+from raytun3r_plugin.adaptation.loop import LoopOutcome, run_fit_loop
 from raytun3r_plugin.adaptation.parallax import window_parallax
 from raytun3r_plugin.adaptation.problem import AdaptationProblem, _Pair, prepare_problem
 from raytun3r_plugin.adaptation.rig_step import cross_pairs, rig_step, rig_views
@@ -141,6 +141,99 @@ def adapt_rig(
     """
     supervised = depth is not None
     _check_rig_request(rig, config, depth, cross_camera)
+    config = _rig_config(model, config, supervised)
+    fit = _prepare_rig(model, rig, config, adapters, depth, cross_camera)
+    names, fitted, problems = fit.names, fit.fitted, fit.problems
+    tables = nn.ModuleList([fitted[name] for name in names])
+    optimizer = torch.optim.Adam(list(tables.parameters()), lr=config.lr)
+    paths = rig_artifact_paths(out_dir, names) if out_dir is not None else None
+    identity = {
+        "config": config.identity(),
+        "adaptation_set": json.dumps([problems[n].adaptation.cache_key for n in names]),
+        "backbone": fitted[names[0]].backbone,
+        "pe_fingerprint": fitted[names[0]].pe_fingerprint,
+        "rig_cameras": json.dumps(names),
+        "cross_camera": str(bool(fit.cross)),
+    }
+    start = 0
+    if paths is not None and resume and paths["checkpoint"].is_file():
+        start = _restore_checkpoint(paths["checkpoint"], tables, optimizer, identity)
+    metadata = {
+        **identity,
+        "config_json": json.dumps(config.to_dict(), sort_keys=True, default=str),
+    }
+    guard = _rig_guard(fit, config)
+    outcome = run_fit_loop(
+        model,
+        lambda: apply(
+            model,
+            [problems[name].layout.native_camera for name in names],
+            [fitted[name] for name in names],
+            components=config.components,
+            strict=False,
+            mask=[problems[name].mask for name in names],
+        ),
+        lambda step: rig_step(
+            model,
+            fitted,
+            problems,
+            names,
+            optimizer,
+            config,
+            step,
+            fit.frames_per_view,
+            fit.scored,
+            fit.cross if cross_camera else None,
+        ),
+        steps=config.steps if fit.has_signal else start,
+        start=start,
+        seed=config.seed,
+        log_path=None if paths is None else paths["log"],
+        progress=progress,
+        label="adapt_rig",
+        guard=guard,
+        guarded=tables,
+        guard_every=config.guard_every,
+        checkpoint=None
+        if paths is None
+        else lambda done: _save_checkpoint(paths["checkpoint"], tables, optimizer, done, metadata),
+        checkpoint_every=config.checkpoint_every,
+    )
+    history = outcome.history
+    if paths is not None and paths["log"].is_file():
+        history = read_loss_log(paths["log"])  # with the steps a resumed run restored
+    _record_fits(fit, model, config, outcome, history, start, guard, cross_camera)
+    if paths is not None:
+        _save_checkpoint(paths["checkpoint"], tables, optimizer, outcome.completed, metadata)
+        for name in names:
+            fitted[name].save(paths[f"adapter:{name}"])
+        _write_rig_losses(paths, names, history)
+    return fitted
+
+
+@dataclasses.dataclass
+class _PreparedRig:
+    """What a rig fit prepares before its first step, per camera by name."""
+
+    names: list[str]
+    fitted: dict[str, Adapter]  # the tables being fitted
+    problems: dict[str, AdaptationProblem]
+    frames_per_view: int  # frames of each camera per forward
+    scored: dict[str, list[int]]  # the windows the parallax gate keeps
+    gates: dict[str, dict[str, Any] | None]  # the gate's record
+    cross: dict[int, list[tuple[int, int, _Pair]]]  # cross-camera pairs by instant
+
+    @property
+    def has_signal(self) -> bool:
+        """Any camera with a window to score, or any cross-camera match."""
+        return any(self.scored.values()) or any(
+            pair.uv_i.shape[0] for pairs in self.cross.values() for *_, pair in pairs
+        )
+
+
+def _rig_config(model: nn.Module, config: AdaptConfig | None, supervised: bool) -> AdaptConfig:
+    """The fit's config (the ``rig`` or ``supervised`` recipe when None) at the model's size;
+    refuses a patched model and the settings a rig fit does not have yet."""
     recipe = "supervised" if supervised else "rig"
     config = (AdaptConfig.from_recipe(recipe, model=model) if config is None else config).sized_for(
         model
@@ -160,111 +253,85 @@ def adapt_rig(
             "adapt_rig has no pose gate (AdaptConfig.pose_gate) yet: leave it None, or fit "
             "each camera with adapt()"
         )
+    return config
+
+
+def _prepare_rig(
+    model: nn.Module,
+    rig: Rig,
+    config: AdaptConfig,
+    adapters: Mapping[str, Adapter] | None,
+    depth: Mapping[str, Any] | None,
+    cross_camera: bool,
+) -> _PreparedRig:
+    """Each camera's starting tables, problem and parallax gate, and the cross-camera pairs."""
     names = rig.names
     fitted = _starting_adapters(model, names, adapters, config)
     problems = _rig_problems(model, rig, names, fitted, config, depth)
     frames_per_view = min(len(p.windows[0][0].frames) for p in problems.values())
-    scored, gates = _parallax_gates(model, names, fitted, problems, config, supervised)
+    scored, gates = _parallax_gates(model, names, fitted, problems, config, depth is not None)
     cross: dict[int, list[tuple[int, int, _Pair]]] = {}
     if cross_camera and len(names) > 1:
         frames = sorted({f for window, _ in problems[names[0]].windows for f in window.frames})
         cross = cross_pairs(rig, problems, names, frames, config)
-    has_signal = any(scored.values()) or any(
-        pair.uv_i.shape[0] for pairs in cross.values() for *_, pair in pairs
+    return _PreparedRig(names, fitted, problems, frames_per_view, scored, gates, cross)
+
+
+def _rig_guard(fit: _PreparedRig, config: AdaptConfig) -> _CollapseGuard | None:
+    """The collapse guard on one joint forward (window 0 of every camera); None when off or
+    when nothing is fitted."""
+    if not (config.guard and fit.has_signal):
+        return None
+    batches = {name: fit.problems[name].batch(0)[: fit.frames_per_view] for name in fit.names}
+    valid = [fit.problems[name].valid for name in fit.names] * fit.frames_per_view
+    return _CollapseGuard(
+        None,
+        GUARD_MIN_CORRELATION,
+        GUARD_SPREAD_RANGE,
+        images=rig_views(batches, fit.names),
+        valid=torch.stack(valid),
     )
-    tables = nn.ModuleList([fitted[name] for name in names])
-    optimizer = torch.optim.Adam(list(tables.parameters()), lr=config.lr)
-    paths = rig_artifact_paths(out_dir, names) if out_dir is not None else None
-    identity = {
-        "config": config.identity(),
-        "adaptation_set": json.dumps([problems[n].adaptation.cache_key for n in names]),
-        "backbone": fitted[names[0]].backbone,
-        "pe_fingerprint": fitted[names[0]].pe_fingerprint,
-        "rig_cameras": json.dumps(names),
-        "cross_camera": str(bool(cross)),
-    }
-    start = 0
-    if paths is not None and resume and paths["checkpoint"].is_file():
-        start = _restore_checkpoint(paths["checkpoint"], tables, optimizer, identity)
-    metadata = {
-        **identity,
-        "config_json": json.dumps(config.to_dict(), sort_keys=True, default=str),
-    }
-    guard = None
-    if config.guard and has_signal:
-        batches = {name: problems[name].batch(0)[:frames_per_view] for name in names}
-        valid = [problems[name].valid for name in names] * frames_per_view
-        guard = _CollapseGuard(
-            None,
-            GUARD_MIN_CORRELATION,
-            GUARD_SPREAD_RANGE,
-            images=rig_views(batches, names),
-            valid=torch.stack(valid),
-        )
-    outcome = run_fit_loop(
-        model,
-        lambda: apply(
-            model,
-            [problems[name].layout.native_camera for name in names],
-            [fitted[name] for name in names],
-            components=config.components,
-            strict=False,
-            mask=[problems[name].mask for name in names],
-        ),
-        lambda step: rig_step(
-            model,
-            fitted,
-            problems,
-            names,
-            optimizer,
-            config,
-            step,
-            frames_per_view,
-            scored,
-            cross if cross_camera else None,
-        ),
-        steps=config.steps if has_signal else start,
-        start=start,
-        seed=config.seed,
-        log_path=None if paths is None else paths["log"],
-        progress=progress,
-        label="adapt_rig",
-        guard=guard,
-        guarded=tables,
-        guard_every=config.guard_every,
-        checkpoint=None
-        if paths is None
-        else lambda done: _save_checkpoint(paths["checkpoint"], tables, optimizer, done, metadata),
-        checkpoint_every=config.checkpoint_every,
-    )
-    history = outcome.history
-    if paths is not None and paths["log"].is_file():
-        history = read_loss_log(paths["log"])  # with the steps a resumed run restored
+
+
+def _record_fits(
+    fit: _PreparedRig,
+    model: nn.Module,
+    config: AdaptConfig,
+    outcome: LoopOutcome,
+    history: list[dict],
+    start: int,
+    guard: _CollapseGuard | None,
+    cross_camera: bool,
+) -> None:
+    """Write each camera's ``training_info`` (its segment, the rig, the recipe, the gate, the
+    guard and the verdict) onto its adapter."""
+    names = fit.names
     for index, name in enumerate(names):
         info = _training_info(
-            config, problems[name], history, name, index, names, frames_per_view, outcome.seconds
+            config,
+            fit.problems[name],
+            history,
+            name,
+            index,
+            names,
+            fit.frames_per_view,
+            outcome.seconds,
         )
         info.update(steps=outcome.completed, resumed_from=start, interrupted=outcome.interrupted)
         info["recipe"] = config.recipe_record(model)
-        if gates[name] is not None:
-            info["parallax_gate"] = gates[name]
+        if fit.gates[name] is not None:
+            info["parallax_gate"] = fit.gates[name]
         if guard is not None:
             info["guard"] = guard.report()
         if cross_camera:
-            info["rig"]["cross_camera"] = _cross_record(cross, index, history)
+            info["rig"]["cross_camera"] = _cross_record(fit.cross, index, history)
             info["rig"]["left_out"] = [
                 x for x in info["rig"]["left_out"] if x != "cross-camera pairs"
             ]
         info["verdict"] = _verdict(
-            info, bool(scored[name]) or bool(history and cross_camera), history, guard
+            info, bool(fit.scored[name]) or bool(history and cross_camera), history, guard
         )
-        fitted[name].training_info = info
-    if paths is not None:
-        _save_checkpoint(paths["checkpoint"], tables, optimizer, outcome.completed, metadata)
-        for name in names:
-            fitted[name].save(paths[f"adapter:{name}"])
-        _write_rig_losses(paths, names, history)
-    return fitted
+        fit.fitted[name].training_info = info
 
 
 def _check_rig_request(
