@@ -54,6 +54,7 @@ CHECKED = [
     "raytun3r_plugin/apps/workers.py",
     "raytun3r_plugin/apps/demo.py",
     "raytun3r_plugin/apps/benchmark.py",
+    "raytun3r_plugin/apps/benchmark_text.py",
     "raytun3r_plugin/figures.py",
     "raytun3r_plugin/datasets/fiord.py",
     "raytun3r_plugin/apps/browser.py",

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from raytun3r_plugin.apps.benchmark_text import benchmark_header
 from raytun3r_plugin.apps.evaluation import (
     METRIC_COLUMNS,
     format_table,
@@ -430,7 +431,7 @@ def run_benchmark(
     object store); the table is the same up to the order of float sums, and its timing columns
     are then those of one thread beside the other workers (the header says so).
     """
-    from raytun3r_plugin.cluster import ClusterSpec, map_tasks
+    from raytun3r_plugin.cluster import ClusterSpec
 
     baselines = check_baselines(baselines)
     if jobs < 1:
@@ -450,91 +451,30 @@ def run_benchmark(
         "recipe": recipe,
         "fit_changes": fit_changes,
     }
-    tasks = []
-    for position, spec in enumerate(cameras):
-        camera = make_camera(spec, size)
-        # A sequence's seed is that of its cell in the full benchmark, so a run over some of the
-        # cameras or scenes scores the same sequences as the full run does.
-        known = (*CAMERAS, *NEW_LENSES)
-        camera_index = known.index(spec) if spec in known else position
-        for place, scene in enumerate(scenes):
-            scene_index = SCENES.index(scene) if scene in SCENES else place
-            for k in range(first_sequence, first_sequence + sequences):
-                seed = sequence_seed(camera_index, scene_index, k, base_seed)
-                tasks.append((camera, spec.label, scene, seed, settings))
-    results, began = {}, time.perf_counter()
+    tasks = _benchmark_tasks(cameras, scenes, size, sequences, first_sequence, base_seed, settings)
     spec = ClusterSpec(address=address, workers=jobs)
-    for index, result in map_tasks(
-        _sequence_rows_job, tasks, spec, initializer=_same, initargs=(model,)
-    ):
-        results[index] = result
-        _, label, scene, seed, _ = tasks[index]
-        print(
-            f"[{time.perf_counter() - began:6.0f} s] {label} {scene} seed {seed}: done", flush=True
-        )
-    rows = [row for index in range(len(tasks)) for row in results[index]]
-    summary = summarise(rows)
-    for row in summarise(rows, reference=ZERO_ADAPTER):
-        if row["method"] in ("raytun3r", SUPERVISED):
-            match = next(
-                r
-                for r in summary
-                if (r["camera"], r["scene"], r["method"])
-                == (row["camera"], row["scene"], row["method"])
-            )
-            match[f"lower_than_{ZERO_ADAPTER}"] = row[f"lower_than_{ZERO_ADAPTER}"]
-    closed = gap_closed(summary)
-    for row in summary:
-        if row["method"] == "raytun3r":
-            row["gap_closed"] = closed.get((row["camera"], row["scene"]), math.nan)
+    rows = _run_tasks(model, tasks, spec)
+    summary = _summary(rows)
     met = targets_met(summary)
     met_zero = targets_met(summary, reference=ZERO_ADAPTER)
-    missed = [
-        f"{spec.label} {scene}"
-        for spec in cameras
-        for scene in scenes
-        if f"{spec.label} {scene}" not in met
-    ]
-    missed_zero = [
-        f"{spec.label} {scene}"
-        for spec in cameras
-        for scene in scenes
-        if f"{spec.label} {scene}" not in met_zero
-    ]
     table = format_table(
         summary, COLUMNS + ["gap_closed", "lower_than_vanilla", f"lower_than_{ZERO_ADAPTER}"]
     )
     fit = adapt_config(size, steps, recipe=recipe, model=model, **(fit_changes or {}))
-    header = (
-        f"Network: {network or 'see model card'}; input {size}x{size} px; {sequences} {'held-out' if base_seed == HELD_OUT_SEED else 'development'} sequences per camera and scene "
-        f"(seeds {base_seed} + 100 k + 10 camera + scene); per sequence {n_adapt} adaptation frames "
-        f"(30 windows, {fit_description(fit, model)}) and {n_eval} scored frames"
-        + (
-            f"; {jobs} Ray workers of one thread each (timings are one thread's beside the other workers)"
-            if not spec.in_process
-            else ""
-        )
-        + (
-            f"; baselines {', '.join(BASELINES[b] for b in baselines)} fitted on the same frames with the same "
-            "objective, windows and steps (raytun3r's tables at zero, no parameter-free corrections)"
-            if baselines
-            else ""
-        )
-        + ".\n"
-        "Each row is the mean over the cell's sequences. rot/trans: relative-pose errors (deg, signed translation direction) on consecutive scored pairs; "
-        "d_reproj: px with GT pose and a robust per-pair scale; AbsRel, delta<1.25: per-image median scale, "
-        "range depth, sky excluded; coverage: fraction of the fisheye's valid pixels with a depth; adapt_s: wall time of adaptation; "
-        "params: trainable parameters (0: nothing fitted); ms_per_frame: wall time of the scored forward passes per frame "
-        "(Multi-PH with its resampling and fusion); x_vanilla: that over vanilla's on the same sequence, in the same run; "
-        "multi-ph: five pinhole views per frame through the unpatched model, fused back to the fisheye; "
-        f"'{ZERO_ADAPTER}': the patch without fitting (parameter-free corrections only); '{SUPERVISED}': the same tables fitted to the "
-        "adaptation frames' ground-truth depth (upper bound); gap_closed: the fraction of the mean-AbsRel gap between the zero adapter and the "
-        "supervised fit that the self-supervised fit closes; lower_than_X: on how many sequences the metric is below X's.\n"
-        f"Target (raytun3r's mean d_reproj and AbsRel below vanilla's): met in {len(met)} of {len(met) + len(missed)} cells"
-        + (f" (not met: {', '.join(missed)})" if missed else "")
-        + f". Target (below '{ZERO_ADAPTER}' on both): met in {len(met_zero)} of {len(met_zero) + len(missed_zero)} cells"
-        + (f" (not met: {', '.join(missed_zero)})" if missed_zero else "")
-        + ".\n"
+    header = benchmark_header(
+        network=network,
+        size=size,
+        sequences=sequences,
+        held_out=base_seed == HELD_OUT_SEED,
+        base_seed=base_seed,
+        n_adapt=n_adapt,
+        n_eval=n_eval,
+        fit=fit_description(fit, model),
+        workers=None if spec.in_process else jobs,
+        baselines=[BASELINES[b] for b in baselines],
+        cells=[f"{lens.label} {scene}" for lens in cameras for scene in scenes],
+        met=met,
+        met_zero=met_zero,
     )
     rotation = rotation_effect(rows)
     # The file and the returned text (what --results writes into a document) are the same.
@@ -560,3 +500,57 @@ def run_benchmark(
         )
     )
     return text
+
+
+def _benchmark_tasks(
+    cameras, scenes, size: int, sequences: int, first_sequence: int, base_seed: int, settings
+) -> list[tuple]:
+    """One task per (lens, scene, sequence): (camera, label, scene, seed, settings)."""
+    tasks = []
+    for position, spec in enumerate(cameras):
+        camera = make_camera(spec, size)
+        # A sequence's seed is that of its cell in the full benchmark, so a run over some of the
+        # cameras or scenes scores the same sequences as the full run does.
+        known = (*CAMERAS, *NEW_LENSES)
+        camera_index = known.index(spec) if spec in known else position
+        for place, scene in enumerate(scenes):
+            scene_index = SCENES.index(scene) if scene in SCENES else place
+            for k in range(first_sequence, first_sequence + sequences):
+                seed = sequence_seed(camera_index, scene_index, k, base_seed)
+                tasks.append((camera, spec.label, scene, seed, settings))
+    return tasks
+
+
+def _run_tasks(model, tasks: list[tuple], spec) -> list[dict]:
+    """Every task's rows, in task order, from ``spec``'s workers (a line as each one ends)."""
+    from raytun3r_plugin.cluster import map_tasks
+
+    results, began = {}, time.perf_counter()
+    for index, result in map_tasks(
+        _sequence_rows_job, tasks, spec, initializer=_same, initargs=(model,)
+    ):
+        results[index] = result
+        _, label, scene, seed, _ = tasks[index]
+        print(
+            f"[{time.perf_counter() - began:6.0f} s] {label} {scene} seed {seed}: done", flush=True
+        )
+    return [row for index in range(len(tasks)) for row in results[index]]
+
+
+def _summary(rows: list[dict]) -> list[dict]:
+    """Per-cell means, with the fits' counts below the zero adapter and the gap closed."""
+    summary = summarise(rows)
+    for row in summarise(rows, reference=ZERO_ADAPTER):
+        if row["method"] in ("raytun3r", SUPERVISED):
+            match = next(
+                r
+                for r in summary
+                if (r["camera"], r["scene"], r["method"])
+                == (row["camera"], row["scene"], row["method"])
+            )
+            match[f"lower_than_{ZERO_ADAPTER}"] = row[f"lower_than_{ZERO_ADAPTER}"]
+    closed = gap_closed(summary)
+    for row in summary:
+        if row["method"] == "raytun3r":
+            row["gap_closed"] = closed.get((row["camera"], row["scene"]), math.nan)
+    return summary
