@@ -167,13 +167,58 @@ def prediction_terms(
         n_depth = sum(int(uv.shape[0]) for uv, _ in depth_targets)
         term = torch.stack(losses).mean() if losses else depth.sum() * 0.0
         return {"depth": term, **regularisers}, {"n_matches": 0, "n_pose": 0, "n_depth": n_depth}
-    reproj, pose_terms, n_matches = [], [], 0
-    photometric = config.scale == "photometric"
     gray = (
         blurred_gray(images.to(depth.dtype), config.photo_sigma)
-        if photometric or config.weights.photo > 0
+        if config.scale == "photometric" or config.weights.photo > 0
         else None
     )
+    reproj, pose_terms, n_matches = _match_terms(
+        depth, poses, gray, pairs, layout, valid, config, generator, reproject
+    )
+    zero = depth.sum() * 0.0
+    terms = {
+        "reproj": torch.stack(reproj).mean() if reproj else zero,
+        "smooth": smoothness_loss(depth, images.to(depth.dtype), valid),
+        **regularisers,
+    }
+    if config.weights.photo > 0:
+        terms["photo"] = _photometric_term(
+            depth, gray, pairs, layout.camera, valid, config, generator
+        )
+    if config.pose_source in POSE_TERM_SOURCES:
+        terms["pose"] = torch.stack(pose_terms).mean() if pose_terms else zero
+    counts = {"n_matches": n_matches, "n_pose": len(pose_terms)}
+    if config.weights.teacher > 0 and teacher_targets is not None:
+        view_weights = config.view_weights()
+        losses = [
+            grouped_silog_loss(sample_bilinear(depth[k], uv), value, view, view_weights)
+            for k, (uv, value, view) in enumerate(teacher_targets)
+            if uv.shape[0]
+        ]
+        terms["teacher"] = torch.stack(losses).mean() if losses else zero
+        counts["n_teacher"] = sum(int(uv.shape[0]) for uv, _, _ in teacher_targets)
+    return terms, counts
+
+
+def _match_terms(
+    depth: torch.Tensor,
+    poses: torch.Tensor,
+    gray: torch.Tensor | None,
+    pairs: list[_Pair],
+    layout: InputLayout,
+    valid: torch.Tensor,
+    config: AdaptConfig,
+    generator: torch.Generator,
+    reproject: bool,
+) -> tuple[list[torch.Tensor], list[torch.Tensor], int]:
+    """The window's match terms, pair by pair: (reprojection losses, pose losses, matches
+    used). ``gray`` (S, h, w): the blurred grey frames where the photometric scale needs them.
+    The pairs are visited in order and each draws its match subset from ``generator``, so a
+    fit's random stream is the same for every caller."""
+    reproj: list[torch.Tensor] = []
+    pose_terms: list[torch.Tensor] = []
+    n_matches = 0
+    photometric = config.scale == "photometric"
     # Without a weight on the match terms (a teacher-only fit) the pairs are not visited.
     matched = config.weights.reproj > 0 or config.weights.pose > 0 or config.weights.photo > 0
     # ``pose_windows="unreprojected"``: where the matches enter the reprojection, the pose term
@@ -244,29 +289,7 @@ def prediction_terms(
                 reproj.append(loss)
                 used = max(used, count)
         n_matches += used
-    zero = depth.sum() * 0.0
-    terms = {
-        "reproj": torch.stack(reproj).mean() if reproj else zero,
-        "smooth": smoothness_loss(depth, images.to(depth.dtype), valid),
-        **regularisers,
-    }
-    if config.weights.photo > 0:
-        terms["photo"] = _photometric_term(
-            depth, gray, pairs, layout.camera, valid, config, generator
-        )
-    if config.pose_source in POSE_TERM_SOURCES:
-        terms["pose"] = torch.stack(pose_terms).mean() if pose_terms else zero
-    counts = {"n_matches": n_matches, "n_pose": len(pose_terms)}
-    if config.weights.teacher > 0 and teacher_targets is not None:
-        view_weights = config.view_weights()
-        losses = [
-            grouped_silog_loss(sample_bilinear(depth[k], uv), value, view, view_weights)
-            for k, (uv, value, view) in enumerate(teacher_targets)
-            if uv.shape[0]
-        ]
-        terms["teacher"] = torch.stack(losses).mean() if losses else zero
-        counts["n_teacher"] = sum(int(uv.shape[0]) for uv, _, _ in teacher_targets)
-    return terms, counts
+    return reproj, pose_terms, n_matches
 
 
 def _photometric_term(
