@@ -359,34 +359,22 @@ def prepare_adaptation_set(
     mask = _valid_mask(camera, valid, (h, w))
     candidates = build_windows(n, n_windows, window_size, stride, start, stop)
 
-    settings = {
-        "format": CACHE_FORMAT,
-        "sequence": str(sequence_id) if sequence_id is not None else _images_digest(images),
-        "sequence_id_given": sequence_id is not None,
-        "image_shape": list(images.shape),
-        "camera": _camera_json(camera),
-        "valid_mask": hashlib.sha256(np.packbits(mask).tobytes()).hexdigest(),
-        "matcher": {
-            "name": str(getattr(matcher, "name", type(matcher).__name__)),
-            "settings": matcher.settings(),
-        },
-        "windows": {
-            "n_windows": n_windows,
-            "window_size": window_size,
-            "stride": stride,
-            "start": start,
-            "stop": stop,
-            "min_motion_px": float(min_motion_px),
-        },
-        "pose": {
-            "max_angle_deg": float(max_angle_deg),
-            "threshold_px": float(threshold_px),
-            "seed": int(seed),
-            "min_inliers": int(min_inliers),
-            "refine": bool(refine),
-            "method": "USAC_MAGSAC",
-        },
+    pose = {
+        "max_angle_deg": max_angle_deg,
+        "threshold_px": threshold_px,
+        "seed": seed,
+        "min_inliers": min_inliers,
+        "refine": refine,
     }
+    windowing = {
+        "n_windows": n_windows,
+        "window_size": window_size,
+        "stride": stride,
+        "start": start,
+        "stop": stop,
+        "min_motion_px": float(min_motion_px),
+    }
+    settings = _cache_settings(images, camera, matcher, mask, sequence_id, windowing, pose)
     payload = json.dumps(settings, sort_keys=True, default=str)
     key = hashlib.sha256(payload.encode()).hexdigest()
     path = None if cache_dir is None else Path(cache_dir) / f"adaptation_{key[:32]}.npz"
@@ -398,6 +386,66 @@ def prepare_adaptation_set(
             logger.info("adaptation set loaded from %s (%d windows)", path, len(windows))
             return AdaptationSet(windows, len(static), static, key, path, True, settings)
 
+    windows, static, matcher_calls = _moving_windows(
+        images, camera, matcher, mask, candidates, window_size, min_motion_px, pose
+    )
+    logger.info(
+        "adaptation set: %d windows, %d static skipped, %d matcher calls",
+        len(windows),
+        len(static),
+        matcher_calls,
+    )
+    if path is not None:
+        _save(path, payload, windows, static, window_size)
+    return AdaptationSet(windows, len(static), static, key, path, False, settings)
+
+
+def _cache_settings(
+    images: np.ndarray,
+    camera: Camera,
+    matcher: Matcher,
+    mask: np.ndarray,
+    sequence_id: str | None,
+    windowing: dict[str, Any],
+    pose: dict[str, Any],
+) -> dict[str, Any]:
+    """Everything the adaptation set depends on, the cache's key: the images (or the caller's
+    id of them), camera, mask, matcher, windowing and the pose targets' settings."""
+    return {
+        "format": CACHE_FORMAT,
+        "sequence": str(sequence_id) if sequence_id is not None else _images_digest(images),
+        "sequence_id_given": sequence_id is not None,
+        "image_shape": list(images.shape),
+        "camera": _camera_json(camera),
+        "valid_mask": hashlib.sha256(np.packbits(mask).tobytes()).hexdigest(),
+        "matcher": {
+            "name": str(getattr(matcher, "name", type(matcher).__name__)),
+            "settings": matcher.settings(),
+        },
+        "windows": windowing,
+        "pose": {
+            "max_angle_deg": float(pose["max_angle_deg"]),
+            "threshold_px": float(pose["threshold_px"]),
+            "seed": int(pose["seed"]),
+            "min_inliers": int(pose["min_inliers"]),
+            "refine": bool(pose["refine"]),
+            "method": "USAC_MAGSAC",
+        },
+    }
+
+
+def _moving_windows(
+    images: np.ndarray,
+    camera: Camera,
+    matcher: Matcher,
+    mask: np.ndarray,
+    candidates: list[tuple[int, ...]],
+    window_size: int,
+    min_motion_px: float,
+    pose: dict[str, Any],
+) -> tuple[list[Window], list[tuple[int, ...]], int]:
+    """Match and pose every candidate window that moves: (windows, static windows skipped,
+    matcher calls). Each frame pair is matched, and its pose target estimated, once."""
     match_memo: dict[tuple[int, int], Matches] = {}
     target_memo: dict[tuple[int, int], PoseTarget] = {}
 
@@ -411,15 +459,7 @@ def prepare_adaptation_set(
 
     def target_for(gi: int, gj: int) -> PoseTarget:
         if (gi, gj) not in target_memo:
-            target_memo[(gi, gj)] = estimate_relative_pose(
-                matches_for(gi, gj),
-                camera,
-                max_angle_deg=max_angle_deg,
-                threshold_px=threshold_px,
-                seed=seed,
-                min_inliers=min_inliers,
-                refine=refine,
-            )
+            target_memo[(gi, gj)] = estimate_relative_pose(matches_for(gi, gj), camera, **pose)
         return target_memo[(gi, gj)]
 
     pairs = window_pairs(window_size)
@@ -439,12 +479,4 @@ def prepare_adaptation_set(
             win.pairs[(a, b)] = matches_for(*g)
             win.targets[(a, b)] = target_for(*g)
         windows.append(win)
-    logger.info(
-        "adaptation set: %d windows, %d static skipped, %d matcher calls",
-        len(windows),
-        len(static),
-        len(match_memo),
-    )
-    if path is not None:
-        _save(path, payload, windows, static, window_size)
-    return AdaptationSet(windows, len(static), static, key, path, False, settings)
+    return windows, static, len(match_memo)
