@@ -85,28 +85,9 @@ def rig_step(
     """
     began = time.perf_counter()
     count = len(names)
-    windows, batches = {}, {}
-    aligned = cross is not None
-    if cross is not None:
-        reference = problems[names[0]]
-        first = window_of_step(step, len(reference.windows), config.seed)
-        frames = tuple(reference.windows[first][0].frames[:frames_per_view])
-    for offset, name in enumerate(names):
-        problem = problems[name]
-        if cross is not None:
-            same = [
-                i
-                for i, (window, _) in enumerate(problem.windows)
-                if tuple(window.frames[:frames_per_view]) == frames
-            ]
-            index = same[0] if same else window_of_step(step, len(problem.windows), config.seed)
-            aligned = aligned and bool(same)
-        else:
-            # Each camera draws its own window order (its seed offset by its place in the rig).
-            usable = scored[name] or list(range(len(problem.windows)))
-            index = usable[window_of_step(step, len(usable), config.seed + offset)]
-        windows[name] = index
-        batches[name] = problem.batch(index)[:frames_per_view]
+    windows, batches, frames, aligned = _step_windows(
+        problems, names, config, step, frames_per_view, scored, cross
+    )
     views = rig_views(batches, names)
     prediction = predict(model, views[None])
     # Terms on the CPU, as in step.window_terms (the network may run on a GPU).
@@ -151,26 +132,11 @@ def rig_step(
         record.update({f"{name}:{term}": float(value.detach()) for term, value in terms.items()})
         record[f"{name}:window"] = windows[name]
         record[f"{name}:n_matches"] = counts["n_matches"]
-    cross_terms: list[torch.Tensor] = []
     if cross is not None and aligned:
-        for position, frame in enumerate(frames):
-            for offset_i, offset_j, pair in cross.get(frame, []):
-                if pair.uv_i.shape[0] == 0:
-                    continue
-                term = _cross_term(
-                    depth[position * count + offset_i],
-                    pair,
-                    problems[names[offset_i]],
-                    problems[names[offset_j]],
-                    config,
-                    torch.Generator().manual_seed(int(config.seed) * 7_919 + step * 31 + 17),
-                )
-                if term is not None:
-                    cross_terms.append(term)
-    if cross_terms:
-        cross_loss = torch.stack(cross_terms).mean()
-        record["cross"] = float(cross_loss.detach())
-        losses.append(config.weights.reproj * cross_loss)
+        cross_loss = _cross_loss(depth, frames, cross, problems, names, config, step)
+        if cross_loss is not None:
+            record["cross"] = float(cross_loss.detach())
+            losses.append(config.weights.reproj * cross_loss)
     record["aligned"] = bool(cross is not None and aligned)
     loss = torch.stack(losses).mean() if losses else depth.sum() * 0.0
     grad_norm = optimiser_step(loss, optimizer, config.clip)
@@ -184,6 +150,75 @@ def rig_step(
         }
     )
     return record
+
+
+def _step_windows(
+    problems: dict[str, AdaptationProblem],
+    names: list[str],
+    config: AdaptConfig,
+    step: int,
+    frames_per_view: int,
+    scored: dict[str, list[int]],
+    cross: dict[int, list[tuple[int, int, _Pair]]] | None,
+) -> tuple[dict[str, int], dict[str, torch.Tensor], tuple[int, ...], bool]:
+    """Each camera's window of this step and its views: (window index by camera, views by
+    camera, the reference camera's frames, whether every camera has a window of those
+    frames). With ``cross``, the frames are the reference camera's; else each camera draws
+    from the windows the gate scores."""
+    windows, batches = {}, {}
+    aligned = cross is not None
+    frames: tuple[int, ...] = ()
+    if cross is not None:
+        reference = problems[names[0]]
+        first = window_of_step(step, len(reference.windows), config.seed)
+        frames = tuple(reference.windows[first][0].frames[:frames_per_view])
+    for offset, name in enumerate(names):
+        problem = problems[name]
+        if cross is not None:
+            same = [
+                i
+                for i, (window, _) in enumerate(problem.windows)
+                if tuple(window.frames[:frames_per_view]) == frames
+            ]
+            index = same[0] if same else window_of_step(step, len(problem.windows), config.seed)
+            aligned = aligned and bool(same)
+        else:
+            # Each camera draws its own window order (its seed offset by its place in the rig).
+            usable = scored[name] or list(range(len(problem.windows)))
+            index = usable[window_of_step(step, len(usable), config.seed + offset)]
+        windows[name] = index
+        batches[name] = problem.batch(index)[:frames_per_view]
+    return windows, batches, frames, aligned
+
+
+def _cross_loss(
+    depth: torch.Tensor,
+    frames: tuple[int, ...],
+    cross: dict[int, list[tuple[int, int, _Pair]]],
+    problems: dict[str, AdaptationProblem],
+    names: list[str],
+    config: AdaptConfig,
+    step: int,
+) -> torch.Tensor | None:
+    """Mean cross-camera reprojection term over the step's frames (``depth``: every view of
+    the joint forward, instant-major); None when no pair gives one."""
+    count = len(names)
+    cross_terms: list[torch.Tensor] = []
+    for position, frame in enumerate(frames):
+        for offset_i, offset_j, pair in cross.get(frame, []):
+            if pair.uv_i.shape[0] == 0:
+                continue
+            term = _cross_term(
+                depth[position * count + offset_i],
+                pair,
+                problems[names[offset_i]],
+                problems[names[offset_j]],
+                config,
+                torch.Generator().manual_seed(int(config.seed) * 7_919 + step * 31 + 17),
+            )
+            if term is not None:
+                cross_terms.append(term)
+    return torch.stack(cross_terms).mean() if cross_terms else None
 
 
 def cross_pairs(
