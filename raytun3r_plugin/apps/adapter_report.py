@@ -51,11 +51,49 @@ def _short(value: Any) -> str:
     return str(value)
 
 
+#: The indent of every line under ``training:``.
+_INDENT = " " * 17
+_WIDTH = 100 - len(_INDENT)
+#: training_info keys the lines below show; any other is named under "also recorded".
+_SHOWN = (
+    "verdict",
+    "teacher",
+    "recipe",
+    "check",
+    "method",
+    "steps",
+    "requested_steps",
+    "resumed_from",
+    "interrupted",
+    "wall_time_s",
+    "final_losses",
+    "final_losses_over_steps",
+    "segment",
+    "input",
+)
+
+
 def _training_lines(training: Mapping[str, Any]) -> list[str]:
     """A few lines about the fitting; the full record is ``raytun3r inspect --json``."""
     if not training:
         return ["training:        none (not fitted: made by Adapter.for_model or by hand)"]
-    indent = " " * 17
+    lines = [f"training:        {training.get('method', 'unknown method')}: {_head(training)}"]
+    for section in (
+        _recipe_lines,
+        _pose_gate_lines,
+        _loss_lines,
+        _segment_lines,
+        _input_lines,
+        _check_lines,
+        _verdict_lines,
+        _teacher_lines,
+        _extra_lines,
+    ):
+        lines.extend(f"{_INDENT}{line}" for line in section(training))
+    return lines
+
+
+def _head(training: Mapping[str, Any]) -> str:
     steps = training.get("steps")
     head = (
         f"{steps} of {training['requested_steps']} steps"
@@ -68,102 +106,110 @@ def _training_lines(training: Mapping[str, Any]) -> list[str]:
         head += ", interrupted"
     if "wall_time_s" in training:
         head += f", {float(training['wall_time_s']):.1f} s"
-    lines = [f"training:        {training.get('method', 'unknown method')}: {head}"]
-    from raytun3r_plugin.apps.fits import recipe_text, setting_text
+    return head
+
+
+def _recipe_lines(training: Mapping[str, Any]) -> list[str]:
+    from raytun3r_plugin.apps.fits import recipe_text
 
     recipe = training.get("recipe")
     if isinstance(recipe, Mapping) and recipe.get("name"):
-        text = recipe_text(recipe, with_old=True)
-        lines.extend(f"{indent}{part}" for part in _wrap(text, 100 - len(indent)))
-    elif training:
-        lines.append(f"{indent}recipe: not recorded (fitted before recipes existed)")
+        return _wrap(recipe_text(recipe, with_old=True), _WIDTH)
+    return ["recipe: not recorded (fitted before recipes existed)"]
+
+
+def _pose_gate_lines(training: Mapping[str, Any]) -> list[str]:
+    from raytun3r_plugin.apps.fits import setting_text
+
     gate = training.get("pose_gate")
-    if isinstance(gate, Mapping) and "pose_term" in gate:
-        verdict = "kept" if gate["pose_term"] else "dropped: the head does not turn"
-        lines.append(
-            f"{indent}pose gate: responsiveness {setting_text(gate.get('responsiveness'))} against "
-            f"{setting_text(gate.get('threshold'))}, pose term {verdict}"
-        )
-    losses = training.get("final_losses") or {}
-    if losses:
-        over = training.get("final_losses_over_steps")
-        text = ", ".join(f"{name} {float(value):.3g}" for name, value in losses.items())
-        lines.append(f"{indent}final losses{f' (mean of the last {over} steps)' if over else ''}:")
-        lines.extend(f"{indent}  {part}" for part in _wrap(text, 100 - len(indent)))
-    segment = training.get("segment") or {}
-    if segment:
-        parts = [
-            f"{key} {_short(value)}"
-            for key, value in segment.items()
-            if key not in ("windows", "segments") and value is not None
-        ]
-        if "segments" in segment:  # a fit on several segments: their count, not their records
-            parts.insert(0, f"{len(segment['segments'])} segments")
-        if "windows" in segment:
-            parts.insert(0, f"{len(segment['windows'])} windows")
-        lines.append(f"{indent}segment:")
-        lines.extend(f"{indent}  {part}" for part in _wrap(", ".join(parts), 100 - len(indent)))
-    layout = training.get("input") or {}
-    if layout:
-        crop = layout.get("crop")
-        rule = (
-            f" (long side {layout['long_side']}, input rule v{layout.get('rule_version')})"
-            if layout.get("long_side")
-            else ""
-        )
-        lines.append(
-            f"{indent}input: {layout.get('width')}x{layout.get('height')} px, "
-            + (f"crop {crop}" if crop else "no crop")
-            + rule
-        )
-    check = training.get("check")
-    if isinstance(check, Mapping) and check.get("adapted_px") is not None:
-        lines.append(
-            f"{indent}check on {check.get('frames')} held-out frames: reprojection "
-            f"{float(check['zero_adapter_px']):.3f} px without the adapter -> "
-            f"{float(check['adapted_px']):.3f} px with it"
-        )
-    verdict = training.get("verdict")
-    if isinstance(verdict, Mapping) and verdict.get("summary"):
-        lines.append(f"{indent}verdict:")
-        lines.extend(
-            f"{indent}  {part}" for part in _wrap(str(verdict["summary"]), 100 - len(indent))
-        )
-    teacher = training.get("teacher")
-    if isinstance(teacher, Mapping) and "used" in teacher:
-        lines.append(
-            f"{indent}pinhole-view teacher: {'used' if teacher['used'] else 'left out'} (its "
-            f"largest view covers {float(teacher.get('coverage', 0.0)):.0%} of the lens, at most "
-            f"{float(teacher.get('max_coverage', 0.0)):.0%} for it to be used)"
-        )
-    extra = [
-        key
-        for key in training
-        if key
-        not in (
-            "verdict",
-            "teacher",
-            "recipe",
-            "check",
-            "method",
-            "steps",
-            "requested_steps",
-            "resumed_from",
-            "interrupted",
-            "wall_time_s",
-            "final_losses",
-            "final_losses_over_steps",
-            "segment",
-            "input",
-        )
+    if not (isinstance(gate, Mapping) and "pose_term" in gate):
+        return []
+    verdict = "kept" if gate["pose_term"] else "dropped: the head does not turn"
+    return [
+        f"pose gate: responsiveness {setting_text(gate.get('responsiveness'))} against "
+        f"{setting_text(gate.get('threshold'))}, pose term {verdict}"
     ]
+
+
+def _loss_lines(training: Mapping[str, Any]) -> list[str]:
+    losses = training.get("final_losses") or {}
+    if not losses:
+        return []
+    over = training.get("final_losses_over_steps")
+    text = ", ".join(f"{name} {float(value):.3g}" for name, value in losses.items())
+    return [
+        f"final losses{f' (mean of the last {over} steps)' if over else ''}:",
+        *(f"  {part}" for part in _wrap(text, _WIDTH)),
+    ]
+
+
+def _segment_lines(training: Mapping[str, Any]) -> list[str]:
+    segment = training.get("segment") or {}
+    if not segment:
+        return []
+    parts = [
+        f"{key} {_short(value)}"
+        for key, value in segment.items()
+        if key not in ("windows", "segments") and value is not None
+    ]
+    if "segments" in segment:  # a fit on several segments: their count, not their records
+        parts.insert(0, f"{len(segment['segments'])} segments")
+    if "windows" in segment:
+        parts.insert(0, f"{len(segment['windows'])} windows")
+    return ["segment:", *(f"  {part}" for part in _wrap(", ".join(parts), _WIDTH))]
+
+
+def _input_lines(training: Mapping[str, Any]) -> list[str]:
+    layout = training.get("input") or {}
+    if not layout:
+        return []
+    crop = layout.get("crop")
+    rule = (
+        f" (long side {layout['long_side']}, input rule v{layout.get('rule_version')})"
+        if layout.get("long_side")
+        else ""
+    )
+    return [
+        f"input: {layout.get('width')}x{layout.get('height')} px, "
+        + (f"crop {crop}" if crop else "no crop")
+        + rule
+    ]
+
+
+def _check_lines(training: Mapping[str, Any]) -> list[str]:
+    check = training.get("check")
+    if not (isinstance(check, Mapping) and check.get("adapted_px") is not None):
+        return []
+    return [
+        f"check on {check.get('frames')} held-out frames: reprojection "
+        f"{float(check['zero_adapter_px']):.3f} px without the adapter -> "
+        f"{float(check['adapted_px']):.3f} px with it"
+    ]
+
+
+def _verdict_lines(training: Mapping[str, Any]) -> list[str]:
+    verdict = training.get("verdict")
+    if not (isinstance(verdict, Mapping) and verdict.get("summary")):
+        return []
+    return ["verdict:", *(f"  {part}" for part in _wrap(str(verdict["summary"]), _WIDTH))]
+
+
+def _teacher_lines(training: Mapping[str, Any]) -> list[str]:
+    teacher = training.get("teacher")
+    if not (isinstance(teacher, Mapping) and "used" in teacher):
+        return []
+    return [
+        f"pinhole-view teacher: {'used' if teacher['used'] else 'left out'} (its "
+        f"largest view covers {float(teacher.get('coverage', 0.0)):.0%} of the lens, at most "
+        f"{float(teacher.get('max_coverage', 0.0)):.0%} for it to be used)"
+    ]
+
+
+def _extra_lines(training: Mapping[str, Any]) -> list[str]:
+    extra = [key for key in training if key not in _SHOWN]
     if extra:
-        lines.append(
-            f"{indent}also recorded: {', '.join(extra)} (raytun3r inspect --json shows everything)"
-        )
-    else:
-        lines.append(f"{indent}(raytun3r inspect --json shows the full record)")
-    return lines
+        return [f"also recorded: {', '.join(extra)} (raytun3r inspect --json shows everything)"]
+    return ["(raytun3r inspect --json shows the full record)"]
 
 
 def _wrap(text: str, width: int) -> list[str]:
