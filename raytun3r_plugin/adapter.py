@@ -296,99 +296,10 @@ class Adapter(nn.Module):
     def _from_parts(
         cls, path: Path, metadata: dict[str, str], tensors: dict[str, torch.Tensor]
     ) -> Adapter:
-        from raytun3r_plugin._strict import quote, strict_int, strict_json
-
         where = str(path)
-
-        def fail(message: str) -> AdapterError:
-            return AdapterError(f"{where}: {message}")
-
-        missing = [key for key in _REQUIRED_METADATA if key not in metadata]
-        if missing:
-            raise fail(f"missing metadata {missing}")
-        unknown = sorted(set(metadata) - set(_REQUIRED_METADATA))
-        if unknown:
-            raise fail(f"unknown metadata {[quote(key) for key in unknown[:8]]}")
-        if metadata["format"] != FORMAT:
-            raise fail(f"metadata 'format' is {quote(metadata['format'])}, expected {FORMAT!r}")
-        if metadata["format_version"] != FORMAT_VERSION:
-            raise fail(
-                f"format_version {quote(metadata['format_version'])} is not supported (this raytun3r reads version {FORMAT_VERSION})"
-            )
-        sizes = {
-            key: strict_int(metadata[key], f"metadata {key!r}", low, high, AdapterError, where)
-            for key, (low, high) in SIZE_LIMITS.items()
-        }
-        for key, limit in (("backbone", 200), ("raytun3r_version", 64)):
-            value = metadata[key]
-            if not 0 < len(value) <= limit or not value.isprintable():
-                raise fail(
-                    f"metadata {key!r} must be 1 to {limit} printable characters, got {quote(value)}"
-                )
-        fingerprint = metadata["pe_fingerprint"]
-        if fingerprint and re.fullmatch(r"[0-9a-f]{16}", fingerprint) is None:
-            raise fail(
-                f"metadata 'pe_fingerprint' must be 16 hex digits or empty, got {quote(fingerprint)}"
-            )
-        components = strict_json(
-            metadata["components"], "metadata 'components'", AdapterError, where
-        )
-        # The five corrections always; an ablation switch only in files written while it was on
-        # (so files from before the switches existed read with their old meaning).
-        if not isinstance(components, dict) or not set(COMPONENTS) <= set(components) <= set(
-            KNOWN_COMPONENTS
-        ):
-            raise fail(
-                f"metadata 'components' must be an object with exactly the keys {list(COMPONENTS)} "
-                f"(and optionally {list(ABLATION_SWITCHES)}), got {quote(components)}"
-            )
-        not_bool = [name for name, value in components.items() if not isinstance(value, bool)]
-        if not_bool:
-            raise fail(
-                f"metadata 'components': {not_bool[0]!r} must be true or false, got {quote(components[not_bool[0]])}"
-            )
-        training = strict_json(metadata["training"], "metadata 'training'", AdapterError, where)
-        if not isinstance(training, dict):
-            raise fail(f"metadata 'training' must be a JSON object, got {quote(training)}")
-        expected: dict[str, tuple[int, ...]] = {
-            "pe.radial": (sizes["n_r"], sizes["embed_dim"]),
-            "pe.angular": (sizes["n_theta"], sizes["embed_dim"]),
-        }
-        if sizes["n_r_rope"]:
-            expected["rope.radial"] = (sizes["n_r_rope"],)
-        if set(tensors) != set(expected):
-            raise fail(
-                f"tensors {[quote(name) for name in sorted(tensors)[:8]]} do not match the expected {sorted(expected)}"
-            )
-        for name, shape in expected.items():
-            tensor = tensors[name]
-            if tensor.dtype != torch.float32:
-                raise fail(f"tensor {name!r} has dtype {tensor.dtype}, expected torch.float32")
-            if tuple(tensor.shape) != shape:
-                raise fail(
-                    f"tensor {name!r} has shape {tuple(tensor.shape)}, expected {shape} from the metadata"
-                )
-            if not bool(torch.isfinite(tensor).all()):
-                raise fail(f"tensor {name!r} has non-finite values")
-            table_limit = TABLE_LIMITS[name]
-            largest = float(tensor.abs().max()) if tensor.numel() else 0.0
-            if largest > table_limit:
-                raise fail(
-                    f"tensor {name!r} has a value of magnitude {largest:.3g}, over the limit {table_limit:g}"
-                )
-        camera = None
-        if metadata["camera"]:
-            from raytun3r_plugin.cameras import from_dict
-
-            record = strict_json(metadata["camera"], "metadata 'camera'", AdapterError, where)
-            if not isinstance(record, dict):
-                raise fail(f"metadata 'camera' must be a JSON object, got {quote(record)}")
-            try:
-                camera = from_dict(record)
-            except CameraError as error:
-                raise fail(
-                    f"metadata 'camera' is not a valid camera ({quote(str(error))})"
-                ) from None
+        sizes, fingerprint, components, training = _checked_metadata(where, metadata)
+        _check_tables(where, tensors, sizes)
+        camera = _stored_camera(where, metadata)
         try:
             adapter = cls(
                 backbone=metadata["backbone"],
@@ -399,7 +310,7 @@ class Adapter(nn.Module):
                 **sizes,
             )
         except AdapterError as error:
-            raise fail(str(error)) from None
+            raise AdapterError(f"{where}: {error}") from None
         with torch.no_grad():
             for name, value in adapter.state_dict().items():
                 value.copy_(tensors[name])
@@ -457,3 +368,114 @@ class Adapter(nn.Module):
     def extra_repr(self) -> str:
         counts = self.num_parameters()
         return f"backbone={self.backbone!r}, embed_dim={self.embed_dim}, n_r={self.n_r}, n_theta={self.n_theta}, n_r_rope={self.n_r_rope}, parameters={counts['total']}"
+
+
+def _checked_metadata(
+    where: str, metadata: dict[str, str]
+) -> tuple[dict[str, int], str, dict[str, bool], dict[str, Any]]:
+    """An adapter file's metadata, checked: (sizes, PE fingerprint, components, training
+    record); :class:`AdapterError` naming ``where`` and the first problem otherwise."""
+    from raytun3r_plugin._strict import quote, strict_int, strict_json
+
+    def fail(message: str) -> AdapterError:
+        return AdapterError(f"{where}: {message}")
+
+    missing = [key for key in _REQUIRED_METADATA if key not in metadata]
+    if missing:
+        raise fail(f"missing metadata {missing}")
+    unknown = sorted(set(metadata) - set(_REQUIRED_METADATA))
+    if unknown:
+        raise fail(f"unknown metadata {[quote(key) for key in unknown[:8]]}")
+    if metadata["format"] != FORMAT:
+        raise fail(f"metadata 'format' is {quote(metadata['format'])}, expected {FORMAT!r}")
+    if metadata["format_version"] != FORMAT_VERSION:
+        raise fail(
+            f"format_version {quote(metadata['format_version'])} is not supported (this raytun3r reads version {FORMAT_VERSION})"
+        )
+    sizes = {
+        key: strict_int(metadata[key], f"metadata {key!r}", low, high, AdapterError, where)
+        for key, (low, high) in SIZE_LIMITS.items()
+    }
+    for key, limit in (("backbone", 200), ("raytun3r_version", 64)):
+        value = metadata[key]
+        if not 0 < len(value) <= limit or not value.isprintable():
+            raise fail(
+                f"metadata {key!r} must be 1 to {limit} printable characters, got {quote(value)}"
+            )
+    fingerprint = metadata["pe_fingerprint"]
+    if fingerprint and re.fullmatch(r"[0-9a-f]{16}", fingerprint) is None:
+        raise fail(
+            f"metadata 'pe_fingerprint' must be 16 hex digits or empty, got {quote(fingerprint)}"
+        )
+    components = strict_json(metadata["components"], "metadata 'components'", AdapterError, where)
+    # The five corrections always; an ablation switch only in files written while it was on
+    # (so files from before the switches existed read with their old meaning).
+    if not isinstance(components, dict) or not set(COMPONENTS) <= set(components) <= set(
+        KNOWN_COMPONENTS
+    ):
+        raise fail(
+            f"metadata 'components' must be an object with exactly the keys {list(COMPONENTS)} "
+            f"(and optionally {list(ABLATION_SWITCHES)}), got {quote(components)}"
+        )
+    not_bool = [name for name, value in components.items() if not isinstance(value, bool)]
+    if not_bool:
+        raise fail(
+            f"metadata 'components': {not_bool[0]!r} must be true or false, got {quote(components[not_bool[0]])}"
+        )
+    training = strict_json(metadata["training"], "metadata 'training'", AdapterError, where)
+    if not isinstance(training, dict):
+        raise fail(f"metadata 'training' must be a JSON object, got {quote(training)}")
+    return sizes, fingerprint, components, training
+
+
+def _check_tables(where: str, tensors: dict[str, torch.Tensor], sizes: dict[str, int]) -> None:
+    """The file's tensors are exactly the tables its sizes name: float32, those shapes, finite
+    and within :data:`TABLE_LIMITS`."""
+    from raytun3r_plugin._strict import quote
+
+    expected: dict[str, tuple[int, ...]] = {
+        "pe.radial": (sizes["n_r"], sizes["embed_dim"]),
+        "pe.angular": (sizes["n_theta"], sizes["embed_dim"]),
+    }
+    if sizes["n_r_rope"]:
+        expected["rope.radial"] = (sizes["n_r_rope"],)
+    if set(tensors) != set(expected):
+        raise AdapterError(
+            f"{where}: tensors {[quote(name) for name in sorted(tensors)[:8]]} do not match the expected {sorted(expected)}"
+        )
+    for name, shape in expected.items():
+        tensor = tensors[name]
+        if tensor.dtype != torch.float32:
+            raise AdapterError(
+                f"{where}: tensor {name!r} has dtype {tensor.dtype}, expected torch.float32"
+            )
+        if tuple(tensor.shape) != shape:
+            raise AdapterError(
+                f"{where}: tensor {name!r} has shape {tuple(tensor.shape)}, expected {shape} from the metadata"
+            )
+        if not bool(torch.isfinite(tensor).all()):
+            raise AdapterError(f"{where}: tensor {name!r} has non-finite values")
+        table_limit = TABLE_LIMITS[name]
+        largest = float(tensor.abs().max()) if tensor.numel() else 0.0
+        if largest > table_limit:
+            raise AdapterError(
+                f"{where}: tensor {name!r} has a value of magnitude {largest:.3g}, over the limit {table_limit:g}"
+            )
+
+
+def _stored_camera(where: str, metadata: dict[str, str]) -> Camera | None:
+    """The camera an adapter file records (None when it records none)."""
+    if not metadata["camera"]:
+        return None
+    from raytun3r_plugin._strict import quote, strict_json
+    from raytun3r_plugin.cameras import from_dict
+
+    record = strict_json(metadata["camera"], "metadata 'camera'", AdapterError, where)
+    if not isinstance(record, dict):
+        raise AdapterError(f"{where}: metadata 'camera' must be a JSON object, got {quote(record)}")
+    try:
+        return from_dict(record)
+    except CameraError as error:
+        raise AdapterError(
+            f"{where}: metadata 'camera' is not a valid camera ({quote(str(error))})"
+        ) from None
