@@ -14,6 +14,7 @@ from typing import Any
 import torch
 
 from raytun3r_plugin.adapter import FORMAT, FORMAT_VERSION, Adapter
+from raytun3r_plugin.apps.fits import recipe_text, setting_text
 from raytun3r_plugin.errors import AdapterError
 
 __all__ = ["describe_file", "describe_record", "pe_correction_field", "write_pe_picture"]
@@ -110,8 +111,6 @@ def _head(training: Mapping[str, Any]) -> str:
 
 
 def _recipe_lines(training: Mapping[str, Any]) -> list[str]:
-    from raytun3r_plugin.apps.fits import recipe_text
-
     recipe = training.get("recipe")
     if isinstance(recipe, Mapping) and recipe.get("name"):
         return _wrap(recipe_text(recipe, with_old=True), _WIDTH)
@@ -119,8 +118,6 @@ def _recipe_lines(training: Mapping[str, Any]) -> list[str]:
 
 
 def _pose_gate_lines(training: Mapping[str, Any]) -> list[str]:
-    from raytun3r_plugin.apps.fits import setting_text
-
     gate = training.get("pose_gate")
     if not (isinstance(gate, Mapping) and "pose_term" in gate):
         return []
