@@ -96,11 +96,11 @@ def setup(size: int, n_frames: int, cache_dir: str, config_changes: dict | None 
         cache_dir=cache_dir,
         sequence_id=f"bench-indoor-s0-{size}-{n_frames}",
         **(config_changes or {}),
-    )
+    ).resolved_for(model)
     problem = prepare_problem(camera(size), frames(size, n_frames, cache_dir), config)
     adapter = Adapter.for_model(model, problem.layout.native_camera)
     handle = apply(model, problem.layout.native_camera, adapter)
-    optimizer = torch.optim.Adam(list(adapter.parameters()), lr=config.lr)
+    optimizer = torch.optim.Adam(list(adapter.parameters()), lr=config.step_size())
     return model, problem, adapter, optimizer, config, handle
 
 

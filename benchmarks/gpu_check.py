@@ -433,7 +433,9 @@ def adapt_run(cuda: torch.device, size: int, steps: int) -> None:
     render_s = time.perf_counter() - began
     model = random_network("da3-small", cuda)
     with tempfile.TemporaryDirectory() as folder:
-        config = AdaptConfig(input_size=size, cache_dir=folder, checkpoint_every=0, steps=steps)
+        config = AdaptConfig(
+            input_size=size, cache_dir=folder, checkpoint_every=0, steps=steps
+        ).resolved_for(model)
         began = time.perf_counter()
         problem = prepare_problem(camera, frames, config)
         prepare_s = time.perf_counter() - began
@@ -443,7 +445,7 @@ def adapt_run(cuda: torch.device, size: int, steps: int) -> None:
             flush=True,
         )
         adapter = rt.Adapter.for_model(model, problem.layout.native_camera)
-        optimizer = torch.optim.Adam(list(adapter.parameters()), lr=config.lr)
+        optimizer = torch.optim.Adam(list(adapter.parameters()), lr=config.step_size())
         step_times, plain_times = [], []
         with rt.apply(model, problem.layout.native_camera, adapter):
             for step in range(12):

@@ -11,7 +11,7 @@ import torch
 
 from raytun3r_plugin import registry, synthetic
 from raytun3r_plugin.adaptation.check import check_frame_count, held_out_reprojection
-from raytun3r_plugin.adaptation.config import DEFAULT_WEIGHTS, AdaptConfig
+from raytun3r_plugin.adaptation.config import DEFAULT_WEIGHTS, RECIPE_LR, AdaptConfig
 from raytun3r_plugin.adaptation.losses import LossWeights
 from raytun3r_plugin.adaptation.recipes import RECIPES, get_recipe, recipe_names
 from raytun3r_plugin.adaptation.train import adapt
@@ -125,7 +125,7 @@ def test_a_backbone_familys_declared_changes_apply_and_are_recorded(network, mon
     monkeypatch.setitem(registry._SPECS, spec.family, changed)
     assert registry.spec_for(network)[0] is changed
     config = AdaptConfig.from_recipe("default", model=network)
-    assert config.lr == 0.01 and AdaptConfig.from_recipe("default").lr == 3e-3
+    assert config.lr == 0.01 and AdaptConfig.from_recipe("default").lr is None
     record = config.recipe_record(network)
     assert record["changes"] == {} and record["backbone_changes"] == {"lr": 0.01}
     # A user's change still wins over the family's, and is recorded against it.
@@ -151,7 +151,8 @@ def test_every_path_that_fits_takes_the_familys_declared_changes(network, monkey
     args = build_parser().parse_args(words)
     settings = cli_adapt._adapt_settings(args)
     assert cli_adapt._adapt_config(args, settings, False, model=network).lr == 0.01
-    assert cli_adapt._adapt_config(args, settings, False).lr == 3e-3  # no model: the recipe's
+    # No model: the step is left to the backbone, resolved when the fit starts.
+    assert cli_adapt._adapt_config(args, settings, False).lr is None
     mine = build_parser().parse_args([*words, "--windows", "20"])
     config = cli_adapt._adapt_config(mine, cli_adapt._adapt_settings(mine), False, network)
     assert (config.lr, config.n_windows) == (0.01, 20)
@@ -159,6 +160,8 @@ def test_every_path_that_fits_takes_the_familys_declared_changes(network, monkey
     assert fleet._config(record, False, network).lr == 0.01
     assert fleet._config(record, True, network).lr == AdaptConfig.supervised().lr
     fit = adapt_config(112, 3, model=network)
+    # Without a model, the recipe alone (experiments/README.md): its own step, not the family's.
+    assert adapt_config(112, 3).resolved_for(network).lr == RECIPE_LR
     assert fit.lr == 0.01 and fit.recipe_record(network)["changes"] == {"steps": [300, 3]}
     assert "the backbone family's: lr 0.01, n_windows 12" in fit_description(fit, network)
     assert "changed: steps 3" in fit_description(fit, network)
@@ -189,6 +192,52 @@ def test_the_da3_family_declares_its_step_for_both_of_its_specs(network):
     # Only the default recipe is changed: another recipe, or no model, is the recipe's own.
     assert AdaptConfig.from_recipe("paper", model=network).lr == 1e-3
     assert AdaptConfig.from_recipe("default").lr_without_teacher is None
+
+
+def test_a_hand_built_config_leaves_the_step_to_the_backbone_family(network, monkeypatch):
+    """``AdaptConfig(...)`` built by hand is the default recipe with the family's step, as
+    ``adapt()`` without a config is: the step is resolved with the model (as the input size is);
+    a step given is kept, and recorded as a change."""
+    hand_built = AdaptConfig(steps=3)
+    assert hand_built.lr is None
+    resolved = hand_built.resolved_for(network)
+    assert (resolved.lr, resolved.lr_without_teacher, resolved.input_size) == (1e-2, 3e-3, 112)
+    assert (
+        resolved.to_dict()
+        == AdaptConfig.from_recipe("default", model=network, steps=3)
+        .resolved_for(network)
+        .to_dict()
+    )
+    assert hand_built.recipe_record(network)["changes"] == {"steps": [300, 3]}
+    # A step of the user's own is every fit's step, and differs from the family's.
+    mine = AdaptConfig(steps=3, lr=3e-3).resolved_for(network)
+    assert (mine.lr, mine.lr_without_teacher) == (3e-3, None)
+    assert mine.recipe_record(network)["changes"] == {
+        "lr": [0.01, 0.003],
+        "lr_without_teacher": [0.003, None],
+        "steps": [300, 3],
+    }
+    # Their own step where the teacher is off is kept beside the family's larger one.
+    theirs = AdaptConfig(lr_without_teacher=1e-3).resolved_for(network)
+    assert (theirs.lr, theirs.lr_without_teacher) == (1e-2, 1e-3)
+    # A recipe that sets its own step is not the family's to change.
+    assert AdaptConfig.from_recipe("supervised").resolved_for(network).lr == 3e-2
+    # A family that declares no step: the recipe's own.
+    spec, _ = registry.spec_for(network)
+    monkeypatch.setitem(registry._SPECS, spec.family, dataclasses.replace(spec, recipe_changes={}))
+    plain = AdaptConfig().resolved_for(network)
+    assert (plain.lr, plain.lr_without_teacher) == (RECIPE_LR, None) == (3e-3, None)
+    with pytest.raises(InputError, match="AdaptConfig.lr"):
+        AdaptConfig(lr=0.0)
+    with pytest.raises(InputError, match="resolved_for"):
+        AdaptConfig().step_size()  # the optimiser never meets an unresolved step
+
+
+def test_adapt_with_a_hand_built_config_fits_with_the_familys_step(network, segment):
+    camera, frames = segment
+    info = adapt(network, camera, frames[:9], AdaptConfig(steps=2), progress=False).training_info
+    assert info["config"]["lr"] == 0.01 and info["teacher"]["used"] is True
+    assert info["recipe"]["changes"] == {"steps": [300, 2]}
 
 
 def test_adapt_without_a_config_fits_the_default_recipe_at_the_backbones_size(

@@ -46,6 +46,7 @@ CHECKED = [
     "raytun3r_plugin/adaptation/parallax.py",
     "raytun3r_plugin/adaptation/pose_gate.py",
     "raytun3r_plugin/adaptation/config.py",
+    "raytun3r_plugin/adaptation/settings_check.py",
     "raytun3r_plugin/adaptation/check.py",
     "raytun3r_plugin/pinhole_views.py",
     "raytun3r_plugin/exports/",

@@ -22,9 +22,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from raytun3r_plugin.adaptation.config import AdaptConfig, parse_check_frames
+from raytun3r_plugin.adaptation.config import AdaptConfig
 from raytun3r_plugin.adaptation.losses import LossWeights
 from raytun3r_plugin.adaptation.problem import prepare_problem, split_segments
+from raytun3r_plugin.adaptation.settings_check import parse_check_frames
 from raytun3r_plugin.adaptation.step import objective_value
 from raytun3r_plugin.adapter import Adapter
 from raytun3r_plugin.errors import InputError

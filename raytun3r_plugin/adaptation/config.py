@@ -8,14 +8,21 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from raytun3r_plugin.adaptation.losses import LossWeights
+from raytun3r_plugin.adaptation.settings_check import (
+    PE_REGULARISERS,
+    POSE_SOURCES,
+    POSE_WINDOWS,
+    SCALES,
+    TEACHER_VIEWS,
+    TERMS,
+    check_settings,
+)
 from raytun3r_plugin.errors import InputError
-from raytun3r_plugin.pinhole_views import VIEW_NAMES as TEACHER_VIEWS
 
 if TYPE_CHECKING:
     from torch import nn
@@ -26,6 +33,7 @@ __all__ = [
     "PE_REGULARISERS",
     "POSE_SOURCES",
     "POSE_WINDOWS",
+    "RECIPE_LR",
     "SCALES",
     "SELF_SUPERVISED_WEIGHTS",
     "SUPERVISED_WEIGHTS",
@@ -35,18 +43,6 @@ __all__ = [
     "AdaptConfig",
 ]
 
-POSE_SOURCES = ("model", "targets", "hybrid", "both")
-#: What each pose source does: reproject through the network's own relative pose, reproject
-#: through the MAGSAC++ targets (scaled per pair), and keep the pose term on the network's pose.
-MODEL_REPROJECTION_SOURCES = ("model", "both")
-TARGET_REPROJECTION_SOURCES = ("targets", "hybrid", "both")
-POSE_TERM_SOURCES = ("model", "hybrid", "both")
-#: Which windows the pose term scores: every window, or only those whose matches the parallax
-#: gate leaves out of the reprojection term (``AdaptConfig.pose_windows``).
-POSE_WINDOWS = ("all", "unreprojected")
-SCALES = ("pixel", "least_squares", "photometric")
-PE_REGULARISERS = ("relative", "absolute")
-TERMS = ("reproj", "smooth", "l2", "tv", "pose", "depth", "photo", "teacher")
 
 #: Default loss weights of the self-supervised fit. The paper's (reproj 1, smooth 10, L2 2, TV
 #: 20, pose 1) were set in absolute PE units; here L2 and TV count relative to the backbone's own
@@ -79,6 +75,10 @@ SUPERVISED_WEIGHTS = {"reproj": 0.0, "smooth": 0.0, "l2": 0.0, "tv": 0.0, "pose"
 #: teacher term alone (:mod:`~raytun3r_plugin.adaptation.teacher`), no match term.
 TEACHER_WEIGHTS = {**SUPERVISED_WEIGHTS, "depth": 0.0, "teacher": 1.0}
 
+#: The ``default`` recipe's Adam step where the backbone's family declares none (docs/adaptation.md,
+#: "Choosing the defaults"); ``AdaptConfig.lr`` None resolves to it or to the family's.
+RECIPE_LR = 3e-3
+
 # Configuration fields that may change between an interrupted run and its resumption.
 _RESUMABLE_CHANGES = {"steps", "checkpoint_every", "cache_dir"}
 
@@ -91,7 +91,13 @@ class AdaptConfig:
 
     Attributes:
         steps: optimisation steps, one 3-frame window each (300 = 10 passes over 30 windows).
-        lr: Adam learning rate.
+        lr: Adam step size. None (the ``default`` recipe's): the recipe's step as the model's
+            backbone family declares it, resolved when the fit starts
+            (:meth:`resolved_for`): the family's ``lr`` (and with it its
+            ``lr_without_teacher``, unless one is given) where it declares one (the DA3 family:
+            1e-2 where the teacher is on, 3e-3 where it is off), else :data:`RECIPE_LR`. So
+            ``AdaptConfig(steps=100)`` fits any backbone with its family's step, as ``adapt()``
+            without a config does; a number is the step of every fit of this config.
         clip: gradient-norm clipping threshold (None = no clipping).
         weights: loss weights (:data:`DEFAULT_WEIGHTS`; the paper's are the ``paper`` recipe's).
         input_size: long side of the network input in pixels (rounded to the patch size);
@@ -224,7 +230,7 @@ class AdaptConfig:
     """
 
     steps: int = 300
-    lr: float = 3e-3
+    lr: float | None = None
     clip: float | None = 1.0
     weights: LossWeights = field(default_factory=lambda: LossWeights(**DEFAULT_WEIGHTS))
     input_size: int | None = None
@@ -281,113 +287,7 @@ class AdaptConfig:
             self.teacher_view_weights = None
         if self.cache_dir is not None:
             self.cache_dir = str(self.cache_dir)
-        try:
-            self.check_frames = parse_check_frames(self.check_frames)  # "5" from a command line
-            check_frames_ok = True
-        except InputError:
-            check_frames_ok = False
-        checks = (
-            ("steps", self.steps >= 0),
-            ("lr", self.lr > 0),
-            (
-                "lr_without_teacher",
-                self.lr_without_teacher is None
-                or (
-                    isinstance(self.lr_without_teacher, (int, float))
-                    and math.isfinite(self.lr_without_teacher)
-                    and self.lr_without_teacher > 0
-                ),
-            ),
-            ("clip", self.clip is None or self.clip > 0),
-            ("input_size", self.input_size is None or self.input_size >= 1),
-            ("n_windows", self.n_windows >= 1),
-            ("window_size", self.window_size >= 2),
-            ("stride", self.stride >= 1),
-            ("max_matches", self.max_matches >= 0),
-            ("checkpoint_every", self.checkpoint_every >= 0),
-            ("pose_source", self.pose_source in POSE_SOURCES),
-            ("depth_convention", self.depth_convention in ("range", "z")),
-            ("scale", self.scale in SCALES),
-            ("robust_px", self.robust_px is None or self.robust_px > 0),
-            ("pe_regulariser", self.pe_regulariser in PE_REGULARISERS),
-            ("guard_every", self.guard_every >= 1),
-            ("min_parallax_px", self.min_parallax_px >= 0),
-            ("pose_gate", self.pose_gate is None or self.pose_gate >= 0),
-            (
-                "pose_windows",
-                self.pose_windows == "all"
-                or (self.pose_windows in POSE_WINDOWS and self.pose_source == "hybrid"),
-            ),
-            ("check_frames", check_frames_ok),
-            (
-                "check_veto",
-                self.check_veto is None
-                or (
-                    isinstance(self.check_veto, (int, float))
-                    and 0 <= self.check_veto < 1
-                    and self.check_frames != 0
-                ),
-            ),
-            ("refine_intrinsics", isinstance(self.refine_intrinsics, bool)),
-            ("recipe", isinstance(self.recipe, str)),
-            ("photo_sigma", math.isfinite(self.photo_sigma) and self.photo_sigma >= 0),
-            ("photo_pixels", self.photo_pixels >= 1),
-            (
-                "teacher_views",
-                len(self.teacher_views) >= 1
-                and len(set(self.teacher_views)) == len(self.teacher_views)
-                and set(self.teacher_views) <= set(TEACHER_VIEWS),
-            ),
-            ("teacher_view_weights", self._view_weights_ok()),
-            (
-                "teacher_fov_deg",
-                isinstance(self.teacher_fov_deg, (int, float))
-                and math.isfinite(self.teacher_fov_deg)
-                and 0 < self.teacher_fov_deg < 180,
-            ),
-            (
-                "teacher_max_coverage",
-                isinstance(self.teacher_max_coverage, (int, float))
-                and 0 <= self.teacher_max_coverage <= 1,
-            ),
-        )
-        expected = {
-            "check_frames": "expected 'auto', 0, or a count of at least 3",
-            "pose_windows": (
-                f"expected one of {POSE_WINDOWS}; 'unreprojected' only with pose_source='hybrid'"
-            ),
-            "check_veto": "expected None, or a fraction in [0, 1) with check_frames set",
-            "lr_without_teacher": "expected None, or a step size > 0",
-            "teacher_view_weights": (
-                f"expected None or {{view: weight >= 0}} naming exactly the teacher views "
-                f"{self.teacher_views!r}, at least one weight > 0"
-            ),
-        }
-        for name, ok in checks:
-            if not ok:
-                hint = f" ({expected[name]})" if name in expected else ""
-                raise InputError(
-                    f"AdaptConfig.{name} = {getattr(self, name)!r} is not allowed{hint}"
-                )
-        for term, weight in self.weights.as_dict().items():
-            # A negative weight would reward the term it weighs; NaN would poison every step.
-            if not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
-                raise InputError(
-                    f"AdaptConfig.weights.{term} = {weight!r} is not allowed "
-                    "(expected a finite number >= 0)"
-                )
-
-    def _view_weights_ok(self) -> bool:
-        weights = self.teacher_view_weights
-        if weights is None:
-            return True
-        if not isinstance(weights, dict) or set(weights) != set(self.teacher_views):
-            return False
-        values = list(weights.values())
-        return all(
-            isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) and w >= 0
-            for w in values
-        ) and any(w > 0 for w in values)
+        self.check_frames = check_settings(self)
 
     def view_weights(self) -> tuple[float, ...] | None:
         """The teacher views' weights in the order of :attr:`teacher_views` (the order of the
@@ -480,14 +380,35 @@ class AdaptConfig:
         objective (windows are still chosen from the matches)."""
         return cls.from_recipe("teacher-only", **changes)
 
-    def sized_for(self, model: nn.Module) -> AdaptConfig:
-        """These settings with an ``input_size`` of None resolved to ``model``'s own
-        (:func:`~raytun3r_plugin.registry.native_input_size`); unchanged otherwise."""
-        if self.input_size is not None:
-            return self
-        from raytun3r_plugin.registry import native_input_size
+    def resolved_for(self, model: nn.Module | None) -> AdaptConfig:
+        """These settings with what they leave to the backbone resolved for ``model``: an
+        ``input_size`` of None to its own (:func:`~raytun3r_plugin.registry.native_input_size`),
+        an ``lr`` of None to its family's step for this recipe (:attr:`lr`); unchanged
+        otherwise. :func:`adapt` fits, records and checkpoints the resolved settings. Without a
+        model the step is the recipe's own (:data:`RECIPE_LR`) and the size stays None."""
+        resolved: dict[str, Any] = {}
+        if self.input_size is None and model is not None:
+            from raytun3r_plugin.registry import native_input_size
 
-        return dataclasses.replace(self, input_size=native_input_size(model))
+            resolved["input_size"] = native_input_size(model)
+        if self.lr is None:
+            family = _family_changes(model, self.recipe)
+            resolved["lr"] = family.get("lr", RECIPE_LR)
+            if self.lr_without_teacher is None and "lr" in family:
+                resolved["lr_without_teacher"] = family.get("lr_without_teacher")
+        return dataclasses.replace(self, **resolved) if resolved else self
+
+    def step_size(self) -> float:
+        """The Adam step of a fit with these (resolved) settings.
+
+        Raises:
+            InputError: ``lr`` is still left to the backbone (call :meth:`resolved_for` first).
+        """
+        if self.lr is None:
+            raise InputError(
+                "AdaptConfig.lr is left to the backbone: resolve it with resolved_for(model)"
+            )
+        return float(self.lr)
 
     def recipe_record(self, model: nn.Module | None = None) -> dict[str, Any]:
         """What an adapter file records about the recipe: ``{"name", "version", "changes"}``,
@@ -500,20 +421,14 @@ class AdaptConfig:
         from raytun3r_plugin.adaptation.recipes import BOOKKEEPING_FIELDS, get_recipe
 
         recipe = get_recipe(self.recipe)
-        reference = AdaptConfig.from_recipe(recipe.name, model=model)
-        ours, theirs = _flat(self.to_dict()), _flat(reference.to_dict())
-        if model is not None:
-            # None is the backbone's own size, whichever side leaves it unresolved.
-            from raytun3r_plugin.registry import native_input_size
-
-            own = native_input_size(model)
-            for settings in (ours, theirs):
-                if settings.get("input_size") is None:
-                    settings["input_size"] = own
+        # What either side leaves to the backbone (its size, its step) is the backbone's.
+        ours = self.resolved_for(model)
+        reference = AdaptConfig.from_recipe(recipe.name, model=model).resolved_for(model)
+        ours_flat, theirs = _flat(ours.to_dict()), _flat(reference.to_dict())
         changed = {
-            key: [theirs.get(key), ours.get(key)]
-            for key in sorted(set(ours) | set(theirs))
-            if key not in BOOKKEEPING_FIELDS and ours.get(key) != theirs.get(key)
+            key: [theirs.get(key), ours_flat.get(key)]
+            for key in sorted(set(ours_flat) | set(theirs))
+            if key not in BOOKKEEPING_FIELDS and ours_flat.get(key) != theirs.get(key)
         }
         record: dict[str, Any] = {
             "name": recipe.name,
@@ -536,26 +451,6 @@ class AdaptConfig:
 
 
 _FIELDS = frozenset(AdaptConfig.__dataclass_fields__)
-
-
-def parse_check_frames(asked: Any) -> str | int:
-    """``"auto"``, or the count of check frames ``asked`` names (``5`` or ``"5"``): 0, or at least
-    3 (a scored window has 3 frames).
-
-    Raises:
-        InputError: anything else.
-    """
-    if asked == "auto":
-        return "auto"
-    if isinstance(asked, bool) or not isinstance(asked, (int, str)):
-        raise InputError(f"--check-frames must be 'auto' or an integer, got {asked!r}")
-    try:
-        count = int(asked)
-    except ValueError:
-        raise InputError(f"--check-frames must be 'auto' or an integer, got {asked!r}") from None
-    if count != 0 and count < 3:
-        raise InputError(f"--check-frames {count}: 0, or at least 3 frames (one window)")
-    return count
 
 
 def _family_changes(model: nn.Module | None, recipe: str) -> Mapping[str, Any]:

@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from raytun3r_plugin import poses
-from raytun3r_plugin.adaptation.config import POSE_TERM_SOURCES
 from raytun3r_plugin.adaptation.evaluation import patched_for_evaluation
+from raytun3r_plugin.adaptation.settings_check import POSE_TERM_SOURCES
 from raytun3r_plugin.prediction import predict
 
 if TYPE_CHECKING:

@@ -145,7 +145,7 @@ def adapt_rig(
     fit = _prepare_rig(model, rig, config, adapters, depth, cross_camera)
     names, fitted, problems = fit.names, fit.fitted, fit.problems
     tables = nn.ModuleList([fitted[name] for name in names])
-    optimizer = torch.optim.Adam(list(tables.parameters()), lr=config.lr)
+    optimizer = torch.optim.Adam(list(tables.parameters()), lr=config.step_size())
     paths = rig_artifact_paths(out_dir, names) if out_dir is not None else None
     identity = {
         "config": config.identity(),
@@ -235,9 +235,9 @@ def _rig_config(model: nn.Module, config: AdaptConfig | None, supervised: bool) 
     """The fit's config (the ``rig`` or ``supervised`` recipe when None) at the model's size;
     refuses a patched model and the settings a rig fit does not have yet."""
     recipe = "supervised" if supervised else "rig"
-    config = (AdaptConfig.from_recipe(recipe, model=model) if config is None else config).sized_for(
-        model
-    )
+    config = (
+        AdaptConfig.from_recipe(recipe, model=model) if config is None else config
+    ).resolved_for(model)
     if handle_of(model) is not None:
         raise AlreadyAppliedError(
             "adapt_rig needs an unpatched model; remove the existing raytun3r patch first"

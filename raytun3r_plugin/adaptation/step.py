@@ -14,12 +14,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import nn
 
-from raytun3r_plugin.adaptation.config import (
-    MODEL_REPROJECTION_SOURCES,
-    POSE_TERM_SOURCES,
-    TARGET_REPROJECTION_SOURCES,
-    AdaptConfig,
-)
+from raytun3r_plugin.adaptation.config import AdaptConfig
 from raytun3r_plugin.adaptation.evaluation import patched_for_evaluation
 from raytun3r_plugin.adaptation.losses import (
     grouped_silog_loss,
@@ -42,6 +37,11 @@ from raytun3r_plugin.adaptation.pose_terms import (
     pose_loss,
 )
 from raytun3r_plugin.adaptation.problem import AdaptationProblem, _Pair
+from raytun3r_plugin.adaptation.settings_check import (
+    MODEL_REPROJECTION_SOURCES,
+    POSE_TERM_SOURCES,
+    TARGET_REPROJECTION_SOURCES,
+)
 from raytun3r_plugin.adaptation.target_scale import (
     photometric_scale,
     sample_valid_pixels,

@@ -209,7 +209,7 @@ def adapt(
             "supervised" if depth is not None else "pose-oracle" if poses is not None else "default"
         )
         config = AdaptConfig.from_recipe(recipe, model=model)
-    config = config.sized_for(model)
+    config = config.resolved_for(model)
     frames, depth, poses, check = split_off_check(frames, depth, poses, config.check_frames)
     start = None if adapter is None else copy.deepcopy(adapter)
     fitted = _fit(
@@ -327,7 +327,7 @@ def _optimiser_and_files(
         for table in adapter.parameters():
             table.requires_grad_(False)
     trainable = list(adapter.parameters()) if tune is None else list(tune.parameters())
-    optimizer = torch.optim.Adam(trainable, lr=config.lr)
+    optimizer = torch.optim.Adam(trainable, lr=config.step_size())
     paths = artifact_paths(out_path) if out_path is not None else None
     identity = {
         "config": config.identity(),

@@ -174,7 +174,7 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     held_out = check_frame_count(len(segments[-1]), args.check_frames)  # refuses a bad value
     config = _adapt_config(args, settings, supervised=bool(args.depth), model=model)
     # The check frames are the fit's own setting (adapt keeps them out and scores them).
-    config = dataclasses.replace(config.sized_for(model), check_frames=args.check_frames)
+    config = dataclasses.replace(config.resolved_for(model), check_frames=args.check_frames)
     recipe = config.recipe_record(model)
     print(
         f"fitting with {recipe_text(recipe, leave_out=('input_size',))}"
@@ -279,12 +279,22 @@ def cmd_recipes(args: argparse.Namespace) -> int:
         recipe = RECIPES[name]
         print(f"{name} (v{recipe.version}): {recipe.summary}")
         if args.verbose:
-            from raytun3r_plugin.adaptation.config import AdaptConfig
+            from raytun3r_plugin.adaptation.config import RECIPE_LR, AdaptConfig
 
             settings = AdaptConfig.from_recipe(name).to_dict()
+            left_to_backbone = {
+                "input_size": "the backbone's own",
+                "lr": f"the backbone family's step ({RECIPE_LR} unless the family declares one)",
+            }
             for key in sorted(settings):
                 if key != "recipe":
-                    print(f"    {key}: {settings[key]}")
+                    value = settings[key]
+                    shown = (
+                        left_to_backbone[key]
+                        if value is None and key in left_to_backbone
+                        else value
+                    )
+                    print(f"    {key}: {shown}")
             print(f"    chosen by: {recipe.evidence}")
     from raytun3r_plugin.registry import specs
 

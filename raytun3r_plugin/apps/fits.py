@@ -27,7 +27,9 @@ def adapt_config(
     (``weights={"pose": ...}``); ``changes`` change any other field. Everything not given is the
     recipe's, with the changes ``model``'s backbone family declares for it
     (``BackboneSpec.recipe_changes``) when ``model`` is given, as ``adapt()`` fits it: nothing
-    is keyed by a network's name.
+    is keyed by a network's name. Without ``model`` it is the recipe alone, its step included
+    (:data:`~raytun3r_plugin.adaptation.config.RECIPE_LR` where the recipe leaves the step to the
+    backbone).
     """
     from raytun3r_plugin.adaptation.config import AdaptConfig
     from raytun3r_plugin.errors import InputError
@@ -48,11 +50,16 @@ def adapt_config(
             del changes[key]  # None: the recipe's
     if "teacher_views" in changes:
         changes["teacher_views"] = tuple(changes["teacher_views"])
-    return AdaptConfig.from_recipe(
+    config = AdaptConfig.from_recipe(
         recipe,
         model=model,
         **{"steps": steps, "input_size": size, "checkpoint_every": 0, **changes},
     )
+    if model is None:
+        # The recipe alone: its own step, not left to a family to resolve at fit time, so an
+        # experiment measures again what it measured when its decision was made.
+        config = config.resolved_for(None)
+    return config
 
 
 def fit_description(config, model=None) -> str:
