@@ -181,7 +181,7 @@ def prediction_terms(
         "smooth": smoothness_loss(depth, images.to(depth.dtype), valid),
         **regularisers,
     }
-    if config.weights.photo > 0:
+    if config.weights.photo > 0 and gray is not None:  # gray is made whenever photo > 0
         terms["photo"] = _photometric_term(
             depth, gray, pairs, layout.camera, valid, config, generator
         )
@@ -228,7 +228,7 @@ def _match_terms(
         relatives = []
         if config.pose_source in POSE_TERM_SOURCES:
             relative = relative_pose(poses, pair.a, pair.b)
-            if pair.rotation is not None and pose_scored:
+            if pair.rotation is not None and pair.direction is not None and pose_scored:
                 pose_terms.append(pose_loss(relative, pair.rotation, pair.direction))
             if config.pose_source in MODEL_REPROJECTION_SOURCES:
                 relatives.append(relative)
@@ -246,7 +246,7 @@ def _match_terms(
         uv_i, uv_j, confidence, rays_i, rays_j = subset_matches(pair, config.max_matches, generator)
         if through_targets:
             scale = None
-            if photometric:
+            if photometric and gray is not None:  # gray is made whenever the scale is photometric
                 scale = photometric_scale(
                     depth[pair.a],
                     gray[pair.a],
@@ -306,7 +306,7 @@ def _photometric_term(
     window's blurred grey frames (:func:`blurred_gray`)."""
     losses = []
     for pair in pairs:
-        if pair.rotation is None:
+        if pair.rotation is None or pair.direction is None:  # both or neither (no target)
             continue
         pixels, rays = sample_valid_pixels(
             valid, camera, config.photo_pixels, generator, depth.dtype

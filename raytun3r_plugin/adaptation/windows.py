@@ -239,7 +239,7 @@ def _save(
     def cat(arrays: list[np.ndarray], shape: tuple[int, ...], dtype: Any) -> np.ndarray:
         return np.concatenate(arrays).astype(dtype) if arrays else np.zeros(shape, dtype)
 
-    arrays = {
+    arrays: dict[str, Any] = {
         "payload": np.array(payload),
         "window_frames": np.array([w.frames for w in windows], np.int64).reshape(-1, window_size),
         "window_motion": np.array([w.motion_px for w in windows], np.float64),

@@ -263,11 +263,10 @@ def pe_correction_field(adapter: Adapter, long_side: int = 504):
             "the adapter carries no camera, so the PE correction has no image to be drawn on"
         )
     trained = (adapter.training_info or {}).get("input") or {}
-    if trained.get("long_side"):
+    source = fitted_source_camera(adapter)  # not None: the adapter carries a camera
+    if trained.get("long_side") and source is not None:
         # The fit's own layout: the rule applied again to the uncropped camera and long side.
-        layout = input_layout(
-            fitted_source_camera(adapter), int(trained["long_side"]), adapter.patch_size
-        )
+        layout = input_layout(source, int(trained["long_side"]), adapter.patch_size)
     else:
         # Files from before the rule was recorded: the input's long side on the adapter's camera.
         layout = input_layout(
