@@ -54,7 +54,27 @@ def check_settings(config: AdaptConfig) -> str | int:
         check_frames_ok = True
     except InputError:
         check_frames, check_frames_ok = config.check_frames, False
-    checks = (
+    checks = _within_bounds(config, check_frames, check_frames_ok)
+    expected = _expected(config)
+    for name, ok in checks:
+        if not ok:
+            hint = f" ({expected[name]})" if name in expected else ""
+            raise InputError(f"AdaptConfig.{name} = {getattr(config, name)!r} is not allowed{hint}")
+    for term, weight in config.weights.as_dict().items():
+        # A negative weight would reward the term it weighs; NaN would poison every step.
+        if not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
+            raise InputError(
+                f"AdaptConfig.weights.{term} = {weight!r} is not allowed "
+                "(expected a finite number >= 0)"
+            )
+    return check_frames
+
+
+def _within_bounds(
+    config: AdaptConfig, check_frames: str | int, check_frames_ok: bool
+) -> tuple[tuple[str, bool], ...]:
+    """Each bounded setting's name and whether ``config``'s value is inside its bounds."""
+    return (
         ("steps", config.steps >= 0),
         ("lr", config.lr is None or _step_size_ok(config.lr)),
         (
@@ -114,7 +134,11 @@ def check_settings(config: AdaptConfig) -> str | int:
             and 0 <= config.teacher_max_coverage <= 1,
         ),
     )
-    expected = {
+
+
+def _expected(config: AdaptConfig) -> dict[str, str]:
+    """What the settings whose bounds are not obvious from their name expect."""
+    return {
         "check_frames": "expected 'auto', 0, or a count of at least 3",
         "pose_windows": (
             f"expected one of {POSE_WINDOWS}; 'unreprojected' only with pose_source='hybrid'"
@@ -127,18 +151,6 @@ def check_settings(config: AdaptConfig) -> str | int:
             f"{config.teacher_views!r}, at least one weight > 0"
         ),
     }
-    for name, ok in checks:
-        if not ok:
-            hint = f" ({expected[name]})" if name in expected else ""
-            raise InputError(f"AdaptConfig.{name} = {getattr(config, name)!r} is not allowed{hint}")
-    for term, weight in config.weights.as_dict().items():
-        # A negative weight would reward the term it weighs; NaN would poison every step.
-        if not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
-            raise InputError(
-                f"AdaptConfig.weights.{term} = {weight!r} is not allowed "
-                "(expected a finite number >= 0)"
-            )
-    return check_frames
 
 
 def _step_size_ok(value: Any) -> bool:

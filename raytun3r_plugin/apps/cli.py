@@ -144,8 +144,6 @@ def cmd_infer(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     from raytun3r_plugin.adapter import Adapter
     from raytun3r_plugin.apps.evaluation import (
-        METHODS,
-        choose_pair_stride,
         fit_sequence,
         format_table,
         headline,
@@ -155,21 +153,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from raytun3r_plugin.datasets import load_sequence
 
     # Every option is checked before the model and the sequence load: a typo costs no forward.
-    methods = args.method.split(",")
-    unknown = [method for method in methods if method not in METHODS]
-    if unknown:
-        raise InputError(
-            f"--method: unknown {', '.join(map(repr, unknown))}; choose from {METHODS}"
-        )
-    amounts = _parse_amounts(args.perturb_calibration) if args.perturb_calibration else None
-    stride: int | None = None
-    if args.pair_stride != "auto":
-        try:
-            stride = int(args.pair_stride)
-        except ValueError:
-            raise InputError(
-                f"--pair-stride must be 'auto' or an integer, got {args.pair_stride!r}"
-            ) from None
+    methods, amounts, stride = _eval_options(args)
     model = _load_model(args.backbone, args.weights)
     adapter = Adapter.load(args.adapter) if args.adapter else None
     # Scored at the long side the adapter was fitted at unless --size says otherwise.
@@ -182,15 +166,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     )
     if seq.cam_from_world is None:
         raise InputError(f"{args.dataset}: the sequence has no ground-truth poses to score against")
-    if stride is None:
-        chosen = choose_pair_stride(seq)
-        stride = chosen["stride"]
-        stride_note = (
-            f"pair stride {stride} (auto: smallest with a median ground-truth baseline of at "
-            f"least {chosen['rule']} = {chosen['threshold']:.3g}; it is {chosen['median_baseline']:.3g})"
-        )
-    else:
-        stride_note = f"pair stride {stride} (given)"
+    stride, stride_note = _pair_stride(seq, stride)
     rows = [
         {
             "method": method,
@@ -238,6 +214,44 @@ def cmd_eval(args: argparse.Namespace) -> int:
         )
     )
     return 0
+
+
+def _eval_options(
+    args: argparse.Namespace,
+) -> tuple[list[str], dict[str, float] | None, int | None]:
+    """``eval``'s methods, calibration perturbation and pair stride (None: auto), checked."""
+    from raytun3r_plugin.apps.evaluation import METHODS
+
+    methods = args.method.split(",")
+    unknown = [method for method in methods if method not in METHODS]
+    if unknown:
+        raise InputError(
+            f"--method: unknown {', '.join(map(repr, unknown))}; choose from {METHODS}"
+        )
+    amounts = _parse_amounts(args.perturb_calibration) if args.perturb_calibration else None
+    if args.pair_stride == "auto":
+        return methods, amounts, None
+    try:
+        return methods, amounts, int(args.pair_stride)
+    except ValueError:
+        raise InputError(
+            f"--pair-stride must be 'auto' or an integer, got {args.pair_stride!r}"
+        ) from None
+
+
+def _pair_stride(seq, stride: int | None) -> tuple[int, str]:
+    """The pair stride ``eval`` scores ``seq`` with (``stride``, or the automatic one for None)
+    and the note that says how it was chosen."""
+    from raytun3r_plugin.apps.evaluation import choose_pair_stride
+
+    if stride is not None:
+        return stride, f"pair stride {stride} (given)"
+    chosen = choose_pair_stride(seq)
+    return chosen["stride"], (
+        f"pair stride {chosen['stride']} (auto: smallest with a median ground-truth baseline of "
+        f"at least {chosen['rule']} = {chosen['threshold']:.3g}; it is "
+        f"{chosen['median_baseline']:.3g})"
+    )
 
 
 def _parse_amounts(text: str) -> dict[str, float]:

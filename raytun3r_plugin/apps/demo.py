@@ -142,21 +142,43 @@ def _built_in_model():
     return _built_in_network()[0]
 
 
+#: The lines under the demo's table: what each column means and what the table does not show.
+_TABLE_NOTES = (
+    "rot/trans: relative-pose errors (deg) on consecutive held-out pairs; d_reproj: px, GT pose;",
+    "AbsRel, delta<1.25: per-image median scale, range depth; coverage: fraction of fisheye "
+    "pixels with depth;",
+    "lower_than_no_adapter: on how many sequences the metric is below the zero adapter's (the "
+    "parameter-free corrections alone).",
+    "The supervised row is the upper bound of the same tables. `raytun3r bench` scores 5 "
+    "sequences per camera and scene.",
+    "These are indoor sequences. On outdoor driving ones the matches carry no depth signal and the",
+    "pinhole-view teacher alone moves the tables, except at 120 degrees (docs/results.md, "
+    "synthetic fisheye benchmark).",
+)
+
+
+def _demo_jobs(asked: int | None, count: int) -> int:
+    """Worker processes for ``count`` sequences: ``asked``, or one per free CPU, at most one per
+    sequence."""
+    from raytun3r_plugin.apps.workers import cpu_jobs
+    from raytun3r_plugin.errors import InputError
+
+    jobs = cpu_jobs(count) if asked is None else asked
+    if jobs < 1:
+        raise InputError(f"--jobs must be at least 1, got {jobs}")
+    return min(jobs, count)
+
+
 def run_demo(args: argparse.Namespace) -> int:
     from raytun3r_plugin.apps.benchmark import summarise
     from raytun3r_plugin.apps.evaluation import format_table
-    from raytun3r_plugin.apps.workers import cpu_jobs, map_in_workers
-    from raytun3r_plugin.errors import InputError
+    from raytun3r_plugin.apps.workers import map_in_workers
 
     started = time.perf_counter()
     size = args.size or 112  # the default network's training resolution
     steps = args.steps if args.steps is not None else DEMO_STEPS
     count = args.sequences if getattr(args, "sequences", None) else DEMO_SEQUENCES
-    jobs = getattr(args, "jobs", None)
-    jobs = cpu_jobs(count) if jobs is None else jobs
-    if jobs < 1:
-        raise InputError(f"--jobs must be at least 1, got {jobs}")
-    jobs = min(jobs, count)
+    jobs = _demo_jobs(getattr(args, "jobs", None), count)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     model, description = _built_in_network()
@@ -203,38 +225,16 @@ def run_demo(args: argparse.Namespace) -> int:
     )
     print(table)
     print()
-    print(
-        "rot/trans: relative-pose errors (deg) on consecutive held-out pairs; d_reproj: px, GT pose;"
-    )
-    print(
-        "AbsRel, delta<1.25: per-image median scale, range depth; coverage: fraction of fisheye pixels with depth;"
-    )
-    print(
-        "lower_than_no_adapter: on how many sequences the metric is below the zero adapter's (the parameter-free corrections alone)."
-    )
-    print(
-        "The supervised row is the upper bound of the same tables. `raytun3r bench` scores 5 sequences per camera and scene."
-    )
-    print(
-        "These are indoor sequences. On outdoor driving ones the matches carry no depth signal and the"
-    )
-    print(
-        "pinhole-view teacher alone moves the tables, except at 120 degrees (docs/results.md, synthetic fisheye benchmark)."
-    )
-    (out / "metrics.json").write_text(
-        json.dumps(
-            {
-                "network": description,
-                "camera": json.loads(camera.to_json()),
-                "rows": rows,
-                "summary": table_rows,
-                "adapt_seconds": seconds,
-                "jobs": jobs,
-            },
-            indent=2,
-            default=float,
-        )
-    )
+    print("\n".join(_TABLE_NOTES))
+    metrics = {
+        "network": description,
+        "camera": json.loads(camera.to_json()),
+        "rows": rows,
+        "summary": table_rows,
+        "adapt_seconds": seconds,
+        "jobs": jobs,
+    }
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
     (out / "metrics.md").write_text(table + "\n")
     print(
         f"\nadapters and loss curves: {out}/seq*/ (adapted: {np.mean(seconds['adapted']):.0f} s per fit); total {time.perf_counter() - started:.0f} s"
