@@ -150,7 +150,6 @@ def load_synthetic(folder: str | Path, load_images: bool = False) -> Sequence:
     Raises:
         DatasetError: missing or malformed files (the message names the file and the line).
     """
-    import cv2
 
     root = Path(folder)
     meta = _read_meta(root / "meta.json")
@@ -162,8 +161,33 @@ def load_synthetic(folder: str | Path, load_images: bool = False) -> Sequence:
             None,
             f"camera is {camera.width}x{camera.height} px, meta.json says {w}x{h}",
         )
-    has_poses = bool(meta.get("has_poses", True))
-    ppath = root / "poses.txt"
+    stamps, poses = _read_poses(root / "poses.txt", n, bool(meta.get("has_poses", True)))
+    image_paths = [root / "images" / f"{k:06d}.png" for k in range(n)]
+    missing = [p for p in image_paths if not p.is_file()]
+    if missing:
+        raise fail(missing[0], None, "image file not found")
+    depth = _read_depth(root, meta, n, h, w)
+    mask = _read_masks(root, meta.get("mask"), n, h, w)
+    seq = Sequence(
+        name=str(meta.get("name", root.name)),
+        camera=camera,
+        timestamps=stamps,
+        cam_from_world=poses,
+        image_paths=image_paths,
+        depth=depth,
+        depth_kind=str(meta.get("depth_kind", "range")),
+        mask=mask,
+        meta={"source": str(root), "format": FORMAT},
+    )
+    if "synthetic" in meta:
+        seq.meta["synthetic"] = meta["synthetic"]
+    if load_images and n:
+        seq.images = np.stack([seq.image(k) for k in range(n)])
+    return seq
+
+
+def _read_poses(ppath: Path, n: int, has_poses: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """``poses.txt``: (n,) timestamps and (n, 4, 4) cam_from_world (None without poses)."""
     if not ppath.is_file():
         raise fail(ppath, None, "file not found")
     stamps = np.zeros(n)
@@ -192,43 +216,50 @@ def load_synthetic(folder: str | Path, load_images: bool = False) -> Sequence:
             poses[k, :3, :4] = vals[2:].reshape(3, 4)
     if not seen.all():
         raise fail(ppath, None, f"frames {np.flatnonzero(~seen)[:5].tolist()} have no line")
-    image_paths = [root / "images" / f"{k:06d}.png" for k in range(n)]
-    missing = [p for p in image_paths if not p.is_file()]
-    if missing:
-        raise fail(missing[0], None, "image file not found")
-    depth = None
+    return stamps, poses
+
+
+def _read_depth(root: Path, meta: dict, n: int, h: int, w: int) -> np.ndarray | None:
+    """The (n, h, w) float32 depth maps of ``depth/``, or None where the folder has none."""
+    import cv2
+
     fmt = meta.get("depth_format")
-    if fmt is not None:
-        depth = np.zeros((n, h, w), dtype=np.float32)
-        for k in range(n):
-            if fmt == "npy":
-                p = root / "depth" / f"{k:06d}.npy"
-                if not p.is_file():
-                    raise fail(p, None, "depth file not found")
-                try:
-                    d = np.load(p, allow_pickle=False)
-                except (ValueError, OSError) as e:
-                    raise fail(p, None, f"cannot read depth: {e}") from None
-            elif fmt == "png16":
-                p = root / "depth" / f"{k:06d}.png"
-                q = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-                if q is None or q.dtype != np.uint16 or q.ndim != 2:
-                    raise fail(p, None, "missing or not a single-channel 16-bit PNG")
-                scale = meta.get("depth_scale")
-                if not isinstance(scale, (int, float)) or isinstance(scale, bool) or scale <= 0:
-                    raise fail(
-                        root / "meta.json",
-                        None,
-                        f"field 'depth_scale' must be positive, got {scale!r}",
-                    )
-                d = (q.astype(np.float64) / float(scale)).astype(np.float32)
-            else:
-                raise fail(root / "meta.json", None, f"unknown depth_format {fmt!r}")
-            if d.shape != (h, w):
-                raise fail(p, None, f"depth has shape {d.shape}, expected {(h, w)}")
-            depth[k] = d
+    if fmt is None:
+        return None
+    depth = np.zeros((n, h, w), dtype=np.float32)
+    for k in range(n):
+        if fmt == "npy":
+            p = root / "depth" / f"{k:06d}.npy"
+            if not p.is_file():
+                raise fail(p, None, "depth file not found")
+            try:
+                d = np.load(p, allow_pickle=False)
+            except (ValueError, OSError) as e:
+                raise fail(p, None, f"cannot read depth: {e}") from None
+        elif fmt == "png16":
+            p = root / "depth" / f"{k:06d}.png"
+            q = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+            if q is None or q.dtype != np.uint16 or q.ndim != 2:
+                raise fail(p, None, "missing or not a single-channel 16-bit PNG")
+            scale = meta.get("depth_scale")
+            if not isinstance(scale, (int, float)) or isinstance(scale, bool) or scale <= 0:
+                raise fail(
+                    root / "meta.json",
+                    None,
+                    f"field 'depth_scale' must be positive, got {scale!r}",
+                )
+            d = (q.astype(np.float64) / float(scale)).astype(np.float32)
+        else:
+            raise fail(root / "meta.json", None, f"unknown depth_format {fmt!r}")
+        if d.shape != (h, w):
+            raise fail(p, None, f"depth has shape {d.shape}, expected {(h, w)}")
+        depth[k] = d
+    return depth
+
+
+def _read_masks(root: Path, mk: str | None, n: int, h: int, w: int) -> np.ndarray | None:
+    """The valid-pixel mask: (h, w) for ``static``, (n, h, w) for ``per_frame``, or None."""
     mask = None
-    mk = meta.get("mask")
     if mk == "static":
         mask = _read_mask(root / "mask.png", h, w)
     elif mk == "per_frame":
@@ -239,22 +270,7 @@ def load_synthetic(folder: str | Path, load_images: bool = False) -> Sequence:
         )
     elif mk is not None:
         raise fail(root / "meta.json", None, f"unknown mask kind {mk!r}")
-    seq = Sequence(
-        name=str(meta.get("name", root.name)),
-        camera=camera,
-        timestamps=stamps,
-        cam_from_world=poses,
-        image_paths=image_paths,
-        depth=depth,
-        depth_kind=str(meta.get("depth_kind", "range")),
-        mask=mask,
-        meta={"source": str(root), "format": FORMAT},
-    )
-    if "synthetic" in meta:
-        seq.meta["synthetic"] = meta["synthetic"]
-    if load_images and n:
-        seq.images = np.stack([seq.image(k) for k in range(n)])
-    return seq
+    return mask
 
 
 def _read_mask(path: Path, h: int, w: int) -> np.ndarray:
