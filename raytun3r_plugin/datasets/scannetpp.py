@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -76,6 +77,46 @@ def _camera(path: Path, text: str, d: dict, pixel_offset: float):
     )
 
 
+def _frame_entries(
+    p: Path, text: str, frames: Any, key: str, is_test: bool, skip_bad: bool
+) -> list[tuple[str, bool, np.ndarray, str | None]]:
+    """The usable frames of the JSON's list ``key``: ``(file_path, is_test, world_from_cam in
+    OpenCV axes, mask_path)`` each; a malformed entry is refused with the line it is on."""
+    entries: list[tuple[str, bool, np.ndarray, str | None]] = []
+    if not isinstance(frames, list):
+        raise fail(p, _line_of(text, f'"{key}"'), f"field '{key}' must be a list")
+    search = text.find(f'"{key}"')
+    for i, fr in enumerate(frames):
+        where = f"{key}[{i}]"
+        if not isinstance(fr, dict):
+            raise fail(p, _line_of(text, "{", search + 1), f"{where} must be an object")
+        fpath = fr.get("file_path")
+        line = _line_of(text, json.dumps(fpath), search) if isinstance(fpath, str) else None
+        if line is not None:
+            search = text.find(json.dumps(fpath), search) + 1
+        if not isinstance(fpath, str) or not fpath:
+            raise fail(p, line, f"{where}.file_path must be a non-empty string, got {fpath!r}")
+        if skip_bad and fr.get("is_bad", False) is True:
+            continue
+        m = fr.get("transform_matrix")
+        try:
+            M = np.asarray(m, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise fail(p, line, f"{where}.transform_matrix is not a numeric matrix") from None
+        if M.shape == (3, 4):
+            M = np.vstack([M, [0.0, 0.0, 0.0, 1.0]])
+        if M.shape != (4, 4):
+            raise fail(
+                p, line, f"{where}.transform_matrix must be 4x4 (or 3x4), got shape {M.shape}"
+            )
+        check_rigid(p, line, M, f"{where}.transform_matrix")
+        mpath = fr.get("mask_path")
+        if mpath is not None and (not isinstance(mpath, str) or not mpath):
+            raise fail(p, line, f"{where}.mask_path must be a non-empty string, got {mpath!r}")
+        entries.append((fpath, is_test, M @ _GL_TO_CV, mpath))
+    return entries
+
+
 def load_scannetpp_transforms(
     path: str | Path,
     split: str = "all",
@@ -133,40 +174,11 @@ def load_scannetpp_transforms(
         lists.append(("test_frames", True))
     if split == "test" and "test_frames" not in d:
         raise fail(p, None, "field 'test_frames' is missing")
-    entries = []
-    for key, is_test in lists:
-        frames = d[key]
-        if not isinstance(frames, list):
-            raise fail(p, _line_of(text, f'"{key}"'), f"field '{key}' must be a list")
-        search = text.find(f'"{key}"')
-        for i, fr in enumerate(frames):
-            where = f"{key}[{i}]"
-            if not isinstance(fr, dict):
-                raise fail(p, _line_of(text, "{", search + 1), f"{where} must be an object")
-            fpath = fr.get("file_path")
-            line = _line_of(text, json.dumps(fpath), search) if isinstance(fpath, str) else None
-            if line is not None:
-                search = text.find(json.dumps(fpath), search) + 1
-            if not isinstance(fpath, str) or not fpath:
-                raise fail(p, line, f"{where}.file_path must be a non-empty string, got {fpath!r}")
-            if skip_bad and fr.get("is_bad", False) is True:
-                continue
-            m = fr.get("transform_matrix")
-            try:
-                M = np.asarray(m, dtype=np.float64)
-            except (TypeError, ValueError):
-                raise fail(p, line, f"{where}.transform_matrix is not a numeric matrix") from None
-            if M.shape == (3, 4):
-                M = np.vstack([M, [0.0, 0.0, 0.0, 1.0]])
-            if M.shape != (4, 4):
-                raise fail(
-                    p, line, f"{where}.transform_matrix must be 4x4 (or 3x4), got shape {M.shape}"
-                )
-            check_rigid(p, line, M, f"{where}.transform_matrix")
-            mpath = fr.get("mask_path")
-            if mpath is not None and (not isinstance(mpath, str) or not mpath):
-                raise fail(p, line, f"{where}.mask_path must be a non-empty string, got {mpath!r}")
-            entries.append((fpath, is_test, M @ _GL_TO_CV, mpath))
+    entries = [
+        entry
+        for key, is_test in lists
+        for entry in _frame_entries(p, text, d[key], key, is_test, skip_bad)
+    ]
     if not entries:
         raise fail(p, None, f"no usable frames for split {split!r}")
     entries.sort(key=lambda e: e[0])
