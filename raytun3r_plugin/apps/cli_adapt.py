@@ -304,6 +304,82 @@ def cmd_recipes(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_teacher_arguments(advanced: argparse._ArgumentGroup) -> None:
+    """``adapt``'s advanced options beyond the shared ones: the depth PNG scale and the
+    pinhole-view teacher's settings."""
+    advanced.add_argument(
+        "--depth-png-scale",
+        type=float,
+        default=1000.0,
+        help="16-bit depth PNG values per depth unit (1000 = millimetres)",
+    )
+    from raytun3r_plugin.adaptation.config import TEACHER_VIEWS
+
+    advanced.add_argument(
+        "--teacher",
+        type=float,
+        default=None,
+        metavar="WEIGHT",
+        help="weight of the pinhole-view teacher term (default recipe: 10, on lenses wider "
+        "than about 160 degrees): the unpatched model's depth on virtual pinhole views",
+    )
+    advanced.add_argument(
+        "--teacher-only", action="store_true", help="the same as --recipe teacher-only"
+    )
+    advanced.add_argument(
+        "--teacher-views",
+        nargs="+",
+        default=None,
+        choices=TEACHER_VIEWS,
+        help="the teacher's pinhole views (default recipe: centre left right)",
+    )
+    advanced.add_argument(
+        "--teacher-view-weights",
+        nargs="+",
+        default=None,
+        metavar="VIEW=WEIGHT",
+        help="each teacher view's share of the term, one per view of --teacher-views, e.g. "
+        "centre=1 left=0.3 right=0.3 (default: the recipe's for its views, else their mean)",
+    )
+    advanced.add_argument(
+        "--teacher-fov", type=float, default=None, help="the teacher views' FOV, deg (default 110)"
+    )
+
+
+def _add_rig_command(sub) -> None:
+    """Add ``adapt-rig`` to the subcommands ``sub``."""
+    p = sub.add_parser(
+        "adapt-rig",
+        help="fit one adapter per camera of a multi-camera rig, all cameras in each forward (docs/rigs.md)",
+    )
+    _add_recipe_argument(p, "'rig', the default recipe without the teacher term")
+    _add_model_arguments(p)
+    p.add_argument("dataset", help="a TUM-VI sequence folder or an ETH3D rig scene")
+    p.add_argument("--format", required=True, choices=("tumvi", "eth3d"))
+    p.add_argument("--stride", type=int, default=1, help="use every n-th instant")
+    p.add_argument("--max-frames", type=int, default=None, help="at most this many instants")
+    p.add_argument(
+        "--size",
+        type=int,
+        default=None,
+        help="network input long side (default: the backbone's own)",
+    )
+    p.add_argument(
+        "--cross-camera",
+        action="store_true",
+        help="add reprojection terms between the cameras at each instant (docs/rigs.md)",
+    )
+    p.add_argument("--out", required=True, help="output folder: <camera>.safetensors per camera")
+    p.add_argument(
+        "--restart",
+        action="store_true",
+        help="start over even if a checkpoint of another run is in --out (default: an "
+        "interrupted run with the same settings resumes)",
+    )
+    _add_fit_arguments(p)
+    p.set_defaults(func=cmd_adapt_rig)
+
+
 def _add_fit_arguments(parser: argparse.ArgumentParser) -> argparse._ArgumentGroup:
     """The objective's settings ``adapt`` and ``adapt-rig`` share (read by :func:`_adapt_settings`),
     under an "advanced" heading: each changes the recipe, and the adapter records it."""
@@ -405,44 +481,7 @@ def add_fit_commands(sub, rule: str) -> None:
         help="start over even if a checkpoint of another run is next to --out (default: an "
         "interrupted run with the same settings resumes)",
     )
-    advanced = _add_fit_arguments(p)
-    advanced.add_argument(
-        "--depth-png-scale",
-        type=float,
-        default=1000.0,
-        help="16-bit depth PNG values per depth unit (1000 = millimetres)",
-    )
-    from raytun3r_plugin.adaptation.config import TEACHER_VIEWS
-
-    advanced.add_argument(
-        "--teacher",
-        type=float,
-        default=None,
-        metavar="WEIGHT",
-        help="weight of the pinhole-view teacher term (default recipe: 10, on lenses wider "
-        "than about 160 degrees): the unpatched model's depth on virtual pinhole views",
-    )
-    advanced.add_argument(
-        "--teacher-only", action="store_true", help="the same as --recipe teacher-only"
-    )
-    advanced.add_argument(
-        "--teacher-views",
-        nargs="+",
-        default=None,
-        choices=TEACHER_VIEWS,
-        help="the teacher's pinhole views (default recipe: centre left right)",
-    )
-    advanced.add_argument(
-        "--teacher-view-weights",
-        nargs="+",
-        default=None,
-        metavar="VIEW=WEIGHT",
-        help="each teacher view's share of the term, one per view of --teacher-views, e.g. "
-        "centre=1 left=0.3 right=0.3 (default: the recipe's for its views, else their mean)",
-    )
-    advanced.add_argument(
-        "--teacher-fov", type=float, default=None, help="the teacher views' FOV, deg (default 110)"
-    )
+    _add_teacher_arguments(_add_fit_arguments(p))
     p.set_defaults(func=cmd_adapt)
 
     p = sub.add_parser("recipes", help="list the fit recipes and what each does")
@@ -451,33 +490,4 @@ def add_fit_commands(sub, rule: str) -> None:
     )
     p.set_defaults(func=cmd_recipes)
 
-    p = sub.add_parser(
-        "adapt-rig",
-        help="fit one adapter per camera of a multi-camera rig, all cameras in each forward (docs/rigs.md)",
-    )
-    _add_recipe_argument(p, "'rig', the default recipe without the teacher term")
-    _add_model_arguments(p)
-    p.add_argument("dataset", help="a TUM-VI sequence folder or an ETH3D rig scene")
-    p.add_argument("--format", required=True, choices=("tumvi", "eth3d"))
-    p.add_argument("--stride", type=int, default=1, help="use every n-th instant")
-    p.add_argument("--max-frames", type=int, default=None, help="at most this many instants")
-    p.add_argument(
-        "--size",
-        type=int,
-        default=None,
-        help="network input long side (default: the backbone's own)",
-    )
-    p.add_argument(
-        "--cross-camera",
-        action="store_true",
-        help="add reprojection terms between the cameras at each instant (docs/rigs.md)",
-    )
-    p.add_argument("--out", required=True, help="output folder: <camera>.safetensors per camera")
-    p.add_argument(
-        "--restart",
-        action="store_true",
-        help="start over even if a checkpoint of another run is in --out (default: an "
-        "interrupted run with the same settings resumes)",
-    )
-    _add_fit_arguments(p)
-    p.set_defaults(func=cmd_adapt_rig)
+    _add_rig_command(sub)
