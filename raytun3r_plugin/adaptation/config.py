@@ -287,7 +287,7 @@ class AdaptConfig:
             self.teacher_view_weights = None
         if self.cache_dir is not None:
             self.cache_dir = str(self.cache_dir)
-        self.check_frames = check_settings(self)
+        self.check_frames = check_settings(vars(self))
 
     def view_weights(self) -> tuple[float, ...] | None:
         """The teacher views' weights in the order of :attr:`teacher_views` (the order of the

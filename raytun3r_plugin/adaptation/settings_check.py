@@ -8,13 +8,11 @@ Kept apart from the config so that the settings' vocabulary and their bounds sit
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
+from collections.abc import Mapping
+from typing import Any
 
 from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.pinhole_views import VIEW_NAMES as TEACHER_VIEWS
-
-if TYPE_CHECKING:
-    from raytun3r_plugin.adaptation.config import AdaptConfig
 
 __all__ = [
     "PE_REGULARISERS",
@@ -41,26 +39,29 @@ PE_REGULARISERS = ("relative", "absolute")
 TERMS = ("reproj", "smooth", "l2", "tv", "pose", "depth", "photo", "teacher")
 
 
-def check_settings(config: AdaptConfig) -> str | int:
-    """Refuse a value no fit can run with; return ``config.check_frames`` parsed (``"auto"`` or a
-    count: a command line gives ``"5"``).
+def check_settings(config: Mapping[str, Any]) -> str | int:
+    """Refuse a value no fit can run with; return the ``check_frames`` setting parsed (``"auto"``
+    or a count: a command line gives ``"5"``).
+
+    Args:
+        config: an ``AdaptConfig``'s fields by name (``vars(config)``); read, not changed.
 
     Raises:
         InputError: the first setting out of bounds, named with what it expects; or a loss
             weight that is negative or not finite.
     """
     try:
-        check_frames = parse_check_frames(config.check_frames)  # "5" from a command line
+        check_frames = parse_check_frames(config["check_frames"])  # "5" from a command line
         check_frames_ok = True
     except InputError:
-        check_frames, check_frames_ok = config.check_frames, False
+        check_frames, check_frames_ok = config["check_frames"], False
     checks = _within_bounds(config, check_frames, check_frames_ok)
     expected = _expected(config)
     for name, ok in checks:
         if not ok:
             hint = f" ({expected[name]})" if name in expected else ""
-            raise InputError(f"AdaptConfig.{name} = {getattr(config, name)!r} is not allowed{hint}")
-    for term, weight in config.weights.as_dict().items():
+            raise InputError(f"AdaptConfig.{name} = {config[name]!r} is not allowed{hint}")
+    for term, weight in config["weights"].as_dict().items():
         # A negative weight would reward the term it weighs; NaN would poison every step.
         if not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
             raise InputError(
@@ -71,72 +72,72 @@ def check_settings(config: AdaptConfig) -> str | int:
 
 
 def _within_bounds(
-    config: AdaptConfig, check_frames: str | int, check_frames_ok: bool
+    config: Mapping[str, Any], check_frames: str | int, check_frames_ok: bool
 ) -> tuple[tuple[str, bool], ...]:
     """Each bounded setting's name and whether ``config``'s value is inside its bounds."""
     return (
-        ("steps", config.steps >= 0),
-        ("lr", config.lr is None or _step_size_ok(config.lr)),
+        ("steps", config["steps"] >= 0),
+        ("lr", config["lr"] is None or _step_size_ok(config["lr"])),
         (
             "lr_without_teacher",
-            config.lr_without_teacher is None or _step_size_ok(config.lr_without_teacher),
+            config["lr_without_teacher"] is None or _step_size_ok(config["lr_without_teacher"]),
         ),
-        ("clip", config.clip is None or config.clip > 0),
-        ("input_size", config.input_size is None or config.input_size >= 1),
-        ("n_windows", config.n_windows >= 1),
-        ("window_size", config.window_size >= 2),
-        ("stride", config.stride >= 1),
-        ("max_matches", config.max_matches >= 0),
-        ("checkpoint_every", config.checkpoint_every >= 0),
-        ("pose_source", config.pose_source in POSE_SOURCES),
-        ("depth_convention", config.depth_convention in ("range", "z")),
-        ("scale", config.scale in SCALES),
-        ("robust_px", config.robust_px is None or config.robust_px > 0),
-        ("pe_regulariser", config.pe_regulariser in PE_REGULARISERS),
-        ("guard_every", config.guard_every >= 1),
-        ("min_parallax_px", config.min_parallax_px >= 0),
-        ("pose_gate", config.pose_gate is None or config.pose_gate >= 0),
+        ("clip", config["clip"] is None or config["clip"] > 0),
+        ("input_size", config["input_size"] is None or config["input_size"] >= 1),
+        ("n_windows", config["n_windows"] >= 1),
+        ("window_size", config["window_size"] >= 2),
+        ("stride", config["stride"] >= 1),
+        ("max_matches", config["max_matches"] >= 0),
+        ("checkpoint_every", config["checkpoint_every"] >= 0),
+        ("pose_source", config["pose_source"] in POSE_SOURCES),
+        ("depth_convention", config["depth_convention"] in ("range", "z")),
+        ("scale", config["scale"] in SCALES),
+        ("robust_px", config["robust_px"] is None or config["robust_px"] > 0),
+        ("pe_regulariser", config["pe_regulariser"] in PE_REGULARISERS),
+        ("guard_every", config["guard_every"] >= 1),
+        ("min_parallax_px", config["min_parallax_px"] >= 0),
+        ("pose_gate", config["pose_gate"] is None or config["pose_gate"] >= 0),
         (
             "pose_windows",
-            config.pose_windows == "all"
-            or (config.pose_windows in POSE_WINDOWS and config.pose_source == "hybrid"),
+            config["pose_windows"] == "all"
+            or (config["pose_windows"] in POSE_WINDOWS and config["pose_source"] == "hybrid"),
         ),
         ("check_frames", check_frames_ok),
         (
             "check_veto",
-            config.check_veto is None
+            config["check_veto"] is None
             or (
-                isinstance(config.check_veto, (int, float))
-                and 0 <= config.check_veto < 1
+                isinstance(config["check_veto"], (int, float))
+                and 0 <= config["check_veto"] < 1
                 and check_frames != 0
             ),
         ),
-        ("refine_intrinsics", isinstance(config.refine_intrinsics, bool)),
-        ("recipe", isinstance(config.recipe, str)),
-        ("photo_sigma", math.isfinite(config.photo_sigma) and config.photo_sigma >= 0),
-        ("photo_pixels", config.photo_pixels >= 1),
+        ("refine_intrinsics", isinstance(config["refine_intrinsics"], bool)),
+        ("recipe", isinstance(config["recipe"], str)),
+        ("photo_sigma", math.isfinite(config["photo_sigma"]) and config["photo_sigma"] >= 0),
+        ("photo_pixels", config["photo_pixels"] >= 1),
         (
             "teacher_views",
-            len(config.teacher_views) >= 1
-            and len(set(config.teacher_views)) == len(config.teacher_views)
-            and set(config.teacher_views) <= set(TEACHER_VIEWS),
+            len(config["teacher_views"]) >= 1
+            and len(set(config["teacher_views"])) == len(config["teacher_views"])
+            and set(config["teacher_views"]) <= set(TEACHER_VIEWS),
         ),
         ("teacher_view_weights", _view_weights_ok(config)),
         (
             "teacher_fov_deg",
-            isinstance(config.teacher_fov_deg, (int, float))
-            and math.isfinite(config.teacher_fov_deg)
-            and 0 < config.teacher_fov_deg < 180,
+            isinstance(config["teacher_fov_deg"], (int, float))
+            and math.isfinite(config["teacher_fov_deg"])
+            and 0 < config["teacher_fov_deg"] < 180,
         ),
         (
             "teacher_max_coverage",
-            isinstance(config.teacher_max_coverage, (int, float))
-            and 0 <= config.teacher_max_coverage <= 1,
+            isinstance(config["teacher_max_coverage"], (int, float))
+            and 0 <= config["teacher_max_coverage"] <= 1,
         ),
     )
 
 
-def _expected(config: AdaptConfig) -> dict[str, str]:
+def _expected(config: Mapping[str, Any]) -> dict[str, str]:
     """What the settings whose bounds are not obvious from their name expect."""
     return {
         "check_frames": "expected 'auto', 0, or a count of at least 3",
@@ -148,7 +149,7 @@ def _expected(config: AdaptConfig) -> dict[str, str]:
         "lr_without_teacher": "expected None, or a step size > 0",
         "teacher_view_weights": (
             f"expected None or {{view: weight >= 0}} naming exactly the teacher views "
-            f"{config.teacher_views!r}, at least one weight > 0"
+            f"{config['teacher_views']!r}, at least one weight > 0"
         ),
     }
 
@@ -162,11 +163,11 @@ def _step_size_ok(value: Any) -> bool:
     )
 
 
-def _view_weights_ok(config: AdaptConfig) -> bool:
-    weights = config.teacher_view_weights
+def _view_weights_ok(config: Mapping[str, Any]) -> bool:
+    weights = config["teacher_view_weights"]
     if weights is None:
         return True
-    if not isinstance(weights, dict) or set(weights) != set(config.teacher_views):
+    if not isinstance(weights, dict) or set(weights) != set(config["teacher_views"]):
         return False
     values = list(weights.values())
     return all(
