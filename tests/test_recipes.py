@@ -170,6 +170,10 @@ def test_every_path_that_fits_takes_the_familys_declared_changes(network, monkey
     assert main(["recipes"]) == 0  # the listing names what each family changes
     listing = capsys.readouterr().out
     assert f"backbone family {spec.family!r} changes 'default': lr 0.01, n_windows 12" in listing
+    assert main(["recipes", "--verbose"]) == 0  # what the recipe leaves to the backbone, said
+    verbose = capsys.readouterr().out
+    assert "    lr: the backbone family's step (0.003 unless the family declares one)" in verbose
+    assert "    input_size: the backbone's own" in verbose
 
 
 def test_the_da3_family_declares_its_step_for_both_of_its_specs(network):
