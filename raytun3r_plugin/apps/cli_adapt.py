@@ -304,17 +304,17 @@ def cmd_recipes(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_teacher_arguments(advanced: argparse._ArgumentGroup) -> None:
-    """``adapt``'s advanced options beyond the shared ones: the depth PNG scale and the
-    pinhole-view teacher's settings."""
+def _add_adapt_only_options(advanced: argparse._ArgumentGroup) -> None:
+    """``adapt``'s advanced options beyond those ``adapt-rig`` shares: the depth PNG scale and
+    the pinhole-view teacher's settings."""
+    from raytun3r_plugin.adaptation.config import TEACHER_VIEWS
+
     advanced.add_argument(
         "--depth-png-scale",
         type=float,
         default=1000.0,
         help="16-bit depth PNG values per depth unit (1000 = millimetres)",
     )
-    from raytun3r_plugin.adaptation.config import TEACHER_VIEWS
-
     advanced.add_argument(
         "--teacher",
         type=float,
@@ -481,7 +481,7 @@ def add_fit_commands(sub, rule: str) -> None:
         help="start over even if a checkpoint of another run is next to --out (default: an "
         "interrupted run with the same settings resumes)",
     )
-    _add_teacher_arguments(_add_fit_arguments(p))
+    _add_adapt_only_options(_add_fit_arguments(p))
     p.set_defaults(func=cmd_adapt)
 
     p = sub.add_parser("recipes", help="list the fit recipes and what each does")
