@@ -389,9 +389,12 @@ def test_the_demo_and_benchmarks_fit_every_network_with_the_library_recipe():
     assert shipped.teacher_view_weights == {"centre": 1.0, "left": 0.3, "right": 0.3}
     assert shipped.view_weights() == (1.0, 0.3, 0.3)
     assert shipped.to_dict()["teacher_view_weights"] == shipped.teacher_view_weights
-    # The demo's fit is the library's own AdaptConfig() at its size and budget.
+    # The demo's fit is the library's own AdaptConfig() at its size and budget, resolved for the
+    # model as adapt() resolves it; without a model, the recipe alone (its own step).
     library = AdaptConfig(input_size=112, steps=10, checkpoint_every=0)
-    assert shipped.identity() == library.identity()
+    demo_fit = adapt_config(112, 10, model=model).resolved_for(model)
+    assert demo_fit.identity() == library.resolved_for(model).identity()
+    assert shipped.identity() == library.resolved_for(None).identity()
     assert adapt_config(112, 10, teacher_weight=0.0).weights.teacher == 0.0
     # Other views given without weights count equally (the recipe's weights name its views).
     centre = adapt_config(112, 10, teacher_views=["centre"])
