@@ -139,6 +139,123 @@ def _clear_of(path_xz: np.ndarray, xz: np.ndarray, radius: float, clearance: flo
     return bool(np.min(np.linalg.norm(path_xz - xz[None], axis=1)) > radius + clearance)
 
 
+@dataclass(frozen=True)
+class _Floor:
+    """A room's floor plan (metres, x across and z along): where furniture may stand."""
+
+    xmin: float
+    xmax: float
+    zmin: float
+    zmax: float
+    margin: float = 0.05
+
+    def inside(self, x: float, z: float, rad: float) -> bool:
+        """Whether a piece of radius ``rad`` at (x, z) stands clear of the walls."""
+        return (
+            self.xmin + rad + self.margin <= x <= self.xmax - rad - self.margin
+            and self.zmin + rad + self.margin <= z <= self.zmax - rad - self.margin
+        )
+
+
+def _place_boxes(
+    rng: np.random.Generator, mats: _Materials, floor: _Floor, pxz: np.ndarray, height: float
+) -> tuple[list, list]:
+    """7-10 boxes (tables, cabinets, shelves), half of them against a wall, none overlapping
+    another or within 0.5 m of the camera path: ``(boxes, their materials)``."""
+    boxes: list = []
+    box_m: list = []
+    margin = floor.margin
+    n_boxes = int(rng.integers(7, 11))
+    tries = 0
+    while len(boxes) < n_boxes and tries < 500:
+        tries += 1
+        hx, hz = rng.uniform(0.2, 0.9), rng.uniform(0.2, 0.7)
+        hy = rng.uniform(0.2, min(1.0, height / 2 - 0.2))
+        rad = math.hypot(hx, hz)
+        if rng.uniform() < 0.5:  # against a wall
+            side = int(rng.integers(4))
+            x = rng.uniform(floor.xmin + rad, floor.xmax - rad)
+            z = rng.uniform(floor.zmin + rad, floor.zmax - rad)
+            if side == 0:
+                x = floor.xmin + rad + margin
+            elif side == 1:
+                x = floor.xmax - rad - margin
+            elif side == 2:
+                z = floor.zmin + rad + margin
+            else:
+                z = floor.zmax - rad - margin
+        else:
+            x = rng.uniform(floor.xmin + rad, floor.xmax - rad)
+            z = rng.uniform(floor.zmin + rad, floor.zmax - rad)
+        if not floor.inside(x, z, rad) or not _clear_of(pxz, np.array([x, z]), rad, 0.5):
+            continue
+        if any(math.hypot(x - b[0], z - b[2]) < rad + math.hypot(b[3], b[5]) for b in boxes):
+            continue
+        boxes.append([x, -hy, z, hx, hy, hz, rng.uniform(-0.6, 0.6)])
+        box_m.append(mats.add())
+    return boxes, box_m
+
+
+def _place_spheres(
+    rng: np.random.Generator,
+    mats: _Materials,
+    floor: _Floor,
+    pxz: np.ndarray,
+    height: float,
+    boxes: list,
+) -> tuple[list, list]:
+    """3-5 spheres, on the floor or resting on a box top: ``(spheres, their materials)``."""
+    spheres: list = []
+    sph_m: list = []
+    for _ in range(int(rng.integers(3, 6))):
+        for _try in range(100):
+            rad = rng.uniform(0.15, 0.45)
+            if boxes and rng.uniform() < 0.5:
+                b = boxes[int(rng.integers(len(boxes)))]
+                x, z, y = b[0], b[2], -2 * b[4] - rad
+            else:
+                x, z, y = (
+                    rng.uniform(floor.xmin, floor.xmax),
+                    rng.uniform(floor.zmin, floor.zmax),
+                    -rad,
+                )
+            if y - rad < -height + 0.05 or not floor.inside(x, z, rad):
+                continue
+            if not _clear_of(pxz, np.array([x, z]), rad, 0.5):
+                continue
+            spheres.append([x, y, z, rad])
+            sph_m.append(mats.add(freq=(3.0, 6.0)))
+            break
+    return spheres, sph_m
+
+
+def _place_cylinders(
+    rng: np.random.Generator,
+    mats: _Materials,
+    floor: _Floor,
+    pxz: np.ndarray,
+    height: float,
+    boxes: list,
+) -> tuple[list, list]:
+    """3-5 cylinders (pillars to the ceiling, stools, lamps) clear of the boxes:
+    ``(cylinders, their materials)``."""
+    cyls: list = []
+    cyl_m: list = []
+    for _ in range(int(rng.integers(3, 6))):
+        for _try in range(100):
+            rad = rng.uniform(0.08, 0.35)
+            x, z = rng.uniform(floor.xmin, floor.xmax), rng.uniform(floor.zmin, floor.zmax)
+            y_top = -height if rng.uniform() < 0.4 else -rng.uniform(0.4, 1.8)
+            if not floor.inside(x, z, rad) or not _clear_of(pxz, np.array([x, z]), rad, 0.5):
+                continue
+            if any(math.hypot(x - b[0], z - b[2]) < rad + math.hypot(b[3], b[5]) for b in boxes):
+                continue
+            cyls.append([x, z, y_top, 0.0, rad])
+            cyl_m.append(mats.add(freq=(2.0, 5.0)))
+            break
+    return cyls, cyl_m
+
+
 def make_indoor_scene(seed: int, path: np.ndarray | None = None) -> Scene:
     """A furnished room around the camera path ``path`` (N, 3) world positions (or the origin).
 
@@ -168,73 +285,10 @@ def make_indoor_scene(seed: int, path: np.ndarray | None = None) -> Scene:
             mats.add(value=(0.5, 0.85), freq=(1.0, 2.5)),  # +z wall
         ]
     )
-    boxes, box_m = [], []
-    spheres, sph_m = [], []
-    cyls, cyl_m = [], []
-    margin = 0.05
-
-    def inside(x: float, z: float, rad: float) -> bool:
-        return (
-            xmin + rad + margin <= x <= xmax - rad - margin
-            and zmin + rad + margin <= z <= zmax - rad - margin
-        )
-
-    n_boxes = int(rng.integers(7, 11))
-    tries = 0
-    while len(boxes) < n_boxes and tries < 500:
-        tries += 1
-        hx, hz = rng.uniform(0.2, 0.9), rng.uniform(0.2, 0.7)
-        hy = rng.uniform(0.2, min(1.0, height / 2 - 0.2))
-        rad = math.hypot(hx, hz)
-        if rng.uniform() < 0.5:  # against a wall
-            side = int(rng.integers(4))
-            x = rng.uniform(xmin + rad, xmax - rad)
-            z = rng.uniform(zmin + rad, zmax - rad)
-            if side == 0:
-                x = xmin + rad + margin
-            elif side == 1:
-                x = xmax - rad - margin
-            elif side == 2:
-                z = zmin + rad + margin
-            else:
-                z = zmax - rad - margin
-        else:
-            x = rng.uniform(xmin + rad, xmax - rad)
-            z = rng.uniform(zmin + rad, zmax - rad)
-        if not inside(x, z, rad) or not _clear_of(pxz, np.array([x, z]), rad, 0.5):
-            continue
-        if any(math.hypot(x - b[0], z - b[2]) < rad + math.hypot(b[3], b[5]) for b in boxes):
-            continue
-        boxes.append([x, -hy, z, hx, hy, hz, rng.uniform(-0.6, 0.6)])
-        box_m.append(mats.add())
-    # spheres: on the floor or resting on a box top
-    for _ in range(int(rng.integers(3, 6))):
-        for _try in range(100):
-            rad = rng.uniform(0.15, 0.45)
-            if boxes and rng.uniform() < 0.5:
-                b = boxes[int(rng.integers(len(boxes)))]
-                x, z, y = b[0], b[2], -2 * b[4] - rad
-            else:
-                x, z, y = rng.uniform(xmin, xmax), rng.uniform(zmin, zmax), -rad
-            if y - rad < -height + 0.05 or not inside(x, z, rad):
-                continue
-            if not _clear_of(pxz, np.array([x, z]), rad, 0.5):
-                continue
-            spheres.append([x, y, z, rad])
-            sph_m.append(mats.add(freq=(3.0, 6.0)))
-            break
-    for _ in range(int(rng.integers(3, 6))):
-        for _try in range(100):
-            rad = rng.uniform(0.08, 0.35)
-            x, z = rng.uniform(xmin, xmax), rng.uniform(zmin, zmax)
-            y_top = -height if rng.uniform() < 0.4 else -rng.uniform(0.4, 1.8)
-            if not inside(x, z, rad) or not _clear_of(pxz, np.array([x, z]), rad, 0.5):
-                continue
-            if any(math.hypot(x - b[0], z - b[2]) < rad + math.hypot(b[3], b[5]) for b in boxes):
-                continue
-            cyls.append([x, z, y_top, 0.0, rad])
-            cyl_m.append(mats.add(freq=(2.0, 5.0)))
-            break
+    bounds = _Floor(xmin, xmax, zmin, zmax)
+    boxes, box_m = _place_boxes(rng, mats, bounds, pxz, height)
+    spheres, sph_m = _place_spheres(rng, mats, bounds, pxz, height, boxes)
+    cyls, cyl_m = _place_cylinders(rng, mats, bounds, pxz, height, boxes)
     light = np.array([rng.uniform(-0.5, 0.5), 1.0, rng.uniform(-0.5, 0.5)])
     return Scene(
         kind="indoor",
@@ -252,6 +306,95 @@ def make_indoor_scene(seed: int, path: np.ndarray | None = None) -> Scene:
         ambient=0.45,
         params={"kind": "indoor", "seed": int(seed)},
     )
+
+
+def _place_buildings(
+    rng: np.random.Generator,
+    mats: _Materials,
+    side: float,
+    z0: float,
+    z1: float,
+    boxes: list,
+    box_m: list,
+) -> None:
+    """Facades along one ``side`` (-1 left, +1 right) of the street from z0 to z1 m, appended to
+    ``boxes`` and their materials to ``box_m``."""
+    z = z0
+    while z < z1:
+        w = rng.uniform(5.0, 14.0)
+        if rng.uniform() < 0.15:
+            z += rng.uniform(2.0, 5.0)  # gap between buildings
+        front = rng.uniform(9.0, 10.5)
+        depth = rng.uniform(6.0, 12.0)
+        h = rng.uniform(5.0, 25.0)
+        x = side * (front + depth / 2)
+        boxes.append([x, -h / 2, z + w / 2, depth / 2, h / 2, w / 2, 0.0])
+        box_m.append(mats.add(freq=(0.6, 2.0), value=(0.35, 0.9)))
+        z += w
+
+
+def _place_cars(
+    rng: np.random.Generator,
+    mats: _Materials,
+    side: float,
+    z0: float,
+    z1: float,
+    pxz: np.ndarray,
+    boxes: list,
+    box_m: list,
+) -> None:
+    """Parked cars along one ``side`` of the street, clear of the camera path, appended as
+    boxes."""
+    z = z0 + rng.uniform(0.0, 6.0)
+    while z < z1:  # parked cars
+        if rng.uniform() < 0.6:
+            x = side * rng.uniform(5.2, 5.8)
+            if _clear_of(pxz, np.array([x, z]), 2.5, 1.0):
+                hy = rng.uniform(0.65, 0.85)
+                boxes.append(
+                    [
+                        x,
+                        -hy,
+                        z,
+                        rng.uniform(0.85, 1.0),
+                        hy,
+                        rng.uniform(2.0, 2.5),
+                        rng.uniform(-0.08, 0.08),
+                    ]
+                )
+                box_m.append(mats.add(freq=(2.0, 5.0), saturation=(0.3, 0.9)))
+        z += rng.uniform(6.0, 10.0)
+
+
+def _place_poles(
+    rng: np.random.Generator,
+    mats: _Materials,
+    side: float,
+    z0: float,
+    z1: float,
+    pxz: np.ndarray,
+    poles: tuple[list, list],
+    crowns: tuple[list, list],
+) -> None:
+    """Poles along one ``side`` of the street, half of them trees: the poles appended to
+    ``poles`` (cylinders, materials), the trees' crowns to ``crowns`` (spheres, materials)."""
+    cyls, cyl_m = poles
+    balls, ball_m = crowns
+    z = z0 + rng.uniform(0.0, 10.0)
+    while z < z1:  # poles, half of them trees
+        x = side * rng.uniform(6.7, 7.3)
+        if _clear_of(pxz, np.array([x, z]), 1.5, 1.0):
+            tree = rng.uniform() < 0.5
+            top = -rng.uniform(3.0, 4.5) if tree else -rng.uniform(4.0, 7.0)
+            cyls.append([x, z, top, 0.0, rng.uniform(0.08, 0.18)])
+            cyl_m.append(mats.add(freq=(3.0, 6.0)))
+            if tree:
+                r = rng.uniform(1.0, 1.6)
+                balls.append([x, top - r * 0.8, z, r])
+                ball_m.append(
+                    mats.add(hue=rng.uniform(0.2, 0.4), saturation=(0.4, 0.8), freq=(2.0, 4.0))
+                )
+        z += rng.uniform(8.0, 16.0)
 
 
 def make_outdoor_scene(seed: int, path: np.ndarray | None = None) -> Scene:
@@ -282,52 +425,10 @@ def make_outdoor_scene(seed: int, path: np.ndarray | None = None) -> Scene:
     spheres, sph_m = [], []
     cyls, cyl_m = [], []
     for side in (-1.0, 1.0):
-        z = z0
-        while z < z1:
-            w = rng.uniform(5.0, 14.0)
-            if rng.uniform() < 0.15:
-                z += rng.uniform(2.0, 5.0)  # gap between buildings
-            front = rng.uniform(9.0, 10.5)
-            depth = rng.uniform(6.0, 12.0)
-            h = rng.uniform(5.0, 25.0)
-            x = side * (front + depth / 2)
-            boxes.append([x, -h / 2, z + w / 2, depth / 2, h / 2, w / 2, 0.0])
-            box_m.append(mats.add(freq=(0.6, 2.0), value=(0.35, 0.9)))
-            z += w
-        z = z0 + rng.uniform(0.0, 6.0)
-        while z < z1:  # parked cars
-            if rng.uniform() < 0.6:
-                x = side * rng.uniform(5.2, 5.8)
-                if _clear_of(pxz, np.array([x, z]), 2.5, 1.0):
-                    hy = rng.uniform(0.65, 0.85)
-                    boxes.append(
-                        [
-                            x,
-                            -hy,
-                            z,
-                            rng.uniform(0.85, 1.0),
-                            hy,
-                            rng.uniform(2.0, 2.5),
-                            rng.uniform(-0.08, 0.08),
-                        ]
-                    )
-                    box_m.append(mats.add(freq=(2.0, 5.0), saturation=(0.3, 0.9)))
-            z += rng.uniform(6.0, 10.0)
-        z = z0 + rng.uniform(0.0, 10.0)
-        while z < z1:  # poles, half of them trees
-            x = side * rng.uniform(6.7, 7.3)
-            if _clear_of(pxz, np.array([x, z]), 1.5, 1.0):
-                tree = rng.uniform() < 0.5
-                top = -rng.uniform(3.0, 4.5) if tree else -rng.uniform(4.0, 7.0)
-                cyls.append([x, z, top, 0.0, rng.uniform(0.08, 0.18)])
-                cyl_m.append(mats.add(freq=(3.0, 6.0)))
-                if tree:
-                    r = rng.uniform(1.0, 1.6)
-                    spheres.append([x, top - r * 0.8, z, r])
-                    sph_m.append(
-                        mats.add(hue=rng.uniform(0.2, 0.4), saturation=(0.4, 0.8), freq=(2.0, 4.0))
-                    )
-            z += rng.uniform(8.0, 16.0)
+        # The order of the three is the order of the random draws: a scene is a function of its seed.
+        _place_buildings(rng, mats, side, z0, z1, boxes, box_m)
+        _place_cars(rng, mats, side, z0, z1, pxz, boxes, box_m)
+        _place_poles(rng, mats, side, z0, z1, pxz, (cyls, cyl_m), (spheres, sph_m))
     sun = np.array([rng.uniform(-0.6, 0.6), 1.0, rng.uniform(-0.3, 0.6)])
     zc = 0.5 * (z0 + z1)
     return Scene(
