@@ -232,8 +232,9 @@ class _PreparedRig:
 
 
 def _rig_config(model: nn.Module, config: AdaptConfig | None, supervised: bool) -> AdaptConfig:
-    """The fit's config (the ``rig`` or ``supervised`` recipe when None) at the model's size;
-    refuses a patched model and the settings a rig fit does not have yet."""
+    """The fit's config (the ``rig`` or ``supervised`` recipe when None), resolved for the model
+    (its size, its family's step); refuses a patched model and the settings a rig fit does not
+    have yet."""
     recipe = "supervised" if supervised else "rig"
     config = (
         AdaptConfig.from_recipe(recipe, model=model) if config is None else config

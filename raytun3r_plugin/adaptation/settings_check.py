@@ -15,10 +15,13 @@ from raytun3r_plugin.errors import InputError
 from raytun3r_plugin.pinhole_views import VIEW_NAMES as TEACHER_VIEWS
 
 __all__ = [
+    "MODEL_REPROJECTION_SOURCES",
     "PE_REGULARISERS",
     "POSE_SOURCES",
+    "POSE_TERM_SOURCES",
     "POSE_WINDOWS",
     "SCALES",
+    "TARGET_REPROJECTION_SOURCES",
     "TEACHER_VIEWS",
     "TERMS",
     "check_settings",

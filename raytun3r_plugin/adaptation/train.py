@@ -131,8 +131,9 @@ def adapt(
             adapter file is meant for every segment the camera records, and a fit on several
             segments learns the camera, less any one scene.
         config: :class:`AdaptConfig`; None: the ``default`` recipe (``supervised`` with
-            ``depth``) for this model (:meth:`AdaptConfig.from_recipe`). An ``input_size`` of
-            None is the backbone's own (:func:`~raytun3r_plugin.registry.native_input_size`).
+            ``depth``) for this model (:meth:`AdaptConfig.from_recipe`). What a config leaves to
+            the backbone is resolved for ``model`` (:meth:`AdaptConfig.resolved_for`): an
+            ``input_size`` of None is its own, an ``lr`` of None its family's step.
         out_path: adapter file to write (``.safetensors``); the loss log and the checkpoint go
             next to it (:func:`artifact_paths`). None keeps everything in memory (no log file,
             no checkpoint).
