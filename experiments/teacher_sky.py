@@ -10,6 +10,7 @@ samples on ground-truth sky dropped (an oracle no user has: it reads the rendere
 and scores both with the zero adapter beside them.
 
     python experiments/teacher_sky.py --network raytun3r-da3-tiny --out runs/teacher_sky.json
+    PYTHONPATH=$PWD:$PWD/tests/stubs python experiments/teacher_sky.py --weights W --out ...
 
 One process of one thread; about 5 minutes a sequence here. A rerun skips the sequences its
 output already holds.
@@ -70,6 +71,13 @@ class _SkyDropped:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--network", default="raytun3r-da3-tiny")
+    parser.add_argument(
+        "--weights",
+        default=None,
+        metavar="FILE",
+        help="instead of --network, one exported by scripts/train_default_network.py (a VGGT "
+        "one needs PYTHONPATH=tests/stubs)",
+    )
     parser.add_argument("--sequences", type=int, default=5, help="per lens")
     parser.add_argument("--out", required=True, help="results JSON (one row per sequence)")
     args = parser.parse_args()
@@ -79,7 +87,12 @@ def main() -> None:
     done = {row["seed"] for row in rows}
     dropped = _SkyDropped()
     train.teacher_targets = dropped
-    model, description = default_network(args.network)
+    if args.weights:
+        from raytun3r_plugin.apps.trained_networks import load_trained_network
+
+        model, description = load_trained_network(args.weights)
+    else:
+        model, description = default_network(args.network)
     print(f"network: {description}")
     for k in range(args.sequences):
         for label in LENSES:
