@@ -82,11 +82,19 @@ def main() -> None:
     parser.add_argument("--out", required=True, help="results JSON (one row per sequence)")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    dropped = _SkyDropped()
+    train.teacher_targets = dropped
+    try:
+        _run(args, dropped)
+    finally:
+        train.teacher_targets = dropped.original  # the library as it was
+
+
+def _run(args: argparse.Namespace, dropped: _SkyDropped) -> None:
+    """Fit and score every sequence not yet in ``args.out``, then print the cells' means."""
     out = Path(args.out)
     rows = json.loads(out.read_text()) if out.is_file() else []
     done = {row["seed"] for row in rows}
-    dropped = _SkyDropped()
-    train.teacher_targets = dropped
     if args.weights:
         from raytun3r_plugin.apps.trained_networks import load_trained_network
 

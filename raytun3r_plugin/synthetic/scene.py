@@ -139,6 +139,12 @@ def _clear_of(path_xz: np.ndarray, xz: np.ndarray, radius: float, clearance: flo
     return bool(np.min(np.linalg.norm(path_xz - xz[None], axis=1)) > radius + clearance)
 
 
+def _overlaps_a_box(x: float, z: float, radius: float, boxes: list) -> bool:
+    """True if a footprint of ``radius`` at (x, z) reaches the footprint circle of one of
+    ``boxes`` (``[x, y, z, hx, hy, hz, yaw]`` each)."""
+    return any(math.hypot(x - b[0], z - b[2]) < radius + math.hypot(b[3], b[5]) for b in boxes)
+
+
 @dataclass(frozen=True)
 class _Floor:
     """A room's floor plan (metres, x across and z along): where furniture may stand."""
@@ -189,7 +195,7 @@ def _place_boxes(
             z = rng.uniform(floor.zmin + rad, floor.zmax - rad)
         if not floor.inside(x, z, rad) or not _clear_of(pxz, np.array([x, z]), rad, 0.5):
             continue
-        if any(math.hypot(x - b[0], z - b[2]) < rad + math.hypot(b[3], b[5]) for b in boxes):
+        if _overlaps_a_box(x, z, rad, boxes):
             continue
         boxes.append([x, -hy, z, hx, hy, hz, rng.uniform(-0.6, 0.6)])
         box_m.append(mats.add())
@@ -248,7 +254,7 @@ def _place_cylinders(
             y_top = -height if rng.uniform() < 0.4 else -rng.uniform(0.4, 1.8)
             if not floor.inside(x, z, rad) or not _clear_of(pxz, np.array([x, z]), rad, 0.5):
                 continue
-            if any(math.hypot(x - b[0], z - b[2]) < rad + math.hypot(b[3], b[5]) for b in boxes):
+            if _overlaps_a_box(x, z, rad, boxes):
                 continue
             cyls.append([x, z, y_top, 0.0, rad])
             cyl_m.append(mats.add(freq=(2.0, 5.0)))
