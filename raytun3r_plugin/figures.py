@@ -35,14 +35,14 @@ __all__ = [
 ]
 
 
-def _figure(width_in: float, height_in: float):
+def _figure(width_in: float, height_in: float, layout: str | None = "constrained"):
     try:
         from matplotlib.figure import Figure
     except ImportError as error:
         raise MissingDependencyError(
             "matplotlib is needed for this picture: pip install 'raytun3r[viz]'"
         ) from error
-    return Figure(figsize=(width_in, height_in), dpi=100, layout="constrained")
+    return Figure(figsize=(width_in, height_in), dpi=100, layout=layout)
 
 
 def _png(figure) -> bytes:
@@ -99,7 +99,18 @@ def loss_figure(
     names = [name for name, v in series.items() if np.isfinite(np.asarray(v, float)).any()]
     columns = max(1, min(columns, len(names) or 1))
     rows = max(1, math.ceil(len(names) / columns))
-    figure = _figure(3.6 * columns, 2.4 * rows + (0.3 if title else 0))
+    height = 2.4 * rows + (0.3 if title else 0)
+    # Fixed margins in inches, not the constrained layout: every chart of the grid has the same
+    # furniture, and the layout's extra draw pass was half of the time each fit spent on its PNG.
+    figure = _figure(3.6 * columns, height, layout=None)
+    figure.subplots_adjust(
+        left=0.55 / (3.6 * columns),
+        right=1 - 0.15 / (3.6 * columns),
+        bottom=0.45 / height,
+        top=1 - (0.35 + (0.3 if title else 0)) / height,
+        wspace=0.28,
+        hspace=0.45 * 2.4 / 2.0,
+    )
     if title:
         figure.suptitle(title, fontsize=11)
     if not names:
