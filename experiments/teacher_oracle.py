@@ -124,8 +124,22 @@ def main() -> None:
     parser.add_argument(
         "--sequences", type=int, default=None, help="per lens (sky: 5) or per cell (truth: 2)"
     )
-    parser.add_argument("--out", required=True, help="results JSON (one row per sequence)")
+    parser.add_argument("--out", help="results JSON (one row per sequence)")
+    parser.add_argument(
+        "--summarise",
+        nargs="+",
+        metavar="JSON",
+        help="print the cells' means over these runs' outputs (e.g. one per lens) and fit nothing",
+    )
     args = parser.parse_args()
+    if args.summarise:
+        _summary(
+            [row for path in args.summarise for row in json.loads(Path(path).read_text())],
+            args.oracle,
+        )
+        return
+    if not args.out:
+        parser.error("--out is needed unless --summarise")
     if args.sequences is None:
         args.sequences = 5 if args.oracle == "sky" else 2
     torch.set_num_threads(1)
