@@ -31,7 +31,8 @@ from raytun3r_plugin.apps.benchmark import (
     run_benchmark,
 )
 from raytun3r_plugin.apps.cli_adapt import parse_view_weights
-from raytun3r_plugin.apps.demo import BUILT_IN_NETWORKS, DEFAULT_NETWORK, default_network
+from raytun3r_plugin.apps.demo import BUILT_IN_NETWORKS, DEFAULT_NETWORK
+from raytun3r_plugin.apps.trained_networks import network_from
 from raytun3r_plugin.baselines.multi_ph import VIEW_NAMES
 from raytun3r_plugin.registry import quiet_upstream
 
@@ -196,12 +197,7 @@ def main() -> None:
         lenses = tuple(spec for spec in lenses if spec.label in args.cameras)
     if args.weights and args.network:
         parser.error("--weights names the network: no --network with it")
-    if args.weights:
-        from raytun3r_plugin.apps.trained_networks import load_trained_network
-
-        model, description = load_trained_network(args.weights)
-    else:
-        model, description = default_network(args.network or DEFAULT_NETWORK)
+    model, description = network_from(args.network or DEFAULT_NETWORK, args.weights)
     table = run_benchmark(
         model,
         args.out,

@@ -48,9 +48,10 @@ from raytun3r_plugin.apps.benchmark import (
     cell_sequences,
     make_camera,
 )
-from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, default_network
+from raytun3r_plugin.apps.demo import DEFAULT_NETWORK
 from raytun3r_plugin.apps.evaluation import headline, run_method, score
 from raytun3r_plugin.apps.fits import adapt_config
+from raytun3r_plugin.apps.trained_networks import network_from
 from raytun3r_plugin.registry import quiet_upstream
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -203,12 +204,7 @@ def main() -> None:
         print("\n".join(analyse(args.analyse, args.reference, args.veto, args.table)))
         return
     torch.set_num_threads(1)
-    if args.weights:
-        from raytun3r_plugin.apps.trained_networks import load_trained_network
-
-        model, _ = load_trained_network(args.weights)
-    else:
-        model, _ = default_network(args.network)
+    model, _ = network_from(args.network, args.weights)
     rows: list[dict] = []
     with quiet_upstream():
         cells = [f"{label} {scene}" for label in args.cameras for scene in SCENES]

@@ -47,9 +47,10 @@ from raytun3r_plugin.apps.benchmark import (
     cell_sequences,
     make_camera,
 )
-from raytun3r_plugin.apps.demo import DEFAULT_NETWORK, default_network
+from raytun3r_plugin.apps.demo import DEFAULT_NETWORK
 from raytun3r_plugin.apps.evaluation import headline, run_method, score
 from raytun3r_plugin.apps.fits import adapt_config
+from raytun3r_plugin.apps.trained_networks import network_from
 from raytun3r_plugin.registry import quiet_upstream
 
 SIZE, N_ADAPT, N_EVAL = 112, 24, 12
@@ -111,12 +112,7 @@ def main() -> None:
     parser.add_argument("--out", default="runs/rotation.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    if args.weights:
-        from raytun3r_plugin.apps.trained_networks import load_trained_network
-
-        model, _ = load_trained_network(args.weights)
-    else:
-        model, _ = default_network(DEFAULT_NETWORK)
+    model, _ = network_from(DEFAULT_NETWORK, args.weights)
     rows = []
     base = DEVELOPMENT_SEED if args.development else HELD_OUT_SEED
     with quiet_upstream():

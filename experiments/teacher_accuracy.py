@@ -36,9 +36,9 @@ from raytun3r_plugin.apps.benchmark import (
     make_camera,
     sequence_seed,
 )
-from raytun3r_plugin.apps.demo import default_network
 from raytun3r_plugin.apps.fits import adapt_config
 from raytun3r_plugin.apps.sequence_methods import ground_truth_depth
+from raytun3r_plugin.apps.trained_networks import network_from
 from raytun3r_plugin.pinhole_views import resample_to_view, view_depth_to_fisheye, view_lookup
 from raytun3r_plugin.prediction import predict
 from raytun3r_plugin.registry import quiet_upstream
@@ -100,12 +100,7 @@ def main() -> None:
     parser.add_argument("--sequences", type=int, default=2, help="per wide-lens cell")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    if args.weights:
-        from raytun3r_plugin.apps.trained_networks import load_trained_network
-
-        model, description = load_trained_network(args.weights)
-    else:
-        model, description = default_network(args.network)
+    model, description = network_from(args.network, args.weights)
     print(f"network: {description}")
     rows = []
     for k in range(args.sequences):

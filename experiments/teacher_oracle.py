@@ -42,9 +42,9 @@ from raytun3r_plugin.apps.benchmark import (
     make_camera,
     sequence_seed,
 )
-from raytun3r_plugin.apps.demo import default_network
 from raytun3r_plugin.apps.fits import adapt_config, supervised_config
 from raytun3r_plugin.apps.sequence_methods import ground_truth_depth
+from raytun3r_plugin.apps.trained_networks import network_from
 from raytun3r_plugin.registry import quiet_upstream
 
 SIZE, N_ADAPT, N_EVAL = 112, 24, 12
@@ -156,12 +156,7 @@ def _run(args: argparse.Namespace, oracle: _OracleTeacher) -> None:
     out = Path(args.out)
     rows = json.loads(out.read_text()) if out.is_file() else []
     done = {row["seed"] for row in rows}
-    if args.weights:
-        from raytun3r_plugin.apps.trained_networks import load_trained_network
-
-        model, description = load_trained_network(args.weights)
-    else:
-        model, description = default_network(args.network)
+    model, description = network_from(args.network, args.weights)
     print(f"network: {description}")
     for cell, spec, scene, seed in _sequences(args):
         if seed in done:

@@ -115,6 +115,13 @@ def test_vggt_smoke_run_resumes_exactly_and_exports_a_loadable_network(tmp_path)
 
     model, description = load_trained_network(a / "net.safetensors")
     assert "VGGT" in description and type(model).__name__ == "VGGT"
+    from raytun3r_plugin.apps.trained_networks import network_from
+
+    # The scripts' --weights beats --network; without it the built-in network is named.
+    named = network_from("raytun3r-da3-tiny-v3", a / "net.safetensors")
+    assert named[1] == description and type(named[0]).__name__ == "VGGT"
+    built_in, said = network_from("raytun3r-da3-tiny-v3")
+    assert said.startswith("raytun3r-da3-tiny-v3: ") and type(built_in).__name__ != "VGGT"
     assert spec_for(model)[0].family == "vggt"
     from raytun3r_plugin.registry import native_input_size
 

@@ -119,3 +119,15 @@ def load_trained_network(path: str | Path) -> tuple[nn.Module, str]:
         f"({steps} steps; scripts/train_default_network.py)"
     )
     return model.eval(), description
+
+
+def network_from(name: str, weights: str | Path | None = None) -> tuple[nn.Module, str]:
+    """(model, one-line description) of the network a script's ``--network`` and
+    ``--weights`` name: with ``weights``, the file exported by the training script
+    (:func:`load_trained_network`, ``name`` unused); otherwise the built-in network ``name``
+    (:func:`raytun3r_plugin.apps.demo.default_network`)."""
+    if weights:
+        return load_trained_network(weights)
+    from raytun3r_plugin.apps.demo import default_network
+
+    return default_network(name)
