@@ -19,8 +19,8 @@ scored at 112 px), with the zero adapter scored beside it:
     python experiments/teacher_oracle.py --oracle truth --lenses "KB4 185" --out runs/truth_kb4.json
     PYTHONPATH=$PWD:$PWD/tests/stubs python experiments/teacher_oracle.py --weights W ...
 
-One process of one thread; 4-5 minutes a sequence here. A rerun skips the sequences its output
-already holds.
+One process of one thread; a sequence takes about 5 minutes here with ``sky`` and 10 with ``truth``
+(two such processes side by side). A rerun skips the sequences its output already holds.
 """
 
 from __future__ import annotations
