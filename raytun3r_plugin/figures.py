@@ -19,6 +19,7 @@ from __future__ import annotations
 import io
 import math
 from collections.abc import Mapping, Sequence
+from typing import Literal
 
 import numpy as np
 
@@ -35,7 +36,9 @@ __all__ = [
 ]
 
 
-def _figure(width_in: float, height_in: float, layout: str | None = "constrained"):
+def _figure(
+    width_in: float, height_in: float, layout: Literal["constrained"] | None = "constrained"
+):
     try:
         from matplotlib.figure import Figure
     except ImportError as error:
