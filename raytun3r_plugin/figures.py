@@ -102,17 +102,18 @@ def loss_figure(
     names = [name for name, v in series.items() if np.isfinite(np.asarray(v, float)).any()]
     columns = max(1, min(columns, len(names) or 1))
     rows = max(1, math.ceil(len(names) / columns))
-    height = 2.4 * rows + (0.3 if title else 0)
+    title_in = 0.3 if title else 0.0
+    width, height = 3.6 * columns, 2.4 * rows + title_in
     # Fixed margins in inches, not the constrained layout: every chart of the grid has the same
     # furniture, and the layout's extra draw pass was half of the time each fit spent on its PNG.
-    figure = _figure(3.6 * columns, height, layout=None)
+    figure = _figure(width, height, layout=None)
     figure.subplots_adjust(
-        left=0.55 / (3.6 * columns),
-        right=1 - 0.15 / (3.6 * columns),
+        left=0.55 / width,
+        right=1 - 0.15 / width,
         bottom=0.45 / height,
-        top=1 - (0.35 + (0.3 if title else 0)) / height,
+        top=1 - (0.35 + title_in) / height,
         wspace=0.28,
-        hspace=0.45 * 2.4 / 2.0,
+        hspace=0.54,
     )
     if title:
         figure.suptitle(title, fontsize=11)

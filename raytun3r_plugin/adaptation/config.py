@@ -414,8 +414,9 @@ class AdaptConfig:
         """What an adapter file records about the recipe: ``{"name", "version", "changes"}``,
         where ``changes`` maps every fit setting that differs from the recipe (a loss weight as
         ``"weights.<term>"``), both sides with ``model``'s family changes and resolved for it
-        (:meth:`resolved_for`: its input size, its step), to ``[recipe's value, this value]``; ``backbone_changes`` lists the family's declared
-        changes when there are any. Where files go and how often checkpoints are written
+        (:meth:`resolved_for`: its input size, its step), to ``[recipe's value, this value]``;
+        ``backbone_changes`` lists the family's declared changes when there are any. Where files
+        go and how often checkpoints are written
         (:data:`~raytun3r_plugin.adaptation.recipes.BOOKKEEPING_FIELDS`) are not settings."""
         from raytun3r_plugin.adaptation.recipes import BOOKKEEPING_FIELDS, get_recipe
 
