@@ -15,6 +15,7 @@ No fit is made.
 
     python experiments/teacher_accuracy.py --network raytun3r-da3-tiny
     PYTHONPATH=$PWD:$PWD/tests/stubs python experiments/teacher_accuracy.py --weights W
+    python experiments/teacher_accuracy.py --views centre --fov 80   # the centre view, 80 degrees
 
 One process of one thread; about 15 s a sequence here.
 """
@@ -98,10 +99,21 @@ def main() -> None:
         "one needs PYTHONPATH=tests/stubs)",
     )
     parser.add_argument("--sequences", type=int, default=2, help="per wide-lens cell")
+    parser.add_argument(
+        "--views", nargs="+", default=None, help="teacher views (default: the recipe's)"
+    )
+    parser.add_argument(
+        "--fov", type=float, default=None, help="the views' width, degrees (default: the recipe's)"
+    )
     args = parser.parse_args()
+    changes: dict = {}
+    if args.views:
+        changes["teacher_views"] = tuple(args.views)
+    if args.fov is not None:
+        changes["teacher_fov_deg"] = args.fov
     torch.set_num_threads(1)
     model, description = network_from(args.network, args.weights)
-    print(f"network: {description}")
+    print(f"network: {description}; teacher changes {changes or 'none'}")
     rows = []
     for k in range(args.sequences):
         for label in LENSES:
@@ -111,7 +123,7 @@ def main() -> None:
                 camera = make_camera(CAMERAS[lens], SIZE)
                 # The benchmark's sequence (36 frames), of which the fit sees the first 24.
                 seq = synthetic.render_sequence(scene, camera, n_frames=N_ADAPT + N_EVAL, seed=seed)
-                config = adapt_config(SIZE, 300, seed=0, model=model)
+                config = adapt_config(SIZE, 300, seed=0, model=model, **changes)
                 row = sequence_accuracy(model, camera, seq, config)
                 rows.append(row)
                 print(
