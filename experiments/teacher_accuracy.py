@@ -15,7 +15,7 @@ No fit is made.
 
     python experiments/teacher_accuracy.py --network raytun3r-da3-tiny
     PYTHONPATH=$PWD:$PWD/tests/stubs python experiments/teacher_accuracy.py --weights W
-    python experiments/teacher_accuracy.py --views centre --fov 80   # the centre view, 80 degrees
+    python experiments/teacher_accuracy.py --teacher-views centre --teacher-fov 80
 
 One process of one thread; about 15 s a sequence here.
 """
@@ -99,18 +99,22 @@ def main() -> None:
         "one needs PYTHONPATH=tests/stubs)",
     )
     parser.add_argument("--sequences", type=int, default=2, help="per wide-lens cell")
+    # The option names of `raytun3r adapt` and the benchmark for the same settings.
     parser.add_argument(
-        "--views", nargs="+", default=None, help="teacher views (default: the recipe's)"
+        "--teacher-views", nargs="+", default=None, help="teacher views (default: the recipe's)"
     )
     parser.add_argument(
-        "--fov", type=float, default=None, help="the views' width, degrees (default: the recipe's)"
+        "--teacher-fov",
+        type=float,
+        default=None,
+        help="the views' width, degrees (default: the recipe's)",
     )
     args = parser.parse_args()
     changes: dict = {}
-    if args.views:
-        changes["teacher_views"] = tuple(args.views)
-    if args.fov is not None:
-        changes["teacher_fov_deg"] = args.fov
+    if args.teacher_views:
+        changes["teacher_views"] = tuple(args.teacher_views)
+    if args.teacher_fov is not None:
+        changes["teacher_fov_deg"] = args.teacher_fov
     torch.set_num_threads(1)
     model, description = network_from(args.network, args.weights)
     print(f"network: {description}; teacher changes {changes or 'none'}")
